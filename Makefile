@@ -1,0 +1,31 @@
+# Every target creates .venv on first use and installs the project from pyproject.toml.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: test demo lint bench clean
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev,demo,toml]'
+	@touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -m "not slow" -q
+
+demo: $(STAMP)
+	$(VENV)/bin/biris demo
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check biris_hw regs sim tests tools
+	$(VENV)/bin/ruff format --check biris_hw regs sim tests tools
+	$(VENV)/bin/mypy
+
+bench: $(STAMP)
+	$(PY) -m pip install -q -e '.[bench]'
+	$(PY) tools/bench.py
+
+clean:
+	rm -rf $(VENV) build .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,15 @@
+"""Bus windows: how the host reaches BIRIS memory and the VME boards (DESIGN.md section 2.2)."""
+
+from biris_hw.bus.base import BufferWindow, BusWindow, StructView
+from biris_hw.bus.registry import WINDOW_KINDS, open_window, register_window
+from biris_hw.errors import BusError
+
+__all__ = [
+    "WINDOW_KINDS",
+    "BufferWindow",
+    "BusError",
+    "BusWindow",
+    "StructView",
+    "open_window",
+    "register_window",
+]

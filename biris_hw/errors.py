@@ -1,0 +1,74 @@
+"""The exception tree of biris-hw.
+
+Every error the package raises on purpose derives from :class:`BirisError`, and each also derives
+from the built-in it refines (``OSError`` for bus trouble, ``ValueError`` for bad requests), so a
+caller can catch either our names or Python's.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "BirisError",
+    "BusError",
+    "ConnectionClosed",
+    "FaultKind",
+    "HardwareFault",
+    "LineClosed",
+    "RequestError",
+    "UnknownKind",
+]
+
+import errno
+from typing import Literal
+
+FaultKind = Literal["timeout", "bus", "parity", "motor_stall", "protocol"]
+"""What broke: the four hardware faults of the report, plus ``protocol`` for a target that answers
+with garbage (a malformed PARAM reply, an impossible register value)."""
+
+
+class BirisError(Exception):
+    """Root of every error biris-hw raises on purpose."""
+
+
+class BusError(BirisError, OSError):
+    """An access through a bus window failed or was refused; nothing was read or written.
+
+    Raised for an offset outside the window, a misaligned access, a closed window, and the
+    operating system's own failures when opening or mapping a device.
+    """
+
+    def __init__(self, message: str, err: int = errno.EIO) -> None:
+        OSError.__init__(self, err, message)
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+class UnknownKind(BirisError, LookupError):
+    """A window or interrupt-line kind that no registry entry provides."""
+
+
+class LineClosed(BirisError):
+    """The interrupt line was closed while (or before) a thread waited on it."""
+
+
+class HardwareFault(BirisError):
+    """The sensor or its bus reported a fatal fault (the report's *_ERR messages).
+
+    ``kind`` says which: ``timeout`` (BIRIS_TIMEOUT_ERR), ``bus`` (BIRIS_BUS_ERR), ``parity``
+    (BIRIS_PARITY_ERR), ``motor_stall`` (no end of scan while the head stands still) or
+    ``protocol`` (the target answered with something impossible).
+    """
+
+    def __init__(self, kind: FaultKind, message: str) -> None:
+        super().__init__(f"{kind}: {message}")
+        self.kind: FaultKind = kind
+        self.message = message
+
+
+class RequestError(BirisError, ValueError):
+    """A client request was malformed or impossible; the server changed nothing."""
+
+
+class ConnectionClosed(BirisError):
+    """The connection was closed, or the server that owned it has stopped."""

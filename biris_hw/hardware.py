@@ -1,0 +1,49 @@
+"""The hardware bundle a server drives: windows, interrupt lines and a clock (DESIGN.md 2.4)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from biris_hw.bus.base import BusWindow
+from biris_hw.irq.base import InterruptLine
+
+__all__ = ["BirisHardware"]
+
+
+@dataclass
+class BirisHardware:
+    """Everything the BIRIS server touches, built by the simulator or from a target file.
+
+    ``biris`` is BIRIS memory through the coupler, ``motion`` the Model 7600 board, ``coupler``
+    the Bit 3 registers; ``level2`` carries BIRIS and coupler interrupts, ``level3`` the motor
+    controller's. ``biexec_offset`` is where BIEXEC_COM sits in ``biris``; ``biris_base`` is the
+    BIRIS-side VME address at which ``biris`` starts, so that addresses BIRIS reports (such as
+    Biris_range_ptr) become window offsets. ``clock`` returns hardware time in seconds.
+    """
+
+    biris: BusWindow
+    motion: BusWindow
+    coupler: BusWindow
+    level2: InterruptLine
+    level3: InterruptLine
+    biexec_offset: int
+    biris_base: int
+    clock: Callable[[], float]
+
+    def to_offset(self, biris_address: int) -> int:
+        """Window offset of a BIRIS-side VME address; ValueError when it is outside ``biris``."""
+        offset = biris_address - self.biris_base
+        if not 0 <= offset < self.biris.size:
+            raise ValueError(
+                f"BIRIS address 0x{biris_address:X} is outside the window "
+                f"0x{self.biris_base:X}..0x{self.biris_base + self.biris.size - 1:X}"
+            )
+        return offset
+
+    def close(self) -> None:
+        """Close the lines first (waking notifiers), then the windows."""
+        for line in (self.level2, self.level3):
+            line.close()
+        for window in (self.biris, self.motion, self.coupler):
+            window.close()
