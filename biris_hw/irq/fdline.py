@@ -1,0 +1,108 @@
+"""The shared waiting machinery of descriptor-backed interrupt lines.
+
+A waiter polls two descriptors at once: the line's own and a private stop eventfd. ``close()``
+writes the stop eventfd, so every blocked waiter wakes at once and raises ``LineClosed``; the
+descriptors are closed by the last waiter to leave (or by ``close()`` when nobody waits), never
+while another thread might still be polling them.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+from abc import abstractmethod
+
+from biris_hw.errors import LineClosed
+from biris_hw.irq.base import InterruptLine
+
+__all__ = ["FdLine"]
+
+
+class FdLine(InterruptLine):
+    """An interrupt line whose pending state is a readable descriptor."""
+
+    def __init__(self) -> None:
+        self._stop_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
+        self._lock = threading.Lock()
+        self._waiters = 0
+        self._closed = False
+        self._released = False
+
+    # -- subclass hooks ---------------------------------------------------------------------------
+    @abstractmethod
+    def _line_fd(self) -> int:
+        """The descriptor that polls readable while an interrupt is pending."""
+
+    @abstractmethod
+    def _consume(self) -> int:
+        """Take the pending interrupts off the line and return how many; 0 if none after all."""
+
+    @abstractmethod
+    def _release_line(self) -> None:
+        """Close the line's own descriptor(s)."""
+
+    # -- contract ---------------------------------------------------------------------------------
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def fileno(self) -> int:
+        if self._closed:
+            raise LineClosed(f"{self.kind} line is closed")
+        return self._line_fd()
+
+    def wait(self, timeout: float | None = None) -> int:
+        with self._lock:
+            if self._closed:
+                raise LineClosed(f"{self.kind} line is closed")
+            self._waiters += 1
+            line_fd = self._line_fd()
+        try:
+            return self._wait(line_fd, timeout)
+        finally:
+            with self._lock:
+                self._waiters -= 1
+                last_out = self.closed and self._waiters == 0
+            if last_out:
+                self._release()
+
+    def _wait(self, line_fd: int, timeout: float | None) -> int:
+        poller = select.poll()
+        poller.register(self._stop_fd, select.POLLIN)
+        poller.register(line_fd, select.POLLIN | select.POLLERR)
+        deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+        while True:
+            if deadline is None:
+                ms = -1
+            else:
+                remaining = deadline - time.monotonic()
+                ms = max(0, int(remaining * 1000.0 + 0.999))
+            ready = dict(poller.poll(ms))
+            if self._stop_fd in ready or self._closed:
+                raise LineClosed(f"{self.kind} line was closed while waiting")
+            if line_fd in ready:
+                count = self._consume()
+                if count:
+                    return count
+            elif deadline is not None and time.monotonic() >= deadline:
+                return 0
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            idle = self._waiters == 0
+            os.eventfd_write(self._stop_fd, 1)
+        if idle:
+            self._release()
+
+    def _release(self) -> None:
+        with self._lock:
+            if self._released:
+                return
+            self._released = True
+        self._release_line()
+        os.close(self._stop_fd)
