@@ -1,0 +1,55 @@
+"""``DeviceWindow``: a bus window whose accesses reach a device model, side effects and all.
+
+Register files such as the HCTL-1000's cannot be plain memory: reading R14H latches, writing R0EH
+commits. The simulator therefore hands the driver a window that turns every byte access into a
+call on the model's *bus* interface (``bus_read``/``bus_write``), keeping the model's backdoor
+(peek/poke, no side effects) for the simulator's own use. Wider accesses to a byte-wide board are
+split into byte accesses in ascending address order, as a D8 board sees them.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Protocol
+
+from biris_hw.bus.base import BusWindow
+
+__all__ = ["BusDevice", "DeviceWindow"]
+
+
+class BusDevice(Protocol):
+    """The bus side of a simulated register file: one byte per access, with side effects."""
+
+    def bus_read(self, offset: int) -> int: ...
+
+    def bus_write(self, offset: int, value: int) -> None: ...
+
+
+class DeviceWindow(BusWindow):
+    """A window over a :class:`BusDevice`; accesses are serialised with the model's lock."""
+
+    kind = "device"
+
+    def __init__(self, device: BusDevice, size: int, lock: threading.RLock | None = None) -> None:
+        super().__init__(size)
+        self._device: BusDevice | None = device
+        self._lock = lock if lock is not None else threading.RLock()
+
+    def _dev(self) -> BusDevice:
+        if self._device is None:  # pragma: no cover - _check() refuses a closed window first
+            raise RuntimeError("device window is closed")
+        return self._device
+
+    def _read(self, offset: int, n: int) -> bytes:
+        dev = self._dev()
+        with self._lock:
+            return bytes(dev.bus_read(offset + i) & 0xFF for i in range(n))
+
+    def _write(self, offset: int, data: bytes) -> None:
+        dev = self._dev()
+        with self._lock:
+            for i, byte in enumerate(data):
+                dev.bus_write(offset + i, byte)
+
+    def _close(self) -> None:
+        self._device = None
