@@ -3,6 +3,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+LINT_DIRS := biris_hw regs sim tests $(wildcard tools)
 
 .PHONY: test demo lint bench clean
 
@@ -19,8 +20,8 @@ demo: $(STAMP)
 	$(VENV)/bin/biris demo
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check biris_hw regs sim tests tools
-	$(VENV)/bin/ruff format --check biris_hw regs sim tests tools
+	$(VENV)/bin/ruff check $(LINT_DIRS)
+	$(VENV)/bin/ruff format --check $(LINT_DIRS)
 	$(VENV)/bin/mypy
 
 bench: $(STAMP)

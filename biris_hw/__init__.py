@@ -1,15 +1,23 @@
 """biris-hw: driver, server and client API for the NRC BIRIS laser range camera."""
 
 from biris_hw.angles import counts_to_deg, deg_to_counts
+from biris_hw.data import ConnectionKind, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault, RequestError
 from biris_hw.hardware import BirisHardware
+from biris_hw.records import BirisInitRecord, MotorParams
 
 __all__ = [
     "BirisError",
     "BirisHardware",
+    "BirisInitRecord",
     "ConnectionClosed",
+    "ConnectionKind",
+    "Direction",
     "HardwareFault",
+    "MotorParams",
+    "Point",
     "RequestError",
+    "Scan",
     "counts_to_deg",
     "deg_to_counts",
 ]

@@ -47,7 +47,11 @@ class StructView(Generic[S]):
         return obj
 
     def __getattr__(self, name: str) -> Any:
-        return getattr(self._live(), name)
+        value = getattr(self._live(), name)
+        if isinstance(value, (ctypes.Array, ctypes.Structure)):
+            # A nested ctypes object would share (and pin) the window's memory: hand out a copy.
+            return type(value).from_buffer_copy(value)
+        return value
 
     def __setattr__(self, name: str, value: Any) -> None:
         setattr(self._live(), name, value)

@@ -1,0 +1,207 @@
+"""What the client API hands out: scan directions, connection kinds, scans and points.
+
+These are values, not handles: they never refer back to the server, so a client may keep them,
+pass them to another thread or pickle them. Their arrays are read-only so that one scan handed to
+several DATA connections cannot be changed by one of them under the others.
+"""
+
+from __future__ import annotations
+
+import enum
+import operator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from regs.hctl1000 import COUNTS_PER_REV
+
+__all__ = ["ConnectionKind", "Direction", "Point", "Scan"]
+
+_DEG_PER_COUNT = 360.0 / COUNTS_PER_REV
+
+
+class Direction(enum.IntEnum):
+    """The way a sweep turns, seen from above; the server keeps one scan buffer for each.
+
+    CCW moves towards larger counts (positive is counter-clockwise, REP 103). The values are 0 and
+    1, usable as indices; use :attr:`sign` for arithmetic.
+    """
+
+    CW = 0
+    CCW = 1
+
+    @property
+    def sign(self) -> int:
+        """+1 for CCW, -1 for CW: the sign of the change in counts along such a sweep."""
+        return 1 if self is Direction.CCW else -1
+
+    @classmethod
+    def of_motion(cls, start_counts: int, end_counts: int) -> Direction:
+        """The direction of a move from ``start_counts`` to ``end_counts``; ValueError if none."""
+        if end_counts == start_counts:
+            raise ValueError(f"a move from {start_counts} to itself has no direction")
+        return cls.CCW if end_counts > start_counts else cls.CW
+
+
+class ConnectionKind(enum.IntEnum):
+    """NORMAL connections ask; DATA ("DAT") connections are also sent every completed buffer."""
+
+    NORMAL = 0
+    DATA = 1
+
+
+def _frozen(name: str, value: Any, dtype: type[np.generic], ndim: int) -> NDArray[Any]:
+    """``value`` as a read-only array of ``dtype``, copied unless it already is one.
+
+    A writable input is copied, not frozen in place: freezing the caller's own array would break
+    the caller, and sharing it would let the caller change a delivered scan.
+    """
+    array = np.asarray(value, dtype=dtype)
+    if array.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimension(s), not shape {array.shape}")
+    if array.flags.writeable:
+        array = array.copy()
+        array.flags.writeable = False
+    return array
+
+
+def _optional_time(name: str, value: float | None) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name} must be a number or None, not {type(value).__name__}")
+    return float(value)
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """One sweep's data, as the server buffered it (one buffer per direction).
+
+    Row k is acquisition k of the sequence: ``azimuth[k]`` (counts), ``range_mm[k]`` (the samples
+    along the laser line, top to bottom; 0 = no return or discarded beyond BIRIS_MAX_RANGE),
+    ``closest_mm[k]`` (element 0 of the BIRIS frame), ``intensity[k]`` and ``t[k]`` (hardware
+    clock seconds). ``seq`` counts completed scans of this direction; ``dropped`` counts
+    acquisitions lost (a slow DATA client, a coalesced interrupt the data path could not recover).
+    ``elevation`` is the tilt axis position in counts and ``t_delivered`` the hardware time the
+    scan was handed to the client, when known.
+
+    Equality is identity: comparing array contents is the caller's choice (``np.array_equal``).
+    """
+
+    direction: Direction
+    seq: int
+    azimuth: NDArray[np.int32]
+    range_mm: NDArray[np.int16]
+    closest_mm: NDArray[np.int16]
+    intensity: NDArray[np.int16]
+    t: NDArray[np.float64]
+    dropped: int = 0
+    elevation: int = 0
+    t_delivered: float | None = None
+
+    def __post_init__(self) -> None:
+        def put(key: str, value: object) -> None:
+            object.__setattr__(self, key, value)
+
+        put("direction", Direction(self.direction))
+        put("seq", _count("seq", self.seq))
+        put("dropped", _count("dropped", self.dropped))
+        put("elevation", operator.index(self.elevation))
+        put("t_delivered", _optional_time("t_delivered", self.t_delivered))
+        azimuth = _frozen("azimuth", self.azimuth, np.int32, 1)
+        range_mm = _frozen("range_mm", self.range_mm, np.int16, 2)
+        closest = _frozen("closest_mm", self.closest_mm, np.int16, 1)
+        intensity = _frozen("intensity", self.intensity, np.int16, 2)
+        t = _frozen("t", self.t, np.float64, 1)
+        n_acq = azimuth.shape[0]
+        for key, array in (("closest_mm", closest), ("t", t)):
+            if array.shape != (n_acq,):
+                raise ValueError(f"{key} has shape {array.shape}, expected ({n_acq},)")
+        if range_mm.shape[0] != n_acq:
+            raise ValueError(f"range_mm has {range_mm.shape[0]} rows for {n_acq} acquisitions")
+        if intensity.shape != range_mm.shape:
+            raise ValueError(f"intensity has shape {intensity.shape}, range_mm {range_mm.shape}")
+        for key, array in (
+            ("azimuth", azimuth),
+            ("range_mm", range_mm),
+            ("closest_mm", closest),
+            ("intensity", intensity),
+            ("t", t),
+        ):
+            put(key, array)
+
+    @property
+    def n_acq(self) -> int:
+        """Acquisitions in the scan."""
+        return int(self.azimuth.shape[0])
+
+    @property
+    def samples(self) -> int:
+        """Samples per acquisition along the laser line (64 or 128 on the real sensor)."""
+        return int(self.range_mm.shape[1])
+
+    @property
+    def azimuth_deg(self) -> NDArray[np.float64]:
+        """``azimuth`` in degrees (a new array on each call)."""
+        return np.multiply(self.azimuth, _DEG_PER_COUNT, dtype=np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class Point:
+    """One acquisition, as REQUEST_POINT returns it: the latest the server has.
+
+    ``range_mm`` is the closest sample (what the report's initial server returned), ``profile``
+    and ``intensity`` the full line. ``acq`` is its index in sequence ``scan_seq``; ``t`` its
+    acquisition time and ``t_delivered`` the time it was handed over, both hardware seconds.
+    """
+
+    azimuth: int
+    range_mm: int
+    profile: NDArray[np.int16]
+    intensity: NDArray[np.int16]
+    t: float
+    acq: int
+    scan_seq: int
+    elevation: int = 0
+    t_delivered: float | None = None
+
+    def __post_init__(self) -> None:
+        def put(key: str, value: object) -> None:
+            object.__setattr__(self, key, value)
+
+        put("azimuth", operator.index(self.azimuth))
+        put("range_mm", operator.index(self.range_mm))
+        put("acq", _count("acq", self.acq))
+        put("scan_seq", _count("scan_seq", self.scan_seq))
+        put("elevation", operator.index(self.elevation))
+        t = _optional_time("t", self.t)
+        if t is None:
+            raise ValueError("t must be a number, not None")
+        put("t", t)
+        put("t_delivered", _optional_time("t_delivered", self.t_delivered))
+        profile = _frozen("profile", self.profile, np.int16, 1)
+        intensity = _frozen("intensity", self.intensity, np.int16, 1)
+        if intensity.shape != profile.shape:
+            raise ValueError(f"intensity has shape {intensity.shape}, profile {profile.shape}")
+        put("profile", profile)
+        put("intensity", intensity)
+
+    @property
+    def age(self) -> float | None:
+        """How old the point was when delivered (hardware seconds), or None if not known."""
+        return None if self.t_delivered is None else self.t_delivered - self.t
+
+    @property
+    def azimuth_deg(self) -> float:
+        """``azimuth`` in degrees."""
+        return self.azimuth * _DEG_PER_COUNT
+
+
+def _count(name: str, value: int) -> int:
+    """A non-negative whole number (sequence numbers, indices, tallies)."""
+    number = operator.index(value)
+    if number < 0:
+        raise ValueError(f"{name} must not be negative, not {number}")
+    return number

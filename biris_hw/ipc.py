@@ -1,0 +1,329 @@
+"""Harmony's Send/Receive/Reply between threads (DESIGN.md 2.5; reference section 2.3-2.6).
+
+The server is an *administrator*: it blocks only on its one inbox, never sends and never sleeps.
+Everything that wants its attention (clients, notifiers, workers) sends to that inbox and stays
+blocked until the administrator replies. This rendezvous is the whole synchronisation story of the
+report, so the module keeps its semantics exact rather than offering a general queue:
+
+* ``send`` is synchronous: the sender is SEND-blocked until the message is received, then
+  REPLY-blocked until it is answered. There is no buffering beyond the senders themselves.
+* ``reply`` never blocks, and may happen much later and from another thread (a parked
+  READY_FOR_DATA is answered when a buffer completes; a worker is "dispatched" by replying).
+* Stopping a task must not strand anyone: ``close`` releases every sender still waiting, queued
+  or parked, with :class:`TaskStopped` (Harmony: destroying a task closes its connections).
+* A sender that gives up (timeout) takes its message back, so the administrator never acts on a
+  request whose client has stopped listening; if it was already received, the late reply is
+  dropped and :meth:`Envelope.reply` says so by returning False.
+
+Waiting is on a per-envelope lock (a one-shot signal) and a condition for the receiver: no
+polling, and a reply costs one short critical section.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+
+from biris_hw.errors import BirisError, ConnectionClosed
+
+__all__ = ["Envelope", "Mailbox", "Message", "ReplyError", "TaskStopped", "Ticket"]
+
+# Envelope states. Only the mailbox lock moves an envelope between them, which is what makes a
+# reply racing a timeout or a close come out one way or the other, never both.
+_QUEUED = 0  # sender SEND-blocked
+_RECEIVED = 1  # sender REPLY-blocked
+_ANSWERED = 2  # reply() or fail() delivered
+_RELEASED = 3  # the mailbox was closed under the sender
+_WITHDRAWN = 4  # the sender timed out (or was interrupted) and took the message back
+
+_STATE_NAMES = ("queued", "received", "answered", "released", "withdrawn")
+
+
+class TaskStopped(ConnectionClosed):
+    """The task that owns a mailbox stopped; a send to it can never be answered."""
+
+
+class ReplyError(BirisError, RuntimeError):
+    """An envelope was answered twice, or before it was received: a bug in the receiving task."""
+
+
+class Message:
+    """Optional base for message types (frozen dataclasses defined by the server).
+
+    It adds no fields, only a common ancestor for ``isinstance`` checks and a name for logs, so a
+    subclass stays a plain frozen dataclass.
+    """
+
+    __slots__ = ()
+
+    @property
+    def kind(self) -> str:
+        """The message type's name, as the report spells message types in its case statements."""
+        return type(self).__name__
+
+
+class Envelope:
+    """One sent message, as the receiver holds it until it answers.
+
+    Made by :class:`Mailbox`; the receiver gets it from :meth:`Mailbox.receive`, may keep it
+    (park it) as long as it likes, and answers exactly once with :meth:`reply` or :meth:`fail`.
+    """
+
+    __slots__ = (
+        "_answered",
+        "_error",
+        "_mailbox",
+        "_signal",
+        "_state",
+        "_value",
+        "message",
+        "sender",
+    )
+
+    def __init__(self, message: object, mailbox: Mailbox) -> None:
+        self.message = message
+        """What was sent."""
+        self.sender = threading.current_thread().name
+        """Name of the sending thread, for logs: Harmony's receiver always knows who sent."""
+        self._mailbox = mailbox
+        self._state = _QUEUED
+        self._answered = False
+        self._value: object = None
+        self._error: BaseException | None = None
+        # A plain lock used as a one-shot signal: held from birth, released once when the
+        # envelope settles. Cheaper than an Event, and a timed acquire is the sender's wait.
+        self._signal = threading.Lock()
+        self._signal.acquire()
+
+    @property
+    def waiting(self) -> bool:
+        """True while the sender is REPLY-blocked on this envelope.
+
+        False once answered, once the sender timed out, and once the mailbox closed: an
+        administrator can drop parked envelopes whose sender has gone.
+        """
+        return self._state == _RECEIVED
+
+    def reply(self, value: object = None) -> bool:
+        """Release the sender, whose ``send`` returns ``value``; never blocks.
+
+        Returns False when nobody is listening any more (the sender timed out, or the mailbox was
+        closed); the value is then discarded. Answering twice raises :class:`ReplyError`.
+        """
+        return self._answer(value, None)
+
+    def fail(self, exc: BaseException) -> bool:
+        """Release the sender, whose ``send`` raises ``exc``; otherwise exactly like :meth:`reply`.
+
+        This is how a RequestError or HardwareFault reaches a client: the error is raised in the
+        client's thread, where the request was made.
+        """
+        if not isinstance(exc, BaseException):
+            raise TypeError(f"fail() needs an exception instance, not {type(exc).__name__}")
+        return self._answer(None, exc)
+
+    def _answer(self, value: object, error: BaseException | None) -> bool:
+        mailbox = self._mailbox
+        with mailbox._lock:
+            if self._answered:
+                raise ReplyError(f"{self!r} was already answered")
+            if self._state == _QUEUED:
+                raise ReplyError(f"{self!r} has not been received")
+            self._answered = True
+            if self._state != _RECEIVED:
+                return False
+            mailbox._held.discard(self)
+            self._settle(_ANSWERED, value, error)
+            return True
+
+    def _settle(self, state: int, value: object, error: BaseException | None) -> None:
+        """Final state and result, then wake the sender. Caller holds the mailbox lock."""
+        self._state = state
+        self._value = value
+        self._error = error
+        self._signal.release()
+
+    def _withdraw_locked(self) -> None:
+        """The sender gives up: take the message back. Caller holds the mailbox lock."""
+        if self._state == _QUEUED:
+            self._mailbox._queue.remove(self)
+        elif self._state == _RECEIVED:
+            self._mailbox._held.discard(self)
+        else:
+            return
+        self._settle(
+            _WITHDRAWN, None, TimeoutError(f"no reply from {self._mailbox.name!r} in time")
+        )
+
+    def _await(self, timeout: float | None) -> object:
+        """The sender's half of send(): block until settled, withdrawing on timeout."""
+        signal = self._signal
+        try:
+            settled = signal.acquire(True, -1 if timeout is None else max(timeout, 0.0))
+        except BaseException:
+            # Interrupted (KeyboardInterrupt in the main thread): do not leave a request behind
+            # that the administrator would act on for a caller that has gone.
+            with self._mailbox._lock:
+                self._withdraw_locked()
+            raise
+        if settled:
+            signal.release()  # leave the signal open: a second wait returns at once
+        else:
+            with self._mailbox._lock:
+                self._withdraw_locked()  # no-op if a reply won the race: then use it
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+    def __repr__(self) -> str:
+        return (
+            f"<Envelope {self.message!r} from {self.sender!r} to {self._mailbox.name!r}: "
+            f"{_STATE_NAMES[self._state]}>"
+        )
+
+
+class Ticket:
+    """The sender's side of a message queued with :meth:`Mailbox.post`.
+
+    ``mailbox.send(m, t)`` is exactly ``mailbox.post(m).wait(t)``: splitting the two lets a thread
+    know its message is queued before it blocks (tests rely on that to be deterministic).
+    """
+
+    __slots__ = ("_envelope",)
+
+    def __init__(self, envelope: Envelope) -> None:
+        self._envelope = envelope
+
+    @property
+    def message(self) -> object:
+        """What was posted."""
+        return self._envelope.message
+
+    @property
+    def done(self) -> bool:
+        """True once :meth:`wait` would not block: answered, released by close, or withdrawn."""
+        return self._envelope._state > _RECEIVED
+
+    def wait(self, timeout: float | None = None) -> object:
+        """The reply; raises what the receiver failed with, TaskStopped, or TimeoutError.
+
+        On timeout the message is withdrawn (or, if already received, its reply will be dropped)
+        and every later wait raises the same TimeoutError at once.
+        """
+        return self._envelope._await(timeout)
+
+
+class Mailbox:
+    """A task's inbox: any number of senders, one receiving task (the owner).
+
+    ``name`` is for messages and logs, like a Harmony server's registered name.
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._lock = threading.Lock()
+        self._arrived = threading.Condition(self._lock)
+        self._queue: deque[Envelope] = deque()  # senders SEND-blocked, in order of sending
+        self._held: set[Envelope] = set()  # received, not answered: REPLY-blocked senders
+        self._closed = False
+        self._reason: BaseException | None = None
+
+    # -- sender side ---------------------------------------------------------------------------
+
+    def send(self, message: object, timeout: float | None = None) -> object:
+        """Send and block until answered; return the reply value.
+
+        Raises what the receiver passed to :meth:`Envelope.fail`, :class:`TaskStopped` (or the
+        close reason) if the mailbox is or becomes closed, and TimeoutError after ``timeout``
+        seconds, having withdrawn the message.
+        """
+        return self._post(message)._await(timeout)
+
+    def post(self, message: object) -> Ticket:
+        """Queue ``message`` without blocking; :meth:`Ticket.wait` is the rest of :meth:`send`."""
+        return Ticket(self._post(message))
+
+    def _post(self, message: object) -> Envelope:
+        envelope = Envelope(message, self)
+        with self._lock:
+            if self._closed:
+                raise self._stopped()
+            self._queue.append(envelope)
+            self._arrived.notify()
+        return envelope
+
+    # -- receiver side -------------------------------------------------------------------------
+
+    def receive(self, timeout: float | None = None) -> Envelope:
+        """The oldest message; blocks until one arrives.
+
+        Raises :class:`TaskStopped` (or the close reason) once the mailbox is closed and
+        TimeoutError after ``timeout`` seconds without a message.
+        """
+        with self._lock:
+            if not self._queue and not self._closed:
+                ready = self._arrived.wait_for(lambda: self._queue or self._closed, timeout)
+                if not ready:
+                    raise TimeoutError(f"no message for {self.name!r} in {timeout} s")
+            return self._take_locked()
+
+    def try_receive(self) -> Envelope | None:
+        """The oldest message, or None at once if there is none (Harmony's _Try_receive)."""
+        with self._lock:
+            if not self._queue and not self._closed:
+                return None
+            return self._take_locked()
+
+    def _take_locked(self) -> Envelope:
+        if self._closed:
+            raise self._stopped()
+        envelope = self._queue.popleft()
+        envelope._state = _RECEIVED
+        self._held.add(envelope)
+        return envelope
+
+    # -- lifetime ------------------------------------------------------------------------------
+
+    def close(self, reason: BaseException | None = None) -> None:
+        """Stop the mailbox: every waiting sender, queued or parked, raises; idempotent.
+
+        Senders raise ``reason`` if given (a HardwareFault that stopped the server, say),
+        otherwise a :class:`TaskStopped`. Later sends and receives raise the same way, and a
+        late reply to a released envelope returns False. The first close's reason sticks.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._reason = reason
+            released = [*self._queue, *self._held]
+            self._queue.clear()
+            self._held.clear()
+            for envelope in released:
+                envelope._settle(_RELEASED, None, self._stopped())
+            self._arrived.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` has been called."""
+        return self._closed
+
+    @property
+    def queued(self) -> int:
+        """Messages sent but not yet received (senders SEND-blocked), for logs and tests."""
+        return len(self._queue)
+
+    @property
+    def held(self) -> int:
+        """Messages received but not yet answered (senders REPLY-blocked, parked included)."""
+        return len(self._held)
+
+    def _stopped(self) -> BaseException:
+        """What a sender or receiver raises on a closed mailbox. Caller holds the lock."""
+        if self._reason is not None:
+            return self._reason
+        return TaskStopped(f"task {self.name!r} has stopped")
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else f"{self.queued} queued, {self.held} held"
+        return f"<Mailbox {self.name!r}: {state}>"

@@ -1,0 +1,373 @@
+"""Send/Receive/Reply: the rendezvous the whole server is built on (biris_hw.ipc)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from biris_hw.errors import ConnectionClosed, HardwareFault, RequestError
+from biris_hw.ipc import Envelope, Mailbox, Message, ReplyError, TaskStopped
+
+WAIT = 5.0  # generous bound on every blocking call, so a bug fails instead of hanging
+
+
+class Sender(threading.Thread):
+    """A thread that makes one send() and records how it ended."""
+
+    def __init__(self, mailbox: Mailbox, message: object, timeout: float | None = WAIT) -> None:
+        super().__init__(daemon=True)
+        self.mailbox = mailbox
+        self.message = message
+        self.timeout = timeout
+        self.result: object = None
+        self.error: BaseException | None = None
+        self.before_return: Callable[[], None] = lambda: None
+
+    def run(self) -> None:
+        try:
+            self.result = self.mailbox.send(self.message, timeout=self.timeout)
+        except BaseException as exc:
+            self.error = exc
+        self.before_return()
+
+    def finish(self) -> Sender:
+        self.join(WAIT)
+        assert not self.is_alive(), "sender still blocked"
+        return self
+
+
+def test_send_blocks_until_the_reply() -> None:
+    mailbox = Mailbox("server")
+    log: list[str] = []
+    replying = threading.Event()
+    sender = Sender(mailbox, "ping")
+
+    def returned() -> None:
+        # Runs in the sender after send() returned: the receiver must have begun replying.
+        assert replying.is_set()
+        log.append("returned")
+
+    sender.before_return = returned
+    sender.start()
+    envelope = mailbox.receive(timeout=WAIT)
+    log.append("received")
+    assert envelope.message == "ping"
+    assert envelope.waiting and sender.is_alive()  # REPLY-blocked: received, not answered
+    assert mailbox.queued == 0 and mailbox.held == 1
+    replying.set()
+    log.append("replying")
+    assert envelope.reply("pong") is True
+    sender.finish()
+    assert log == ["received", "replying", "returned"]
+    assert sender.result == "pong" and sender.error is None
+    assert not envelope.waiting and mailbox.held == 0
+
+
+def test_post_is_send_blocked_until_received() -> None:
+    mailbox = Mailbox("server")
+    ticket = mailbox.post("hello")
+    assert mailbox.queued == 1 and not ticket.done  # SEND-blocked
+    envelope = mailbox.receive(timeout=WAIT)
+    assert mailbox.queued == 0 and mailbox.held == 1 and not ticket.done  # REPLY-blocked
+    envelope.reply(42)
+    assert ticket.done
+    assert ticket.wait(timeout=0) == 42
+    assert ticket.wait() == 42  # a second wait returns at once
+
+
+def test_reply_never_blocks_even_before_the_sender_waits() -> None:
+    # One thread plays both sides: if reply() waited for the sender to collect, this would hang.
+    mailbox = Mailbox("server")
+    ticket = mailbox.post("request")
+    envelope = mailbox.receive(timeout=WAIT)
+    assert envelope.reply("answer") is True
+    assert ticket.wait(timeout=WAIT) == "answer"
+
+
+def test_messages_arrive_in_order_of_sending() -> None:
+    mailbox = Mailbox("server")
+    tickets = [mailbox.post(i) for i in range(5)]
+    envelopes = [mailbox.receive(timeout=WAIT) for _ in range(5)]
+    assert [e.message for e in envelopes] == [0, 1, 2, 3, 4]
+    for envelope in envelopes:
+        envelope.reply(envelope.message)
+    assert [t.wait(0) for t in tickets] == [0, 1, 2, 3, 4]
+
+
+def test_deferred_reply_from_another_thread() -> None:
+    mailbox = Mailbox("server")
+    sender = Sender(mailbox, "READY_FOR_DATA")
+    sender.start()
+    parked = mailbox.receive(timeout=WAIT)  # the administrator parks it and goes on receiving
+    other = Sender(mailbox, "NEW_POINT")
+    other.start()
+    mailbox.receive(timeout=WAIT).reply("ok")
+    other.finish()
+    assert sender.is_alive() and parked.waiting
+
+    replier = threading.Thread(target=parked.reply, args=("buffer",))
+    replier.start()
+    replier.join(WAIT)
+    sender.finish()
+    assert sender.result == "buffer"
+
+
+def test_fail_raises_the_exception_in_the_sender() -> None:
+    mailbox = Mailbox("server")
+    sender = Sender(mailbox, "BIRIS_SINGLE_SCAN_RQST")
+    sender.start()
+    error = RequestError("destination is not a number")
+    assert mailbox.receive(timeout=WAIT).fail(error) is True
+    sender.finish()
+    assert sender.error is error
+
+
+def test_fail_needs_an_exception() -> None:
+    mailbox = Mailbox("server")
+    mailbox.post("x")
+    envelope = mailbox.receive(timeout=WAIT)
+    with pytest.raises(TypeError):
+        envelope.fail("not an exception")  # type: ignore[arg-type]
+    assert envelope.reply() is True  # the failed attempt did not count as an answer
+
+
+@pytest.mark.parametrize(
+    ("first", "second"),
+    [("reply", "reply"), ("reply", "fail"), ("fail", "reply"), ("fail", "fail")],
+)
+def test_answering_twice_raises(first: str, second: str) -> None:
+    mailbox = Mailbox("server")
+    ticket = mailbox.post("x")
+    envelope = mailbox.receive(timeout=WAIT)
+
+    def answer(how: str) -> bool:
+        return envelope.reply(1) if how == "reply" else envelope.fail(RequestError("no"))
+
+    answer(first)
+    with pytest.raises(ReplyError):
+        answer(second)
+    if first == "reply":
+        assert ticket.wait(0) == 1
+    else:
+        with pytest.raises(RequestError):
+            ticket.wait(0)
+
+
+def test_close_releases_queued_received_and_parked_senders() -> None:
+    mailbox = Mailbox("server")
+    parked = Sender(mailbox, "READY_FOR_DATA")  # received, kept for a later buffer
+    parked.start()
+    parked_envelope = mailbox.receive(timeout=WAIT)
+    working = Sender(mailbox, "REQUEST_POINT")  # received, being worked on
+    working.start()
+    working_envelope = mailbox.receive(timeout=WAIT)
+    queued = [mailbox.post(i) for i in range(3)]  # never received
+    assert mailbox.queued == 3 and mailbox.held == 2
+
+    mailbox.close()
+
+    for sender in (parked.finish(), working.finish()):
+        assert isinstance(sender.error, TaskStopped)
+    for ticket in queued:
+        assert ticket.done
+        with pytest.raises(TaskStopped):
+            ticket.wait(0)
+    # Late answers are dropped, not errors: the administrator may still be unwinding.
+    assert parked_envelope.reply("late") is False
+    assert working_envelope.fail(RequestError("late")) is False
+    assert not parked_envelope.waiting
+    assert mailbox.queued == 0 and mailbox.held == 0
+
+
+def test_task_stopped_is_a_connection_closed() -> None:
+    assert issubclass(TaskStopped, ConnectionClosed)
+
+
+def test_close_wakes_a_sender_blocked_in_send_and_a_blocked_receiver() -> None:
+    mailbox = Mailbox("server")
+    sender = Sender(mailbox, "x", timeout=None)
+    sender.start()
+    mailbox.receive(timeout=WAIT)  # the sender is now REPLY-blocked with no timeout
+    receiver_error: list[BaseException] = []
+    receiving = threading.Event()
+
+    def receive() -> None:
+        receiving.set()
+        try:
+            mailbox.receive()
+        except BaseException as exc:
+            receiver_error.append(exc)
+
+    receiver = threading.Thread(target=receive, daemon=True)
+    receiver.start()
+    assert receiving.wait(WAIT)
+    mailbox.close()
+    receiver.join(WAIT)
+    assert isinstance(sender.finish().error, TaskStopped)
+    assert len(receiver_error) == 1 and isinstance(receiver_error[0], TaskStopped)
+
+
+def test_close_with_a_reason_raises_it_in_senders() -> None:
+    mailbox = Mailbox("server")
+    ticket = mailbox.post("x")
+    fault = HardwareFault("bus", "bus error on the BIRIS chassis")
+    mailbox.close(fault)
+    with pytest.raises(HardwareFault) as info:
+        ticket.wait(0)
+    assert info.value is fault
+    with pytest.raises(HardwareFault):
+        mailbox.send("y")
+
+
+def test_after_close_send_and_receive_raise_at_once() -> None:
+    mailbox = Mailbox("server")
+    mailbox.close()
+    mailbox.close()  # idempotent
+    assert mailbox.closed
+    with pytest.raises(TaskStopped):
+        mailbox.send("x")  # no timeout: would hang if it queued
+    with pytest.raises(TaskStopped):
+        mailbox.post("x")
+    with pytest.raises(TaskStopped):
+        mailbox.receive()
+    with pytest.raises(TaskStopped):
+        mailbox.try_receive()
+
+
+def test_try_receive_does_not_block() -> None:
+    mailbox = Mailbox("server")
+    assert mailbox.try_receive() is None
+    ticket = mailbox.post("x")
+    envelope = mailbox.try_receive()
+    assert envelope is not None and envelope.message == "x"
+    envelope.reply()
+    assert ticket.wait(0) is None
+
+
+def test_receive_timeout() -> None:
+    with pytest.raises(TimeoutError):
+        Mailbox("server").receive(timeout=0.01)
+
+
+def test_send_timeout_withdraws_an_unreceived_message() -> None:
+    mailbox = Mailbox("server")
+    with pytest.raises(TimeoutError):
+        mailbox.send("too late", timeout=0.01)
+    assert mailbox.queued == 0
+    assert mailbox.try_receive() is None  # the receiver never sees it
+
+
+def test_ticket_timeout_withdraws_and_sticks() -> None:
+    mailbox = Mailbox("server")
+    ticket = mailbox.post("x")
+    with pytest.raises(TimeoutError):
+        ticket.wait(0)
+    assert ticket.done and mailbox.queued == 0
+    with pytest.raises(TimeoutError):
+        ticket.wait()  # no timeout: would hang if the withdrawal did not settle the ticket
+
+
+def test_late_reply_after_a_send_timeout_is_discarded() -> None:
+    mailbox = Mailbox("server")
+    ticket = mailbox.post("x")
+    envelope = mailbox.receive(timeout=WAIT)
+    with pytest.raises(TimeoutError):
+        ticket.wait(0.01)  # gives up while REPLY-blocked
+    assert not envelope.waiting and mailbox.held == 0
+    assert envelope.reply("late") is False
+    with pytest.raises(ReplyError):
+        envelope.reply("again")
+
+
+def test_withdrawn_message_leaves_later_ones_in_place() -> None:
+    mailbox = Mailbox("server")
+    first = mailbox.post("first")
+    second = mailbox.post("second")
+    with pytest.raises(TimeoutError):
+        first.wait(0)
+    envelope = mailbox.receive(timeout=WAIT)
+    assert envelope.message == "second"
+    envelope.reply("ok")
+    assert second.wait(0) == "ok"
+
+
+@settings(max_examples=20, deadline=None)
+@given(order=st.permutations(range(6)))
+def test_concurrent_senders_each_get_their_own_reply(order: list[int]) -> None:
+    mailbox = Mailbox("server")
+    start = threading.Barrier(len(order))
+
+    class Racer(Sender):
+        def run(self) -> None:
+            start.wait(WAIT)  # all send at once, in no particular order
+            super().run()
+
+    senders = [Racer(mailbox, i) for i in range(len(order))]
+    for sender in senders:
+        sender.start()
+    received = {}
+    for _ in senders:
+        envelope = mailbox.receive(timeout=WAIT)
+        received[envelope.message] = envelope
+    for i in order:  # answer in an arbitrary order, all deferred
+        received[i].reply(("reply to", i))
+    for i, sender in enumerate(senders):
+        sender.finish()
+        assert sender.error is None
+        assert sender.result == ("reply to", i)
+
+
+def test_many_senders_one_receiver_thread() -> None:
+    mailbox = Mailbox("server")
+    n = 200
+
+    def serve() -> None:
+        try:
+            while True:
+                envelope = mailbox.receive()
+                assert isinstance(envelope.message, int)
+                envelope.reply(envelope.message * 2)
+        except TaskStopped:
+            pass
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    results: dict[int, object] = {}
+    lock = threading.Lock()
+
+    def client(base: int) -> None:
+        for i in range(base, n, 4):
+            value = mailbox.send(i, timeout=WAIT)
+            with lock:
+                results[i] = value
+
+    clients = [threading.Thread(target=client, args=(k,)) for k in range(4)]
+    for thread in clients:
+        thread.start()
+    for thread in clients:
+        thread.join(WAIT)
+    mailbox.close()
+    server.join(WAIT)
+    assert not server.is_alive()
+    assert results == {i: 2 * i for i in range(n)}
+
+
+def test_message_base_and_repr() -> None:
+    @dataclass(frozen=True)
+    class NewPoint(Message):
+        acq: int
+
+    mailbox = Mailbox("BIRISSERV:")
+    mailbox.post(NewPoint(3))
+    envelope = mailbox.receive(timeout=WAIT)
+    assert isinstance(envelope, Envelope)
+    assert isinstance(envelope.message, NewPoint) and envelope.message.kind == "NewPoint"
+    assert envelope.sender == threading.current_thread().name
+    assert "NewPoint(acq=3)" in repr(envelope) and "received" in repr(envelope)
+    assert "1 held" in repr(mailbox)
+    envelope.reply()
