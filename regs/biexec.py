@@ -115,8 +115,14 @@ def decode_param(raw: bytes) -> str:
     return raw[:end].decode("ascii")
 
 
+def _signed16(value: int) -> int:
+    """Accept the raw unsigned read and the signed ctypes field value alike."""
+    value &= 0xFFFF
+    return value - 0x10000 if value & 0x8000 else value
+
+
 def _status_text(value: int) -> str:
-    value = value - 0x10000 if value & 0x8000 else value
+    value = _signed16(value)
     try:
         return f"{value} ({BiStatus(value).name})"
     except ValueError:
@@ -134,7 +140,7 @@ def _command_text(value: int) -> str:
 
 
 def _acq_line_text(value: int) -> str:
-    value = value - 0x10000 if value & 0x8000 else value
+    value = _signed16(value)
     if value == ACQ_LINE_STARTUP:
         return "-1 (start-up)"
     if value == ACQ_LINE_END:

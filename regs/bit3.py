@@ -129,7 +129,14 @@ BIT3_REGISTERS = RegisterSet(
         Register("REMOTE_PAGE_HI", 0x0B, 1, Access.RW, "remote page A24..A31"),
         Register("REMOTE_CARD_ID", 0x0C, 1, Access.R, "remote card id"),
         Register("REMOTE_ADDR_MOD", 0x0D, 1, Access.RW, "remote address modifier"),
-        Register("REMOTE_IACK", 0x0E, 2, Access.R, "remote IACK read: vector"),
+        Register(
+            "REMOTE_IACK",
+            0x0E,
+            2,
+            Access.R,
+            "remote IACK read: vector (the read runs an IACK cycle on the remote bus)",
+            read_has_effect=True,
+        ),
         Register(
             "LEVEL2_VECTOR",
             0x10,

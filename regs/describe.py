@@ -63,6 +63,9 @@ class Register:
     meaning: str
     decoder: Callable[[int], str] | None = None
     signed: bool = False
+    read_has_effect: bool = False
+    """Reading it does more than latch (an interrupt acknowledge, a read-to-clear), so a
+    register dump must leave it alone even though the host may read it."""
 
     def decode(self, value: int) -> str:
         """Text for people; the hex value when no decoder is given."""
@@ -97,12 +100,18 @@ class Composite:
 
 @dataclass(frozen=True)
 class RegisterSet:
-    """The registers of one device (or one structure), in offset order."""
+    """The registers of one device (or one structure), in offset order.
+
+    Register offsets are measured in the window the set is reached through; ``base`` is where
+    the set's ``size`` bytes start in that window (non-zero for the second HCTL-1000 on the
+    Model 7600, whose registers sit at board offsets 0x40..0x7F).
+    """
 
     name: str
     size: int
     registers: tuple[Register, ...]
     composites: tuple[Composite, ...] = field(default=())
+    base: int = 0
 
     def __iter__(self) -> Iterator[Register]:
         return iter(self.registers)
@@ -131,6 +140,10 @@ class RegisterSet:
         return None
 
 
+_SIGNED_TYPE_CODES = ("b", "h", "i", "l", "q")
+"""ctypes type codes of the signed integer types."""
+
+
 def describe_struct(
     name: str,
     struct_type: type[ctypes.Structure],
@@ -149,7 +162,9 @@ def describe_struct(
         desc = getattr(struct_type, fname)
         if issubclass(ftype, ctypes.Array):
             continue
-        signed = ftype in (ctypes.c_int8, ctypes.c_int16, ctypes.c_int32, ctypes.c_int64)
+        # By type code, not identity: a BigEndianStructure on a little-endian host stores
+        # byte-swapped copies of the field types, which are not ctypes.c_int16 and friends.
+        signed = getattr(ftype, "_type_", "") in _SIGNED_TYPE_CODES
         regs.append(
             Register(
                 name=fname,

@@ -27,6 +27,7 @@ __all__ = [
     "HCTL_REGISTERS",
     "HCTL_SPACE",
     "MOTION_LIMIT_COUNTS",
+    "SAMPLE_TIMER_MIN",
     "Flag",
     "ProgramCounter",
     "Reg",
@@ -140,6 +141,10 @@ STATUS_WRITABLE_MASK = 0x0F
 """Only the low four status bits can be written (bit 3 must be written 0)."""
 
 
+SAMPLE_TIMER_MIN = 0x07
+"""Smallest R0FH the datasheet's range allows: 64 us at 2 MHz (the range is 64 us..2048 us)."""
+
+
 class ProgramCounter(enum.IntEnum):
     """Values written to R05H."""
 
@@ -159,7 +164,7 @@ def sample_period(timer: int, f_clk: float = F_CLK_HZ) -> float:
 def sample_timer_for(period_s: float, f_clk: float = F_CLK_HZ) -> int:
     """R0FH value whose period is closest to ``period_s``: T = f_clk t / 16 - 1."""
     timer = round(f_clk * period_s / 16.0 - 1.0)
-    if not 0 <= timer <= 0xFF:
+    if not SAMPLE_TIMER_MIN <= timer <= 0xFF:
         raise ValueError(f"a {period_s * 1e3:.3f} ms sample period is out of the chip's range")
     return timer
 

@@ -9,6 +9,7 @@ initialisation polls to find the zero index.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 
 from regs.describe import Access, Register, RegisterSet, flags_decoder
@@ -120,9 +121,7 @@ def hctl_registers_for(axis: Axis | int) -> RegisterSet:
     return RegisterSet(
         name=name,
         size=HCTL_SPACE,
-        registers=tuple(
-            Register(r.name, base + r.offset, r.width, r.access, r.meaning, r.decoder, r.signed)
-            for r in HCTL_REGISTERS
-        ),
+        registers=tuple(dataclasses.replace(r, offset=base + r.offset) for r in HCTL_REGISTERS),
         composites=HCTL_REGISTERS.composites,
+        base=base,
     )
