@@ -30,9 +30,12 @@ class EventFdLine(FdLine):
         """Raise ``count`` interrupts; they accumulate until a waiter takes them."""
         if count < 1:
             raise ValueError("an interrupt count must be at least 1")
-        if self._closed:
-            raise LineClosed("eventfd line is closed")
-        os.eventfd_write(self._fd, count)
+        # Under the line's lock: close() sets ``_closed`` under it before any descriptor is
+        # released, so a write that passed the check can never hit a closed (or reused) number.
+        with self._lock:
+            if self._closed:
+                raise LineClosed("eventfd line is closed")
+            os.eventfd_write(self._fd, count)
 
     def _line_fd(self) -> int:
         return self._fd
@@ -42,6 +45,9 @@ class EventFdLine(FdLine):
             return int(os.eventfd_read(self._fd))
         except BlockingIOError:
             return 0  # another waiter took it first
+
+    def _wake_pollers(self) -> None:
+        os.eventfd_write(self._fd, 1)
 
     def _release_line(self) -> None:
         os.close(self._fd)

@@ -96,8 +96,17 @@ class FdLine(InterruptLine):
             self._closed = True
             idle = self._waiters == 0
             os.eventfd_write(self._stop_fd, 1)
+            self._wake_pollers()
         if idle:
             self._release()
+
+    def _wake_pollers(self) -> None:
+        """Make the line's own descriptor readable at close, where the kind can.
+
+        A thread that multiplexes on ``fileno()`` (a demultiplexer) does not see the private stop
+        descriptor; woken this way it calls ``wait()`` and gets ``LineClosed``. Runs under the
+        lock after ``_closed`` is set, so no waiter can take the wake for an interrupt.
+        """
 
     def _release(self) -> None:
         with self._lock:
