@@ -18,6 +18,8 @@ from biris_hw.errors import BusError
 
 __all__ = ["BufferWindow", "BusWindow", "StructView"]
 
+_Self = TypeVar("_Self", bound="BusWindow")
+
 S = TypeVar("S", bound=ctypes.Structure)
 
 _U8 = struct.Struct(">B")
@@ -159,7 +161,7 @@ class BusWindow(ABC):
             self._closed = True
             self._close()
 
-    def __enter__(self) -> BusWindow:
+    def __enter__(self: _Self) -> _Self:
         return self
 
     def __exit__(

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from types import TracebackType
-from typing import ClassVar
+from typing import ClassVar, TypeVar
 
 __all__ = ["InterruptLine"]
+
+_Self = TypeVar("_Self", bound="InterruptLine")
 
 
 class InterruptLine(ABC):
@@ -37,7 +39,7 @@ class InterruptLine(ABC):
     def closed(self) -> bool:
         """True once :meth:`close` has been called."""
 
-    def __enter__(self) -> InterruptLine:
+    def __enter__(self: _Self) -> _Self:
         return self
 
     def __exit__(

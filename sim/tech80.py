@@ -1,0 +1,220 @@
+"""The Technology 80 Model 7600 board: two HCTL-1000s, their motors, and the motor interrupt.
+
+The driver sees one byte-wide window (``regs.tech80``): azimuth chip registers at 0x00-0x3F,
+elevation at 0x40-0x7F, board registers from 0x80. The board turns the end of a trapezoidal
+profile into MOTOR_END_OF_SCAN: the axis's IRQ_STATUS bit is set when its chip clears F0 and, if
+that axis is enabled in IRQ_ENABLE at that moment, ``raise_irq()`` is called (the rig wires it to
+the level-3 line). The interrupt is edge-like: enabling an axis whose status bit is already set
+does not raise it again. INDEX_STATUS shows each plant's index-seen latch (write 1 to clear);
+CHIP_RESET resets a chip (write 1); IRQ_LEVEL reads 3 (jumpered); IRQ_STATUS bits are cleared by
+writing 1.
+
+Time: both chips are caught up to ``clock.now()`` on every bus access (whole sample periods, each
+chip at its own period), and a background thread (:meth:`Model7600.start`) keeps them moving so
+that profile ends, and their interrupts, happen on time without any bus access: it sleeps until
+the next expected profile end or for at most 2 ms of real time. Everything runs under one
+``RLock``, ``board.lock``, which the driver's :class:`sim.device.DeviceWindow` shares. Backdoor
+users (fault injection, the rig's true azimuth) take that lock too, and call
+:meth:`Model7600.catch_up` before reading a plant, e.g.
+``with board.lock: board.plants[0].stalled = True``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from regs.hctl1000 import HCTL_SPACE
+from regs.tech80 import MOTION_WINDOW_SIZE, MOTOR_IRQ_LEVEL, AxisBit, BoardReg
+from sim.audit import Audit, Rule
+from sim.clock import SimClock
+from sim.device import DeviceWindow
+from sim.hctl1000 import Hctl1000
+from sim.motor import MotorPlant
+
+__all__ = ["Model7600"]
+
+_AXIS_BITS = (int(AxisBit.AZIMUTH), int(AxisBit.ELEVATION))
+_POLL_REAL_S = 0.002
+"""Longest real-time sleep of the background thread between catch-ups."""
+_MIN_SLEEP_REAL_S = 0.00005
+_BATCH_TICKS = 256
+"""Sample periods per chip simulated before the thread lets a bus access in."""
+
+
+class Model7600:
+    """The board model; implements the :class:`sim.device.BusDevice` protocol."""
+
+    def __init__(
+        self,
+        clock: SimClock,
+        rng: np.random.Generator,
+        *,
+        raise_irq: Callable[[], None],
+        audit: Audit | None = None,
+        azimuth_plant: MotorPlant | None = None,
+        elevation_plant: MotorPlant | None = None,
+    ) -> None:
+        self.lock = threading.RLock()
+        self._clock = clock
+        self._raise_irq = raise_irq
+        self._audit = audit
+        az = azimuth_plant if azimuth_plant is not None else MotorPlant(rng)
+        el = elevation_plant if elevation_plant is not None else MotorPlant(rng)
+        self.plants: tuple[MotorPlant, MotorPlant] = (az, el)
+        self.azimuth = Hctl1000("azimuth", az, audit=audit, clock=clock.now)
+        self.elevation = Hctl1000("elevation", el, audit=audit, clock=clock.now)
+        self.chips: tuple[Hctl1000, Hctl1000] = (self.azimuth, self.elevation)
+        for axis, chip in enumerate(self.chips):
+            chip.on_profile_end = self._profile_end_handler(axis)
+        self._irq_vector = 0
+        self._irq_enable = 0
+        self._irq_status = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- interrupts ------------------------------------------------------------------------------
+    def _profile_end_handler(self, axis: int) -> Callable[[], None]:
+        bit = _AXIS_BITS[axis]
+
+        def ended() -> None:
+            was_set = self._irq_status & bit
+            self._irq_status |= bit
+            if not was_set and self._irq_enable & bit:
+                self._raise_irq()
+
+        return ended
+
+    @property
+    def irq_status(self) -> int:
+        """IRQ_STATUS without side effects (backdoor)."""
+        return self._irq_status
+
+    # -- time --------------------------------------------------------------------------------------
+    def catch_up(self) -> None:
+        """Bring both chips and plants up to now (backdoor readers call it first)."""
+        with self.lock:
+            self._sync()
+
+    def _sync(self, max_ticks: int | None = None) -> bool:
+        """Catch both chips up to now; False if ``max_ticks`` stopped either short."""
+        now = self._clock.now()
+        done = True
+        for chip in self.chips:
+            done = chip.advance_to(now, max_ticks) and done
+        return done
+
+    def start(self) -> None:
+        """Run the background thread that keeps the chips on time between bus accesses."""
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="model7600", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop and join the background thread; calling it again does nothing."""
+        thread = self._thread
+        if thread is None:
+            return
+        self._stop.set()
+        thread.join()
+        self._thread = None
+
+    def _run(self) -> None:
+        clock = self._clock
+        while not self._stop.is_set():
+            with self.lock:
+                caught_up = self._sync(_BATCH_TICKS)
+                etas = [eta for chip in self.chips if (eta := chip.profile_end_eta()) is not None]
+            if not caught_up:
+                time.sleep(0)  # yield, so a waiting bus access gets the lock between batches
+                continue
+            sleep = _POLL_REAL_S
+            if etas:
+                sleep = min(sleep, max(_MIN_SLEEP_REAL_S, clock.to_real(min(etas) - clock.now())))
+            self._stop.wait(sleep)
+
+    # -- bus side ----------------------------------------------------------------------------------
+    @staticmethod
+    def _check_offset(offset: int) -> None:
+        if not 0 <= offset < MOTION_WINDOW_SIZE:
+            raise ValueError(f"board offset 0x{offset:X} outside the Model 7600 window")
+
+    def bus_read(self, offset: int) -> int:
+        """One byte as the driver reads it (HCTL side effects included)."""
+        self._check_offset(offset)
+        with self.lock:
+            self._sync()
+            if offset < 2 * HCTL_SPACE:
+                return self.chips[offset // HCTL_SPACE].bus_read(offset % HCTL_SPACE)
+            return self._board_read(offset)
+
+    def bus_write(self, offset: int, value: int) -> None:
+        """One byte as the driver writes it."""
+        self._check_offset(offset)
+        value &= 0xFF
+        with self.lock:
+            self._sync()
+            if offset < 2 * HCTL_SPACE:
+                self.chips[offset // HCTL_SPACE].bus_write(offset % HCTL_SPACE, value)
+                return
+            self._board_write(offset, value)
+
+    def _board_read(self, offset: int) -> int:
+        if offset == BoardReg.IRQ_VECTOR:
+            return self._irq_vector
+        if offset == BoardReg.IRQ_ENABLE:
+            return self._irq_enable
+        if offset == BoardReg.IRQ_STATUS:
+            return self._irq_status
+        if offset == BoardReg.INDEX_STATUS:
+            seen = zip(_AXIS_BITS, self.plants, strict=True)
+            return sum(bit for bit, plant in seen if plant.index_seen)
+        if offset == BoardReg.IRQ_LEVEL:
+            return MOTOR_IRQ_LEVEL
+        return 0  # CHIP_RESET is write-only; the rest is unmapped
+
+    def _board_write(self, offset: int, value: int) -> None:
+        if offset == BoardReg.IRQ_VECTOR:
+            self._irq_vector = value
+        elif offset == BoardReg.IRQ_ENABLE:
+            self._irq_enable = value & 0x03
+        elif offset == BoardReg.IRQ_STATUS:
+            self._irq_status &= ~value
+        elif offset == BoardReg.CHIP_RESET:
+            for bit, chip in zip(_AXIS_BITS, self.chips, strict=True):
+                if value & bit:
+                    chip.reset()
+        elif offset == BoardReg.INDEX_STATUS:
+            for bit, plant in zip(_AXIS_BITS, self.plants, strict=True):
+                if value & bit:
+                    plant.clear_index()
+        elif offset == BoardReg.IRQ_LEVEL and self._audit is not None:
+            self._audit.record(
+                Rule.WRITE_TO_READ_ONLY,
+                f"Model 7600: write of 0x{value:02X} to read-only IRQ_LEVEL",
+                REGISTER=offset,
+                VALUE=value,
+            )
+
+    # -- backdoor --------------------------------------------------------------------------------
+    def window(self) -> DeviceWindow:
+        """A bus window over the board, as the driver's ``motion`` window."""
+        return DeviceWindow(self, MOTION_WINDOW_SIZE, lock=self.lock)
+
+    def snapshot(self) -> bytes:
+        """All window bytes as a driver would read them, without any side effect."""
+        with self.lock:
+            self._sync()
+            out = bytearray(MOTION_WINDOW_SIZE)
+            for axis, chip in enumerate(self.chips):
+                base = axis * HCTL_SPACE
+                for reg in range(HCTL_SPACE):
+                    out[base + reg] = chip.peek(reg)
+            for offset in range(2 * HCTL_SPACE, MOTION_WINDOW_SIZE):
+                out[offset] = self._board_read(offset)
+            return bytes(out)
