@@ -20,6 +20,7 @@ class BirisHardware:
     controller's. ``biexec_offset`` is where BIEXEC_COM sits in ``biris``; ``biris_base`` is the
     BIRIS-side VME address at which ``biris`` starts, so that addresses BIRIS reports (such as
     Biris_range_ptr) become window offsets. ``clock`` returns hardware time in seconds.
+    The bundle does not own what it holds: whoever built it closes it (:meth:`close`).
     """
 
     biris: BusWindow
@@ -30,6 +31,9 @@ class BirisHardware:
     biexec_offset: int
     biris_base: int
     clock: Callable[[], float]
+    time_scale: float = 1.0
+    """Hardware seconds per real second: 1.0 on the target, the simulator's ``time_scale``
+    otherwise. Timers (the 4 s BIRIS timeout, the motor watchdog) use it to wait in real time."""
 
     def to_offset(self, biris_address: int) -> int:
         """Window offset of a BIRIS-side VME address; ValueError when it is outside ``biris``."""

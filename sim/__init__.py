@@ -1,6 +1,10 @@
-"""The BIRIS hardware simulator: it plays the far side of the driver's windows and lines."""
+"""The BIRIS hardware simulator: it plays the far side of the driver's windows and lines.
 
-POISON = 0x7A7A
-"""The value every element of a frame holds while that frame is being exposed."""
+``SimulatedBiris`` is the whole target; ``Scene`` is what it looks at.
+"""
 
-__all__ = ["POISON"]
+from regs.layout import FRAME_POISON as POISON
+from sim.rig import SimulatedBiris
+from sim.scene import Scene
+
+__all__ = ["POISON", "Scene", "SimulatedBiris"]

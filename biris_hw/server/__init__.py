@@ -1,0 +1,5 @@
+"""The BIRIS server: the report's Harmony task structure on Python threads."""
+
+from biris_hw.server.server import BirisServer
+
+__all__ = ["BirisServer"]

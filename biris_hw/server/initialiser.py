@@ -1,0 +1,258 @@
+"""Initialisation of the server's hardware (report: "Initialization of the BIRIS Server").
+
+Runs as a worker of its own so the administrator never waits on it: configures both HCTL-1000s
+with the init record's motor parameters, finds the azimuth zero index by polling the board's
+index latch and stands at 0 degrees, boots BIRIS with the record's boot file, then asks BIRIS
+where its range array, azimuth table and frame size are. Moves and BIRIS commands go through the
+administrator (InitMove, InitCommand) so that they use the same workers and notifiers as scans.
+Every step is bounded: no index within the configured revolutions, a command BIRIS never
+completes, or a move that never ends is a HardwareFault, never a hang.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from biris_hw.errors import BirisError, HardwareFault
+from biris_hw.hardware import BirisHardware
+from biris_hw.ipc import Mailbox
+from biris_hw.records import BirisInitRecord
+from biris_hw.server.devices import AxisDriver, BirisLink, Coupler, MotionBoard
+from biris_hw.server.messages import InitCommand, InitMove
+from regs.biexec import BiCommand, BiStatus, decode_param
+from regs.hctl1000 import COUNTS_PER_REV
+from regs.layout import FrameAddressing, acquisition_period_s, samples_for_frame_size
+from regs.tech80 import DEFAULT_IRQ_VECTOR, Axis
+
+__all__ = ["InitResult", "Initialiser", "wait_settled"]
+
+log = logging.getLogger(__name__)
+
+LEVEL2_VECTOR = 0x42
+"""The vector we program for every level-2 (BIRIS) interrupt."""
+
+HOMING_CHUNK = 256
+"""Counts per coarse homing move: small enough to stop soon after the index, large enough to
+cover a revolution in a few moves."""
+
+
+@dataclass(frozen=True)
+class InitResult:
+    addressing: FrameAddressing
+    samples: int
+    period_s: float
+
+
+def wait_settled(
+    axis: AxisDriver,
+    clock: Callable[[], float],
+    time_scale: float,
+    stop: threading.Event,
+    limit_s: float = 1.0,
+    sample_s: float = 0.0015,
+) -> bool:
+    """Poll until the actual position equals the command position and holds for 3 samples.
+
+    Polling is how the HCTL-1000 datasheet says to tell that the motor has stopped (the profile
+    flag clears before it does). Bounded by ``limit_s`` of hardware time; False if not settled.
+    """
+    deadline = clock() + limit_s
+    last: int | None = None
+    steady = 0
+    while clock() < deadline:
+        pos = axis.actual_position()
+        target = axis.command_position()
+        if abs(pos - target) <= 1 and pos == last:
+            steady += 1
+            if steady >= 3:
+                return True
+        else:
+            steady = 0
+        last = pos
+        if stop.wait(sample_s / time_scale):
+            return False
+    return False
+
+
+class Initialiser:
+    """One run of the initialisation sequence; ``run()`` returns an InitResult or raises."""
+
+    def __init__(
+        self,
+        hw: BirisHardware,
+        record: BirisInitRecord,
+        admin: Mailbox,
+        stop: threading.Event,
+    ) -> None:
+        self.hw = hw
+        self.record = record
+        self.admin = admin
+        self.stop = stop
+        self.board = MotionBoard(hw.motion)
+        self.azimuth = AxisDriver(hw.motion, Axis.AZIMUTH)
+        self.elevation = AxisDriver(hw.motion, Axis.ELEVATION)
+        self.coupler = Coupler(hw.coupler)
+        self.link = BirisLink(hw.biris, hw.biexec_offset)
+        self._position = 0
+
+    # -- steps ---------------------------------------------------------------------------------
+    def run(self) -> InitResult:
+        self.coupler.clear_errors()
+        self.coupler.enable_interrupts(LEVEL2_VECTOR)
+        self.configure_axes()
+        self.find_zero_index()
+        return self.boot_biris()
+
+    def configure_axes(self) -> None:
+        """Reset both chips, load the motor parameters, hold each axis where it stands."""
+        self.board.disable_all()
+        for axis in (self.azimuth, self.elevation):
+            self.board.reset_chip(axis.axis)
+            axis.configure(self.record.motor)
+            self._wait_still(axis)
+            axis.hold_here()
+            self.board.acknowledge(axis.axis)
+        self.board.enable_end_of_scan(Axis.AZIMUTH, DEFAULT_IRQ_VECTOR)
+        self._position = self.azimuth.command_position()
+
+    def _wait_still(self, axis: AxisDriver) -> None:
+        """After a reset the motor coasts; wait until the encoder stops changing."""
+        deadline = self.hw.clock() + 2.0
+        last = axis.actual_position()
+        steady = 0
+        while self.hw.clock() < deadline and steady < 5:
+            if self.stop.wait(0.002 / self.hw.time_scale):
+                return
+            pos = axis.actual_position()
+            steady = steady + 1 if pos == last else 0
+            last = pos
+
+    def _move(self, destination: int) -> None:
+        if destination == self._position:
+            return
+        self._send(InitMove(destination))
+        self._position = destination
+
+    def _send(self, message: object) -> object:
+        timeout = (self.record.timeout_s * 4.0) / self.hw.time_scale + 5.0
+        try:
+            return self.admin.send(message, timeout=timeout)
+        except TimeoutError as exc:
+            raise HardwareFault("timeout", f"initialisation step {message} timed out") from exc
+
+    def find_zero_index(self) -> None:
+        """Find the index nearest the power-up position, then stand on it as encoder count 0.
+
+        Coarse: sweep alternately counter-clockwise and clockwise, each sweep reaching further
+        (256, 512, 1024 ... counts either side, up to half the configured revolutions), clearing
+        the board's index latch before each; the first sweep that sets it found the index in the
+        territory that sweep added. Searching outwards keeps the head within half a revolution
+        of where it woke up, so the cable is never wound further than it has to be. Fine: bisect
+        that territory, crossing the index again for each half, to one count.
+        """
+        board, axis = self.board, Axis.AZIMUTH
+        start = self._position
+        half = max(1, round(self.record.home_index_timeout_revs * COUNTS_PER_REV / 2))
+        reach, targets = min(HOMING_CHUNK, half), []
+        while True:
+            targets += [start + reach, start - reach]
+            if reach >= half:
+                break
+            reach = min(reach * 2, half)
+        covered_lo = covered_hi = start
+        bracket: tuple[int, int] | None = None
+        for target in targets:
+            board.clear_index(axis)
+            self._move(target)
+            if board.index_seen(axis):
+                if target > covered_hi:
+                    bracket = (covered_hi - 2, target)
+                else:
+                    bracket = (target, covered_lo + 2)
+                break
+            covered_lo, covered_hi = min(covered_lo, target), max(covered_hi, target)
+        if bracket is None:
+            raise HardwareFault(
+                "motor_stall",
+                f"no zero index within {self.record.home_index_timeout_revs:g} revolution(s)",
+            )
+        low, high = bracket
+        while high - low > 1:
+            mid = (low + high) // 2
+            self._move(low)  # going back may cross the index: clear the latch afterwards
+            board.clear_index(axis)
+            self._move(mid)
+            if board.index_seen(axis):
+                high = mid
+            else:
+                low = mid
+        self._move(high)
+        self.azimuth.idle()
+        self._wait_still(self.azimuth)
+        self.azimuth.hold_here(zero_counter=True)
+        self._position = 0
+        board.clear_index(axis)
+        log.info("zero index found at encoder count %d", high)
+
+    def _command(self, code: BiCommand, param: str = "") -> str:
+        reply = self._send(InitCommand(int(code), param))
+        assert isinstance(reply, tuple)
+        status, raw = reply
+        if status != BiStatus.OK:
+            try:
+                name = BiStatus(status).name
+            except ValueError:
+                name = "error"
+            raise HardwareFault("protocol", f"{code.name} failed: STATUS {status} ({name})")
+        try:
+            return decode_param(raw)
+        except ValueError as exc:
+            raise HardwareFault("protocol", f"{code.name}: malformed PARAM answer {raw!r}") from exc
+
+    def boot_biris(self) -> InitResult:
+        self.link.set_flags(cmd_int=True, data_int=False, motor_access=True)
+        self._command(BiCommand.BI_BOOT, self.record.boot_file)
+        range_addr = _parse_int(self._command(BiCommand.BI_GET_VME_ADDR_DIST), 16, "range base")
+        azim_addr = _parse_int(self._command(BiCommand.BI_GET_VME_ADDR_AZIM), 16, "azimuth table")
+        frame_size = _parse_int(self._command(BiCommand.BI_GET_VME_INC_FRAME), 10, "frame size")
+        try:
+            range_off = self.hw.to_offset(range_addr)
+            azim_off = self.hw.to_offset(azim_addr)
+        except ValueError as exc:
+            raise HardwareFault("protocol", str(exc)) from exc
+        if frame_size <= 2 or frame_size % 2 or frame_size > 0x10000:
+            raise HardwareFault("protocol", f"impossible frame size {frame_size}")
+        samples = samples_for_frame_size(frame_size)
+        try:
+            period = acquisition_period_s(samples)
+        except ValueError as exc:
+            raise HardwareFault("protocol", f"frame size {frame_size}: {exc}") from exc
+        self.link.set_flags(data_int=True)
+        return InitResult(FrameAddressing(range_off, frame_size, azim_off), samples, period)
+
+
+def _parse_int(text: str, base: int, what: str) -> int:
+    try:
+        clean = text.strip()
+        if base == 16 and not clean.lower().startswith("0x"):
+            raise ValueError("no 0x prefix")
+        return int(clean, base)
+    except ValueError as exc:
+        raise HardwareFault("protocol", f"BIRIS answered {text!r} for the {what}") from exc
+
+
+def run_initialiser(
+    init: Initialiser, report: Callable[[InitResult | BaseException], None]
+) -> None:
+    """Thread body: run, then hand the outcome to ``report`` (which sends InitDone)."""
+    try:
+        result: InitResult | BaseException = init.run()
+    except BirisError as exc:
+        result = exc
+    except Exception as exc:  # a bug or an OS error must still end initialisation, visibly
+        log.exception("initialisation failed")
+        result = exc
+    report(result)

@@ -1,0 +1,231 @@
+"""Every message the BIRIS server's administrator receives, named after the report.
+
+Internal tasks send the first group (NEW_POINT, CMD_TRANSFER_RDY, AZ_READY, AZ_SCAN_DONE,
+BIRIS_CMD_COMPLETE and the three *_ERR reports); clients send the second (REQUEST_POINT,
+REQUEST_SCAN_DATA, ... READY_FOR_DATA). Orders the administrator *replies* to its workers are the
+third group. All are immutable; arrays inside them are read-only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from biris_hw.data import ConnectionKind, Direction
+from biris_hw.records import MotorParams
+
+# --- from internal tasks ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Acquisition:
+    """One acquisition as read out of BIRIS memory by a notifier."""
+
+    seq_id: int
+    index: int
+    azimuth: int
+    closest_mm: int
+    profile: NDArray[np.int16]
+    intensity: NDArray[np.int16]
+    t: float
+    discarded: int
+    """Samples beyond BIRIS_MAX_RANGE, set to 0."""
+
+
+@dataclass(frozen=True, slots=True)
+class NewPoint:
+    """NEW_POINT: acquisitions completed since the last report (more than one on catch-up)."""
+
+    acquisitions: tuple[Acquisition, ...]
+    lost: int = 0
+    """Acquisitions known to be gone (overwritten before they could be read)."""
+
+
+@dataclass(frozen=True, slots=True)
+class CmdTransferRdy:
+    """CMD_TRANSFER_RDY: the command-transfer worker is free to carry the next command."""
+
+
+@dataclass(frozen=True, slots=True)
+class AzReady:
+    """AZ_READY: the azimuth worker is free to start the next motion."""
+
+    error: str | None = None
+    """Why the previous order failed, if it did."""
+
+
+@dataclass(frozen=True, slots=True)
+class AzScanDone:
+    """AZ_SCAN_DONE: MOTOR_END_OF_SCAN arrived (the profile's last setpoint was issued)."""
+
+
+@dataclass(frozen=True, slots=True)
+class BirisCmdComplete:
+    """BIRIS_CMD_COMPLETE: BIRIS cleared COMMAND; its STATUS and PARAM answer."""
+
+    status: int
+    param: bytes
+    token: int
+    """The TransferOrder.token of the command that completed."""
+
+
+@dataclass(frozen=True, slots=True)
+class BirisTimeoutErr:
+    """BIRIS_TIMEOUT_ERR: the timer expired for arming number ``generation``."""
+
+    generation: int
+
+
+@dataclass(frozen=True, slots=True)
+class MotorWatchdogErr:
+    """The motor did not report the end of its scan in time (beyond the report)."""
+
+    generation: int
+
+
+@dataclass(frozen=True, slots=True)
+class BirisBusErr:
+    """BIRIS_BUS_ERR from the coupler."""
+
+
+@dataclass(frozen=True, slots=True)
+class BirisParityErr:
+    """BIRIS_PARITY_ERR from the coupler."""
+
+
+@dataclass(frozen=True, slots=True)
+class InitCommand:
+    """The initialiser asks for a BIRIS command; replied with (status, PARAM) on completion."""
+
+    code: int
+    param: str
+
+
+@dataclass(frozen=True, slots=True)
+class InitMove:
+    """The initialiser asks for a trapezoid; replied when AZ_SCAN_DONE arrives."""
+
+    destination: int
+
+
+@dataclass(frozen=True, slots=True)
+class InitDone:
+    """The initialiser finished: ``error`` is None on success."""
+
+    error: BaseException | None
+    addressing: object | None = None
+
+
+# --- from clients ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class OpenRequest:
+    kind: ConnectionKind
+    owner_ident: int
+
+
+@dataclass(frozen=True, slots=True)
+class CloseRequest:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class RequestPoint:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class RequestScanData:
+    conn: int
+    direction: Direction
+
+
+@dataclass(frozen=True, slots=True)
+class TimeoutEnable:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class TimeoutDisable:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class BirisMotorParams:
+    conn: int
+    params: MotorParams
+
+
+@dataclass(frozen=True, slots=True)
+class SingleScanRqst:
+    conn: int
+    destination: int
+
+
+@dataclass(frozen=True, slots=True)
+class ContScanRqst:
+    conn: int
+    cw_limit: int
+    ccw_limit: int
+
+
+@dataclass(frozen=True, slots=True)
+class StopScanRqst:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class BirisHome:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class ReadyForData:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class WaitIdle:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class ResetRequest:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class StatusRequest:
+    conn: int | None = None
+
+
+# --- orders the administrator replies to its workers -------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class TransferOrder:
+    """To biris_cmd_transfer: write this command (and, for BI_ACQUIRE, expect ``n`` frames)."""
+
+    code: int
+    param: str
+    seq_id: int
+    n_acquisitions: int
+    token: int
+    """Names this command; its BIRIS_CMD_COMPLETE carries it back."""
+
+
+@dataclass(frozen=True, slots=True)
+class MoveOrder:
+    """To az_scan_start: drive to ``destination`` with the trapezoid."""
+
+    destination: int
+
+
+@dataclass(frozen=True, slots=True)
+class ParamsOrder:
+    """To az_scan_start: load new motor parameters while the motor stands still."""
+
+    params: MotorParams

@@ -1,0 +1,87 @@
+"""The fault panel: every hardware failure a driver must survive, on demand and clearable.
+
+Each method breaks one thing the way the real target would; ``clear_*`` (or :meth:`clear_all`)
+undoes it. The driver sees only registers and interrupts, exactly as on the VME target.
+"""
+
+from __future__ import annotations
+
+from sim.bit3 import Bit3Coupler
+from sim.irqgate import InterruptGate
+from sim.supervisor import BirisSupervisor
+from sim.tech80 import Model7600
+
+__all__ = ["FaultPanel"]
+
+
+class FaultPanel:
+    """``rig.faults``: parity and bus errors, a hung supervisor, a stalled motor, and
+    interrupt troubles (coalesced, spurious, dropped), plus a malformed PARAM answer."""
+
+    def __init__(
+        self,
+        supervisor: BirisSupervisor,
+        board: Model7600,
+        coupler: Bit3Coupler,
+        level2: InterruptGate,
+        level3: InterruptGate,
+    ) -> None:
+        self._supervisor = supervisor
+        self._board = board
+        self._coupler = coupler
+        self._gates = (level2, level3)
+        self._level2 = level2
+
+    # -- coupler ---------------------------------------------------------------------------------
+    def parity_error(self) -> None:
+        """A parity error on the coupler: sticky status bit, level-2 interrupt if enabled."""
+        self._coupler.parity_error()
+
+    def bus_error(self) -> None:
+        """A failed bus cycle on the BIRIS VMEbus: sticky status bit, level-2 interrupt."""
+        self._coupler.bus_error()
+
+    # -- BIRIS -----------------------------------------------------------------------------------
+    def hang_supervisor(self) -> None:
+        """BIRIS stops answering: COMMAND is never cleared and no acquisition completes."""
+        self._supervisor.hang()
+
+    def clear_hang(self) -> None:
+        self._supervisor.unhang()
+
+    def garbage_param(self) -> None:
+        """The next answer BIRIS leaves in PARAM is malformed."""
+        self._supervisor.garbage_param()
+
+    def drop_data_interrupt(self) -> None:
+        """The next data interrupt is lost on the way."""
+        self._supervisor.drop_data_interrupt()
+
+    # -- motor -----------------------------------------------------------------------------------
+    def stall_motor(self) -> None:
+        """The pan shaft locks: the head stops and the profile never ends (no end of scan)."""
+        with self._board.lock:
+            self._board.catch_up()
+            self._board.plants[0].stalled = True
+
+    def clear_stall(self) -> None:
+        with self._board.lock:
+            self._board.catch_up()
+            self._board.plants[0].stalled = False
+
+    # -- interrupts ------------------------------------------------------------------------------
+    def coalesce_interrupts(self, enabled: bool = True, burst: int = 3) -> None:
+        """Deliver interrupts in bursts, so one wait sees a count above 1 (both levels)."""
+        for gate in self._gates:
+            gate.coalesce(enabled, burst)
+
+    def spurious_interrupt(self) -> None:
+        """A level-2 interrupt with no cause behind it."""
+        self._level2.spurious()
+
+    # -- all -------------------------------------------------------------------------------------
+    def clear_all(self) -> None:
+        """Undo every fault that persists (the coupler's sticky bits are the driver's to clear)."""
+        self.clear_hang()
+        self.clear_stall()
+        self.coalesce_interrupts(False)

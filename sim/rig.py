@@ -1,0 +1,245 @@
+"""``SimulatedBiris``: the whole target in one object, wired as on the robot.
+
+It builds the far side of every window and line a driver uses (BIRIS memory through the coupler,
+the Model 7600 with two HCTL-1000s and their motors, the Bit 3 coupler, interrupt levels 2 and 3)
+and hands the driver's side over as :attr:`hardware`, a :class:`~biris_hw.BirisHardware`. The rig
+also exposes what no driver can see: the true head azimuth, the fault panel and the audit.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from types import TracebackType
+
+import numpy as np
+from numpy.typing import NDArray
+
+from biris_hw.bus.base import BusWindow
+from biris_hw.bus.memory import MemoryWindow
+from biris_hw.hardware import BirisHardware
+from biris_hw.irq.eventfd import EventFdLine
+from regs import biexec
+from regs.hctl1000 import COUNTS_PER_REV
+from regs.layout import BirisMemoryMap
+from regs.tech80 import MOTION_WINDOW_SIZE
+from sim.audit import Audit
+from sim.bit3 import Bit3Coupler
+from sim.clock import SimClock
+from sim.faults import FaultPanel
+from sim.irqgate import InterruptGate
+from sim.motor import MotorPlant
+from sim.optics import BirisOptics
+from sim.scene import Scene
+from sim.supervisor import BirisSupervisor
+from sim.tech80 import Model7600
+
+__all__ = ["SimulatedBiris"]
+
+_TWO_PI_PER_COUNT = 2.0 * math.pi / COUNTS_PER_REV
+
+
+class _DriverMemoryWindow(MemoryWindow):
+    """The driver's view of BIRIS memory: the same bytes as the supervisor's, plus a tap on
+    COMMAND writes, so the audit sees every write (field-rate polling alone would miss a
+    rewrite of the same code)."""
+
+    def __init__(
+        self, size: int, buffer: bytearray, command_offset: int, on_command: _CommandTap
+    ) -> None:
+        super().__init__(size, buffer=buffer)
+        self._command_offset = command_offset
+        self._on_command = on_command
+
+    def write16(self, offset: int, value: int) -> None:
+        super().write16(offset, value)
+        if offset == self._command_offset:
+            self._on_command(value)
+
+    def write(self, offset: int, data: bytes | bytearray | memoryview) -> None:
+        super().write(offset, data)
+        raw = bytes(data)
+        if offset <= self._command_offset < offset + len(raw) - 1:
+            at = self._command_offset - offset
+            self._on_command(int.from_bytes(raw[at : at + 2], "big"))
+
+
+class _CommandTap:
+    def __init__(self) -> None:
+        self.target: BirisSupervisor | None = None
+
+    def __call__(self, value: int) -> None:
+        if self.target is not None:
+            self.target.note_command_write(value)
+
+
+class SimulatedBiris:
+    """The simulated BIRIS target: ``with SimulatedBiris(scene=..., time_scale=20) as rig``.
+
+    ``samples`` is 64 (2 fields per acquisition) or 128 (3 fields). Runs are reproducible from
+    ``seed`` (thread scheduling aside). On exit every thread is joined and every descriptor closed.
+    """
+
+    def __init__(
+        self,
+        scene: Scene | None = None,
+        samples: int = 64,
+        time_scale: float = 1.0,
+        seed: int = 0,
+        *,
+        noise: bool = True,
+        initial_azimuth_counts: float | None = None,
+        memory_map: BirisMemoryMap | None = None,
+    ) -> None:
+        self.scene = scene if scene is not None else Scene.room()
+        self.samples = samples
+        self.seed = seed
+        self.memory_map = memory_map if memory_map is not None else BirisMemoryMap(samples=samples)
+        if self.memory_map.samples != samples:
+            raise ValueError("memory_map.samples differs from samples")
+        self.clock = SimClock(time_scale)
+        self.audit = Audit(self.clock.now)
+        seeds = np.random.SeedSequence(seed).spawn(5)
+        rngs = [np.random.default_rng(s) for s in seeds]
+        self._closed = False
+        self._started = False
+
+        self._level2 = EventFdLine()
+        self._level3 = EventFdLine()
+        self.level2_gate = InterruptGate(self._level2.trigger, self.clock)
+        self.level3_gate = InterruptGate(self._level3.trigger, self.clock)
+
+        az_plant = MotorPlant(rngs[0], initial_azimuth_counts=initial_azimuth_counts)
+        el_plant = MotorPlant(rngs[1], initial_azimuth_counts=0.0)
+        self.board = Model7600(
+            self.clock,
+            rngs[2],
+            raise_irq=lambda: self.level3_gate.raise_irq("motor"),
+            audit=self.audit,
+            azimuth_plant=az_plant,
+            elevation_plant=el_plant,
+        )
+        self.coupler = Bit3Coupler(self.level2_gate, audit=self.audit)
+        self.optics = BirisOptics(samples, rngs[3], noise=noise)
+
+        self._memory = bytearray(self.memory_map.size)
+        self._supervisor_window = MemoryWindow(self.memory_map.size, buffer=self._memory)
+        tap = _CommandTap()
+        self._driver_window = _DriverMemoryWindow(
+            self.memory_map.size,
+            self._memory,
+            self.memory_map.biexec_offset + biexec.OFF_COMMAND,
+            tap,
+        )
+        self.supervisor = BirisSupervisor(
+            self._supervisor_window,
+            self.memory_map,
+            self.clock,
+            self.level2_gate,
+            self._acquire,
+            self._encoder_azimuth,
+            audit=self.audit,
+            rng=rngs[4],
+            tilting=self._tilting,
+            elevation_counts=self._encoder_elevation,
+        )
+        tap.target = self.supervisor
+        self.faults = FaultPanel(
+            self.supervisor, self.board, self.coupler, self.level2_gate, self.level3_gate
+        )
+        self._motion_window: BusWindow = self.board.window()
+        self._coupler_window: BusWindow = self.coupler.window()
+        self.hardware = BirisHardware(
+            biris=self._driver_window,
+            motion=self._motion_window,
+            coupler=self._coupler_window,
+            level2=self._level2,
+            level3=self._level3,
+            biexec_offset=self.memory_map.biexec_offset,
+            biris_base=self.memory_map.biris_base,
+            clock=self.clock.now,
+            time_scale=time_scale,
+        )
+        assert self._motion_window.size == MOTION_WINDOW_SIZE
+
+    # -- what BIRIS sees -----------------------------------------------------------------------
+    def _encoder_azimuth(self) -> float:
+        """What BIRIS reads from the motor controller when it tags an acquisition."""
+        with self.board.lock:
+            self.board.catch_up()
+            return float(self.board.azimuth.actual_position)
+
+    def _encoder_elevation(self) -> float:
+        with self.board.lock:
+            self.board.catch_up()
+            return float(self.board.elevation.actual_position)
+
+    def _tilting(self) -> bool:
+        with self.board.lock:
+            self.board.catch_up()
+            return abs(self.board.plants[1].velocity_counts_per_s) > 1.0
+
+    def _acquire(
+        self, azimuth_rad: float, tilt_rad: float, lut_tilt_rad: float | None
+    ) -> tuple[NDArray[np.int16], NDArray[np.int16]]:
+        """The optics see the head where it truly is, whatever the encoder says."""
+        with self.board.lock:
+            self.board.catch_up()
+            true_az = self.board.plants[0].true_azimuth_counts * _TWO_PI_PER_COUNT
+            true_tilt = self.board.plants[1].true_azimuth_counts * _TWO_PI_PER_COUNT
+        frame = self.optics.acquire(self.scene, true_az, true_tilt, lut_tilt_rad=lut_tilt_rad)
+        return frame.range_mm, frame.intensity
+
+    # -- backdoor --------------------------------------------------------------------------------
+    @property
+    def azimuth_counts(self) -> float:
+        """The head's true azimuth in counts (0 = the zero index), read without side effects."""
+        with self.board.lock:
+            self.board.catch_up()
+            return float(self.board.plants[0].true_azimuth_counts)
+
+    @property
+    def elevation_counts(self) -> float:
+        with self.board.lock:
+            self.board.catch_up()
+            return float(self.board.plants[1].true_azimuth_counts)
+
+    @property
+    def time_scale(self) -> float:
+        return self.clock.time_scale
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def start(self) -> SimulatedBiris:
+        if self._closed:
+            raise RuntimeError("the simulator has been shut down")
+        if not self._started:
+            self._started = True
+            self.board.start()
+            self.supervisor.start()
+        return self
+
+    def close(self) -> None:
+        """Stop the simulator's threads, then close its lines and windows; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self.supervisor.stop()
+        self.board.stop()
+        self.level2_gate.close()
+        self.level3_gate.close()
+        self.hardware.close()
+        self._supervisor_window.close()
+
+    def __enter__(self) -> SimulatedBiris:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+_ = threading  # the rig's threads live in the board and the supervisor
