@@ -5,11 +5,13 @@ from biris_hw.data import ConnectionKind, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault, RequestError
 from biris_hw.hardware import BirisHardware
 from biris_hw.records import BirisInitRecord, MotorParams
+from biris_hw.server import BirisServer
 
 __all__ = [
     "BirisError",
     "BirisHardware",
     "BirisInitRecord",
+    "BirisServer",
     "ConnectionClosed",
     "ConnectionKind",
     "Direction",

@@ -45,7 +45,11 @@ class _DriverMemoryWindow(MemoryWindow):
     rewrite of the same code)."""
 
     def __init__(
-        self, size: int, buffer: bytearray, command_offset: int, on_command: _CommandTap
+        self,
+        size: int,
+        buffer: bytearray | memoryview,
+        command_offset: int,
+        on_command: _CommandTap,
     ) -> None:
         super().__init__(size, buffer=buffer)
         self._command_offset = command_offset
@@ -78,6 +82,8 @@ class SimulatedBiris:
 
     ``samples`` is 64 (2 fields per acquisition) or 128 (3 fields). Runs are reproducible from
     ``seed`` (thread scheduling aside). On exit every thread is joined and every descriptor closed.
+    ``biris_buffer`` puts BIRIS memory in the caller's buffer (a shared-memory segment, so a
+    driver in another process can reach it); by default it is private to the rig.
     """
 
     def __init__(
@@ -90,6 +96,7 @@ class SimulatedBiris:
         noise: bool = True,
         initial_azimuth_counts: float | None = None,
         memory_map: BirisMemoryMap | None = None,
+        biris_buffer: bytearray | memoryview | None = None,
     ) -> None:
         self.scene = scene if scene is not None else Scene.room()
         self.samples = samples
@@ -122,7 +129,9 @@ class SimulatedBiris:
         self.coupler = Bit3Coupler(self.level2_gate, audit=self.audit)
         self.optics = BirisOptics(samples, rngs[3], noise=noise)
 
-        self._memory = bytearray(self.memory_map.size)
+        if biris_buffer is not None and len(biris_buffer) < self.memory_map.size:
+            raise ValueError("biris_buffer is smaller than the BIRIS memory map")
+        self._memory = biris_buffer if biris_buffer is not None else bytearray(self.memory_map.size)
         self._supervisor_window = MemoryWindow(self.memory_map.size, buffer=self._memory)
         tap = _CommandTap()
         self._driver_window = _DriverMemoryWindow(
