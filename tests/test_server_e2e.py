@@ -366,3 +366,29 @@ def test_closed_connections_and_servers_refuse_calls(rig: SimulatedBiris) -> Non
         live.request_point()
     with pytest.raises(ConnectionClosed):
         server.open()
+
+
+def test_garbage_from_biris_is_a_protocol_fault_and_reset_recovers(
+    rig: SimulatedBiris, server: BirisServer
+) -> None:
+    conn = server.open()
+    rig.faults.garbage_param()  # the next query answer (re-initialisation asks three) is garbage
+    with pytest.raises(HardwareFault) as fault:
+        conn.reset()
+    assert fault.value.kind == "protocol"
+    assert server.status()["state"] == "fault:protocol"
+    conn.reset()
+    assert server.status()["state"] == "idle"
+    conn.single_scan(10.0)
+    conn.wait_idle(timeout=WAIT)
+
+
+def test_a_fault_during_reset_ends_it_promptly(rig: SimulatedBiris, server: BirisServer) -> None:
+    conn = server.open()
+    rig.faults.stall_motor()  # re-initialisation homes the head: the stall stops it
+    with pytest.raises(HardwareFault) as fault:
+        conn.reset()
+    assert fault.value.kind == "motor_stall"
+    rig.faults.clear_stall()
+    conn.reset()
+    assert abs(rig.azimuth_counts) <= 3.0

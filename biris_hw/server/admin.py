@@ -705,6 +705,9 @@ class Administrator:
         self._start_initialiser()
 
     def _on_init_command(self, env: Envelope, msg: m.InitCommand) -> None:
+        if self.fault is not None:  # a fault during initialisation ends it, at once
+            _fail(env, self.fault)
+            return
         cmd = _Command(
             msg.code,
             msg.param,
@@ -717,6 +720,10 @@ class Administrator:
         self._submit_command(cmd)
 
     def _on_init_move(self, env: Envelope, msg: m.InitMove) -> None:
+        if self.fault is not None:
+            _fail(env, self.fault)
+            return
+
         def done(err: str | None) -> None:
             if err is None:
                 _reply(env, None)
