@@ -104,6 +104,8 @@ class SimulatedBiris:
         self.memory_map = memory_map if memory_map is not None else BirisMemoryMap(samples=samples)
         if self.memory_map.samples != samples:
             raise ValueError("memory_map.samples differs from samples")
+        if biris_buffer is not None and len(biris_buffer) < self.memory_map.size:
+            raise ValueError("biris_buffer is smaller than the BIRIS memory map")
         self.clock = SimClock(time_scale)
         self.audit = Audit(self.clock.now)
         seeds = np.random.SeedSequence(seed).spawn(5)
@@ -113,6 +115,22 @@ class SimulatedBiris:
 
         self._level2 = EventFdLine()
         self._level3 = EventFdLine()
+        try:
+            self._build(time_scale, samples, noise, initial_azimuth_counts, biris_buffer, rngs)
+        except BaseException:
+            self._level2.close()
+            self._level3.close()
+            raise
+
+    def _build(
+        self,
+        time_scale: float,
+        samples: int,
+        noise: bool,
+        initial_azimuth_counts: float | None,
+        biris_buffer: bytearray | memoryview | None,
+        rngs: list[np.random.Generator],
+    ) -> None:
         self.level2_gate = InterruptGate(self._level2.trigger, self.clock)
         self.level3_gate = InterruptGate(self._level3.trigger, self.clock)
 
@@ -129,8 +147,6 @@ class SimulatedBiris:
         self.coupler = Bit3Coupler(self.level2_gate, audit=self.audit)
         self.optics = BirisOptics(samples, rngs[3], noise=noise)
 
-        if biris_buffer is not None and len(biris_buffer) < self.memory_map.size:
-            raise ValueError("biris_buffer is smaller than the BIRIS memory map")
         self._memory = biris_buffer if biris_buffer is not None else bytearray(self.memory_map.size)
         self._supervisor_window = MemoryWindow(self.memory_map.size, buffer=self._memory)
         tap = _CommandTap()
@@ -191,11 +207,21 @@ class SimulatedBiris:
     def _acquire(
         self, azimuth_rad: float, tilt_rad: float, lut_tilt_rad: float | None
     ) -> tuple[NDArray[np.int16], NDArray[np.int16]]:
-        """The optics see the head where it truly is, whatever the encoder says."""
+        """The optics see the head where it truly is, whatever the encoder says.
+
+        The supervisor reads the encoders first and calls this a moment later; on a scaled clock
+        that moment is several counts of pan at full speed, so the pose is not re-read here.
+        Instead the encoder readings are turned into the true pose they stood for, by the
+        encoder's offset from the truth (its zero, and the fraction of a count), which does not
+        change while the head moves.
+        """
         with self.board.lock:
             self.board.catch_up()
-            true_az = self.board.plants[0].true_azimuth_counts * _TWO_PI_PER_COUNT
-            true_tilt = self.board.plants[1].true_azimuth_counts * _TWO_PI_PER_COUNT
+            az_plant, el_plant = self.board.plants
+            az_off = az_plant.true_azimuth_counts - self.board.azimuth.actual_position
+            el_off = el_plant.true_azimuth_counts - self.board.elevation.actual_position
+        true_az = azimuth_rad + az_off * _TWO_PI_PER_COUNT
+        true_tilt = tilt_rad + el_off * _TWO_PI_PER_COUNT
         frame = self.optics.acquire(self.scene, true_az, true_tilt, lut_tilt_rad=lut_tilt_rad)
         return frame.range_mm, frame.intensity
 
