@@ -28,6 +28,15 @@ class SimClock:
     def time_scale(self) -> float:
         return self._scale
 
+    @property
+    def t0(self) -> float:
+        """``time.monotonic()`` when hardware time was 0.
+
+        CLOCK_MONOTONIC is system-wide on Linux, so a driver in another process that knows
+        ``t0`` and the scale computes the very same hardware time (``sim.process`` sends both).
+        """
+        return self._t0
+
     def now(self) -> float:
         """Hardware time in seconds."""
         return (time.monotonic() - self._t0) * self._scale

@@ -19,6 +19,7 @@ WINDOW_KINDS: dict[str, str] = {
     "memory": "biris_hw.bus.memory:MemoryWindow",
     "shm": "biris_hw.bus.shm:SharedMemoryWindow",
     "mmap": "biris_hw.bus.mmapwin:MmapWindow",
+    "remote": "biris_hw.bus.remote:RemoteWindow",
 }
 """Kind name -> ``module:Class``."""
 

@@ -1,0 +1,242 @@
+"""Attach to a simulator running as its own process (``biris sim --shm NAME``).
+
+The result is an ordinary :class:`~biris_hw.hardware.BirisHardware`, built the way a real target's
+is: BIRIS memory is a window onto shared memory (as the coupler's window is onto VME), the boards
+are reached through windows whose accesses reach the devices (here over a Unix socket), the
+interrupt levels are descriptors the driver polls (eventfds received with ``SCM_RIGHTS``), and
+the clock is the target's. A driver cannot tell it from an in-process rig except by speed.
+"""
+
+from __future__ import annotations
+
+import array
+import contextlib
+import errno
+import os
+import socket
+import time
+from dataclasses import dataclass, field
+
+from biris_hw.bus.base import BusWindow
+from biris_hw.bus.registry import open_window
+from biris_hw.bus.remote import (
+    LINE_NAMES,
+    MAX_PACKET,
+    Handshake,
+    Region,
+    RemoteLink,
+    RemoteWindow,
+    SliceWindow,
+    default_socket_path,
+)
+from biris_hw.errors import BusError
+from biris_hw.hardware import BirisHardware
+from biris_hw.irq.eventfd import EventFdLine
+from regs.bit3 import BIT3_SPACE
+from regs.layout import BirisMemoryMap, TargetImage
+from regs.tech80 import MOTION_WINDOW_SIZE
+
+__all__ = ["RemoteHardware", "SimulatorClock", "attach", "default_socket_path"]
+
+
+@dataclass
+class RemoteHardware(BirisHardware):
+    """A bundle whose boards are reached over ``link``; :meth:`close` also closes the link.
+
+    The link is closed last, after the lines and windows, so the simulator sees the driver go
+    only once it has let go of everything.
+    """
+
+    link: RemoteLink | None = field(default=None, repr=False, compare=False)
+    handshake: Handshake | None = field(default=None, repr=False, compare=False)
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            if self.link is not None:
+                self.link.close()
+
+
+class SimulatorClock:
+    """The simulator's hardware clock, computed here: CLOCK_MONOTONIC is shared by every process,
+    so ``(monotonic() - t0) * scale`` reads the same in both, with no round trip."""
+
+    def __init__(self, t0: float, time_scale: float) -> None:
+        self.t0 = t0
+        self.time_scale = time_scale
+
+    def __call__(self) -> float:
+        return (time.monotonic() - self.t0) * self.time_scale
+
+    def __repr__(self) -> str:
+        return f"SimulatorClock(t0={self.t0!r}, time_scale={self.time_scale!r})"
+
+
+def attach(name: str, *, socket_path: str | None = None, timeout: float = 10.0) -> BirisHardware:
+    """Connect to the simulator serving shared memory ``name`` and return its hardware bundle.
+
+    ``socket_path`` defaults to ``/tmp/biris-NAME.sock``; ``timeout`` bounds the connection, the
+    handshake and every later register round trip. The caller closes the bundle.
+
+    Raises:
+        BusError: no simulator at the socket (``ENOENT``/``ECONNREFUSED``), the simulator
+            refused us because another driver is attached (``EBUSY``), a handshake that does
+            not match this driver (``EPROTO``), or no such shared-memory segment (``ENOENT``).
+    """
+    path = socket_path if socket_path is not None else default_socket_path(name)
+    sock = _connect(path, name, timeout)
+    fds: list[int] = []
+    with contextlib.ExitStack() as undo:
+        undo.callback(sock.close)
+        raw, fds = _receive(sock, path, timeout)
+        undo.callback(_close_fds, fds)
+        hello = Handshake.decode(raw)
+        _check(hello, name, path, len(fds))
+        undo.pop_all()
+    try:
+        return _assemble(hello, sock, fds, timeout)
+    except BaseException:
+        sock.close()
+        raise
+
+
+def _connect(path: str, name: str, timeout: float) -> socket.socket:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
+    sock.settimeout(timeout)
+    try:
+        sock.connect(path)
+    except (FileNotFoundError, ConnectionRefusedError) as exc:
+        sock.close()
+        raise BusError(
+            f"no simulator at {path} ({exc.strerror}); start one with `biris sim --shm {name}`",
+            exc.errno or errno.ENOENT,
+        ) from None
+    except OSError as exc:
+        sock.close()
+        raise BusError(
+            f"connecting to {path}: {exc.strerror or exc}", exc.errno or errno.EIO
+        ) from None
+    return sock
+
+
+def _receive(sock: socket.socket, path: str, timeout: float) -> tuple[bytes, list[int]]:
+    """The handshake packet and the descriptors that came with it (close-on-exec here)."""
+    fds = array.array("i")
+    space = socket.CMSG_SPACE(len(LINE_NAMES) * fds.itemsize)
+    try:
+        raw, ancillary, flags, _ = sock.recvmsg(MAX_PACKET, space, socket.MSG_CMSG_CLOEXEC)
+    except TimeoutError:
+        raise BusError(
+            f"handshake: {path} sent nothing within {timeout:g} s", errno.ETIMEDOUT
+        ) from None
+    except OSError as exc:
+        raise BusError(f"handshake: {exc.strerror or exc}", exc.errno or errno.EIO) from None
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
+            fds.frombytes(data[: len(data) - len(data) % fds.itemsize])
+    got = list(fds)
+    if flags & (socket.MSG_TRUNC | socket.MSG_CTRUNC):
+        _close_fds(got)
+        raise BusError("handshake mismatch: the packet or its descriptors were cut", errno.EPROTO)
+    if not raw:
+        _close_fds(got)
+        raise BusError(f"handshake: {path} closed the connection at once", errno.ECONNRESET)
+    return raw, got
+
+
+def _close_fds(fds: list[int]) -> None:
+    for fd in fds:
+        with contextlib.suppress(OSError):
+            os.close(fd)
+
+
+def _check(hello: Handshake, name: str, path: str, n_fds: int) -> None:
+    """Refuse a simulator whose idea of the target differs from this driver's."""
+
+    def mismatch(what: str) -> BusError:
+        return BusError(f"handshake mismatch with {path}: {what}", errno.EPROTO)
+
+    if hello.shm.lstrip("/") != name.lstrip("/"):
+        raise mismatch(f"it serves shared memory {hello.shm!r}, not {name!r}")
+    if tuple(hello.lines) != LINE_NAMES or n_fds != len(LINE_NAMES):
+        raise mismatch(f"lines {list(hello.lines)} with {n_fds} descriptor(s)")
+    if hello.clock != "CLOCK_MONOTONIC" or "CLOCK_MONOTONIC" not in _monotonic_kind():
+        raise mismatch(f"its clock is {hello.clock}, ours is {_monotonic_kind()}")
+    if not hello.time_scale > 0.0:
+        raise mismatch(f"time scale {hello.time_scale}")
+    try:
+        image = TargetImage(
+            hello.coupler_offset,
+            hello.motion_offset,
+            hello.biris_offset,
+            BirisMemoryMap(
+                samples=hello.samples,
+                biris_base=hello.biris_base,
+                biexec_offset=hello.biexec_offset,
+                range_offset=hello.range_offset,
+                max_acquisitions=hello.max_acquisitions,
+            ),
+        )
+    except ValueError as exc:
+        raise mismatch(f"bad layout ({exc})") from None
+    ours = (image.size, BIT3_SPACE, MOTION_WINDOW_SIZE, image.biris.size)
+    theirs = (hello.image_size, hello.coupler_size, hello.motion_size, hello.biris_size)
+    if ours != theirs:
+        raise mismatch(f"sizes (image, coupler, motion, BIRIS) {theirs}, expected {ours}")
+
+
+def _monotonic_kind() -> str:
+    return time.get_clock_info("monotonic").implementation
+
+
+def _assemble(
+    hello: Handshake, sock: socket.socket, fds: list[int], timeout: float
+) -> RemoteHardware:
+    """Adopt the descriptors, open the windows; on any failure release what was taken."""
+    with contextlib.ExitStack() as undo:
+        lines: list[EventFdLine] = []
+        pending = list(fds)
+        undo.callback(_close_fds, pending)
+        for fd in fds:
+            line = EventFdLine(fd=fd)
+            pending.remove(fd)
+            undo.callback(line.close)
+            lines.append(line)
+        biris = _open_biris(hello)
+        undo.callback(biris.close)
+        link = RemoteLink(sock, timeout=timeout, label=f"simulator {hello.shm!r}")
+        undo.callback(link.close)
+        motion = RemoteWindow(link, Region.MOTION, hello.motion_size)
+        coupler = RemoteWindow(link, Region.COUPLER, hello.coupler_size)
+        hw = RemoteHardware(
+            biris=biris,
+            motion=motion,
+            coupler=coupler,
+            level2=lines[0],
+            level3=lines[1],
+            biexec_offset=hello.biexec_offset,
+            biris_base=hello.biris_base,
+            clock=SimulatorClock(hello.t0, hello.time_scale),
+            time_scale=hello.time_scale,
+            link=link,
+            handshake=hello,
+        )
+        undo.pop_all()
+    return hw
+
+
+def _open_biris(hello: Handshake) -> BusWindow:
+    """The BIRIS region of the simulator's image, as a window of its own."""
+    try:
+        segment = open_window("shm", name=hello.shm)
+    except BusError as exc:
+        raise BusError(f"simulator {hello.shm!r}: {exc}", exc.errno or errno.EIO) from None
+    if segment.size < hello.image_size:
+        segment.close()
+        raise BusError(
+            f"handshake mismatch: shared memory {hello.shm!r} holds 0x{segment.size:X} bytes, "
+            f"the image needs 0x{hello.image_size:X}",
+            errno.EPROTO,
+        )
+    return SliceWindow(segment, hello.biris_offset, hello.biris_size)
