@@ -20,6 +20,7 @@ read it too, so a window that maps the wrong place fails even when its own reads
 
 from __future__ import annotations
 
+import copy
 import mmap
 import os
 from collections.abc import Callable, Iterator
@@ -474,9 +475,9 @@ def test_register_window_adds_a_kind(monkeypatch: pytest.MonkeyPatch) -> None:
     class ScratchWindow(MemoryWindow):
         kind = "scratch"
 
-    # The registry is process-wide: work on copies, so the kind is gone after this test.
-    monkeypatch.setattr(registry, "WINDOW_KINDS", dict(registry.WINDOW_KINDS))
-    monkeypatch.setattr(registry, "_loaded", dict(registry._loaded))
+    # The registry is process-wide: the kind must be gone after this test.
+    monkeypatch.setattr(registry, "_REGISTRY", copy.deepcopy(registry._REGISTRY))
+    monkeypatch.setattr(registry, "WINDOW_KINDS", registry._REGISTRY.kinds)
     with pytest.raises(UnknownKind):
         open_window("scratch", size=16)
     register_window("scratch", ScratchWindow)

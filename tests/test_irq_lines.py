@@ -434,5 +434,5 @@ def test_register_line_adds_a_kind() -> None:
         with open_line("loopback-test") as line:
             assert isinstance(line, Loopback)
     finally:
-        del LINE_KINDS["loopback-test"]
-        registry._loaded.pop("loopback-test", None)
+        registry._REGISTRY.unregister("loopback-test")
+    assert "loopback-test" not in LINE_KINDS
