@@ -1,8 +1,9 @@
 """biris-hw: driver, server and client API for the NRC BIRIS laser range camera."""
 
 from biris_hw.angles import counts_to_deg, deg_to_counts
-from biris_hw.data import ConnectionKind, Direction, Point, Scan
+from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault, RequestError
+from biris_hw.geometry import Mount
 from biris_hw.hardware import BirisHardware
 from biris_hw.records import BirisInitRecord, MotorParams
 from biris_hw.server import BirisServer
@@ -14,9 +15,11 @@ __all__ = [
     "BirisServer",
     "ConnectionClosed",
     "ConnectionKind",
+    "DeliveryPolicy",
     "Direction",
     "HardwareFault",
     "MotorParams",
+    "Mount",
     "Point",
     "RequestError",
     "Scan",

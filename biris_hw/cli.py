@@ -1,52 +1,193 @@
-"""The ``biris`` command."""
+"""The ``biris`` command: a dispatcher over one module per subcommand.
+
+Each subcommand's module provides ``add_arguments(parser)`` and ``run(args) -> int``; this file
+only knows their names, a one-line summary, and where they live. A command's module is imported
+only when that command is asked for, so ``biris --help`` is instant, a missing optional piece
+(the simulator process, matplotlib) breaks only the command that needs it, and that command
+says so in one line.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib
 import sys
-from collections.abc import Sequence
-from typing import NoReturn
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import NoReturn, Protocol, cast
 
-from biris_hw import regdump
+from biris_hw import __version__
+from biris_hw.commands.common import (
+    EXIT_INTERRUPTED,
+    EXIT_USAGE,
+    add_debug_argument,
+    log_to_stderr,
+    report_error,
+)
 
-__all__ = ["main"]
+__all__ = ["COMMANDS", "Command", "build_parser", "main"]
+
+
+@dataclass(frozen=True)
+class Command:
+    """A subcommand: its name, where its module lives, and what ``biris --help`` says."""
+
+    name: str
+    module: str
+    summary: str
+    description: str
+
+
+COMMANDS: tuple[Command, ...] = (
+    Command(
+        "demo",
+        "biris_hw.commands.demo",
+        "the server at work on a simulated robot, with pictures",
+        "Sweep a simulated room with the BIRIS server for a while, show progress live, then "
+        "write pictures of what it saw (polar, top-down and 3-D) to a folder.",
+    ),
+    Command(
+        "scan",
+        "biris_hw.commands.scan",
+        "one scan, or continuous sweeps; summary, files, picture",
+        "Scan once to an azimuth (--to) or sweep between two limits (--cw/--ccw --sweeps N); "
+        "print a summary of each scan, save them (--save), or draw them (--plot).",
+    ),
+    Command(
+        "point",
+        "biris_hw.commands.point",
+        "the latest acquisition (makes one if needed)",
+        "Print the latest acquisition: azimuth, closest range and the profile along the "
+        "laser line. A fresh server has none, so a short scan makes one first.",
+    ),
+    Command(
+        "watch",
+        "biris_hw.commands.watch",
+        "live server status",
+        "Show the server's status (state, azimuth, counters, interrupts, connections), "
+        "refreshed, for --duration seconds or until Ctrl-C; optionally while sweeping.",
+    ),
+    Command(
+        "home",
+        "biris_hw.commands.home",
+        "initialise and drive the head to 0 degrees",
+        "Start the server (which finds the zero index) and drive the head to 0 degrees.",
+    ),
+    Command(
+        "motor-params",
+        "biris_hw.commands.motor_params",
+        "show or set the pan motor's HCTL-1000 parameters",
+        "Show the pan motor's parameters, as the init record gives them and as the chip holds "
+        "them; set any of them with the flags; --save-init writes a record to start from.",
+    ),
+    Command(
+        "sim",
+        "sim.process",
+        "run the simulator as a process other programs can reach",
+        "Run the BIRIS simulator in its own process, its windows in shared memory.",
+    ),
+    Command(
+        "regdump",
+        "biris_hw.regdump",
+        "decode the registers of a target image (file, mmap or shared memory)",
+        "Decode the coupler, Model 7600 and BIRIS registers of a target image.",
+    ),
+)
+
+
+class _Module(Protocol):
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None: ...
+
+    def run(self, args: argparse.Namespace) -> int: ...
 
 
 class _OneLineParser(argparse.ArgumentParser):
-    """Reports a usage error as one line (``biris regdump: ...``) and exit status 2."""
+    """Reports a usage error as one line (``biris scan: ...``) and exit status 2."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: {message}\n")
+        self.exit(EXIT_USAGE, f"{self.prog}: {message}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="biris", description=__doc__)
-    parser.add_argument("--debug", action="store_true", help="show tracebacks")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_OneLineParser)
-    sub.add_parser("demo", help="the simulated robot at work (main job)")
-    regdump.add_arguments(
-        sub.add_parser(
-            "regdump",
-            help="decode the registers of a target image (file, mmap or shared memory)",
-            description="Decode the coupler, Model 7600 and BIRIS registers of a target image.",
-        )
+class _Unavailable(Exception):
+    """The chosen command's module cannot be imported (an optional part is not installed)."""
+
+
+def _chosen(argv: Sequence[str]) -> str | None:
+    """The subcommand named on the command line: the first word that is not an option."""
+    for word in argv:
+        if word == "--":
+            return None
+        if not word.startswith("-"):
+            return word
+    return None
+
+
+def _load(command: Command) -> _Module:
+    try:
+        return cast(_Module, importlib.import_module(command.module))
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and command.module.startswith(exc.name):
+            raise _Unavailable(
+                f"not available in this installation ({command.module} is missing)"
+            ) from exc
+        raise
+
+
+def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
+    """The whole parser; only ``chosen``'s module is imported to declare its flags."""
+    parser = _OneLineParser(
+        prog="biris",
+        description="Driver, server and simulator for the NRC BIRIS laser range camera.",
+        epilog="biris COMMAND --help shows a command's flags. Exit status: 0 done, 1 hardware "
+        "fault, 2 usage or configuration error, 130 interrupted.",
     )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and the log")
+    parser.add_argument("--version", action="version", version=f"biris-hw {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_OneLineParser)
+    for command in COMMANDS:
+        child = sub.add_parser(command.name, help=command.summary, description=command.description)
+        if command.name == chosen:
+            module = _load(command)
+            module.add_arguments(child)
+            with contextlib.suppress(argparse.ArgumentError):  # the module may declare it
+                add_debug_argument(child)
+            child.set_defaults(run=module.run)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    """Run ``biris``; returns the exit status (the console script exits with it)."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    chosen = _chosen(words)
+    prog = f"biris {chosen}" if chosen in {c.name for c in COMMANDS} else "biris"
+    debug = "--debug" in words
     try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # --help, or a usage error already reported
-        return exc.code if isinstance(exc.code, int) else 2
-    if args.command == "demo":
-        print("biris demo: the simulator and server demo arrives with the demo issue.")
-        return 0
-    if args.command == "regdump":
-        return regdump.run(args)
-    parser.print_help()
-    return 2
+        parser = build_parser(chosen)
+    except _Unavailable as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except Exception as exc:  # the command's module failed to import
+        return report_error(prog, exc, debug=debug)
+    try:
+        args, extra = parser.parse_known_args(words)
+    except SystemExit as exc:  # --help, --version, or a usage error already reported
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    if extra:  # named after the command they were given to, not "biris"
+        print(f"{prog}: unrecognized arguments: {' '.join(extra)}", file=sys.stderr)
+        return EXIT_USAGE
+    run = cast("Callable[[argparse.Namespace], int] | None", getattr(args, "run", None))
+    if run is None:
+        print("biris: say which command to run (biris --help lists them)", file=sys.stderr)
+        return EXIT_USAGE
+    debug = bool(getattr(args, "debug", False))
+    with log_to_stderr(debug):
+        try:
+            return int(run(args))
+        except KeyboardInterrupt:
+            return EXIT_INTERRUPTED
+        except Exception as exc:
+            return report_error(prog, exc, debug=debug)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,12 @@
 
 A connection is a handle on the server's administrator; every call is a Send that blocks until
 the administrator replies. Angles are degrees in and counts out: each motion request returns the
-destination actually used after _Scan_limit clamping.
+destination actually used after _Scan_limit clamping (and, for the tilt, the elevation limits).
+
+A DATA connection is generic in what READY_FOR_DATA hands out: ``Connection[Scan]`` (the
+default, also what a bare ``Connection`` means) for the LATEST and EVERY_BUFFER policies,
+``Connection[Point]`` for EVERY_ACQUISITION; ``BirisServer.open`` picks the right one from the
+policy, so a type checker knows what ``ready_for_data`` returns.
 """
 
 from __future__ import annotations
@@ -10,13 +15,23 @@ from __future__ import annotations
 import math
 import threading
 from types import TracebackType
+from typing import TYPE_CHECKING, Generic, cast
 
 from biris_hw.angles import deg_to_counts
-from biris_hw.data import ConnectionKind, Direction, Point, Scan
+from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import ConnectionClosed, RequestError
 from biris_hw.ipc import Mailbox
 from biris_hw.records import MotorParams
 from biris_hw.server import messages as m
+
+if TYPE_CHECKING:  # the default needs PEP 696; at run time a plain TypeVar does the same job
+    from typing_extensions import TypeVar
+
+    D = TypeVar("D", Scan, Point, default=Scan)
+else:
+    from typing import TypeVar
+
+    D = TypeVar("D", Scan, Point)
 
 __all__ = ["Connection"]
 
@@ -36,21 +51,35 @@ def _timeout(value: float | None) -> float | None:
     return max(0.0, float(value))
 
 
-class Connection:
+class Connection(Generic[D]):
     """A client's connection to the BIRIS server (NORMAL or DATA)."""
 
-    def __init__(self, inbox: Mailbox, ident: int, kind: ConnectionKind) -> None:
+    def __init__(
+        self,
+        inbox: Mailbox,
+        ident: int,
+        kind: ConnectionKind,
+        policy: DeliveryPolicy = DeliveryPolicy.LATEST,
+        depth: int = 1,
+    ) -> None:
         self._inbox = inbox
         self.ident = ident
         self.kind = kind
+        self.policy = policy
+        """What READY_FOR_DATA delivers and what a slow client loses (DATA connections)."""
+        self.depth = depth
+        """How many buffers (or points) wait for the client at most."""
         self.owner = threading.current_thread()
         self.dropped = 0
-        """Buffers this DATA connection missed because it was not ready in time."""
+        """Buffers (points) this DATA connection missed, as of its last READY_FOR_DATA: replaced
+        or pushed out of a full queue because the client was not ready in time, or (points)
+        lost by the server. ``server.status()`` has the running figure."""
         self._closed = False
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
-        return f"<Connection {self.ident} {self.kind.name} {state}>"
+        policy = f" {self.policy.name}" if self.kind is ConnectionKind.DATA else ""
+        return f"<Connection {self.ident} {self.kind.name}{policy} {state}>"
 
     def _call(self, message: object, timeout: float | None = None) -> object:
         if self._closed:
@@ -74,17 +103,19 @@ class Connection:
         assert result is None or isinstance(result, Scan)
         return result
 
-    def ready_for_data(self, timeout: float | None = None) -> Scan:
-        """READY_FOR_DATA: block until the next complete buffer (DATA connections only).
+    def ready_for_data(self, timeout: float | None = None) -> D:
+        """READY_FOR_DATA: block until the next buffer (DATA connections only).
 
-        Raises TimeoutError when none completes within ``timeout`` seconds.
+        A complete Scan under LATEST and EVERY_BUFFER; under EVERY_ACQUISITION the next Point,
+        as soon as its acquisition has been read. Either carries ``t_delivered``. Updates
+        :attr:`dropped`. Raises TimeoutError when nothing comes within ``timeout`` seconds.
         """
         result = self._call(m.ReadyForData(self.ident), _timeout(timeout))
         assert isinstance(result, tuple)
-        scan, dropped = result
+        item, dropped = result
         self.dropped = int(dropped)
-        assert isinstance(scan, Scan)
-        return scan
+        assert isinstance(item, (Scan, Point))
+        return cast(D, item)  # the server sends what the policy says
 
     # -- control -----------------------------------------------------------------------------
     def single_scan(self, to_deg: float) -> int:
@@ -102,6 +133,19 @@ class Connection:
         result = self._call(m.ContScanRqst(self.ident, cw, ccw))
         assert isinstance(result, tuple)
         return int(result[0]), int(result[1])
+
+    def set_elevation(self, deg: float) -> int:
+        """Tilt the head to ``deg`` (positive looks up); returns the destination used, counts.
+
+        Clamped to the init record's ``elevation_limits_counts``. Returns once accepted; the
+        tilt, and the loading of that elevation's calibration table into BIRIS, follow (at the
+        end of the sweep under way, if a scan runs), and no acquisition happens meanwhile: a
+        scan asked for during a tilt starts when it is over. ``wait_idle`` waits for the tilt.
+        """
+        dest = _counts(deg, "elevation")
+        result = self._call(m.SetElevation(self.ident, dest))
+        assert isinstance(result, int)
+        return result
 
     def stop_scan(self) -> None:
         """BIRIS_STOP_SCAN_RQST: continuous scanning ends when the current sweep completes."""
@@ -152,7 +196,7 @@ class Connection:
         finally:
             self._closed = True
 
-    def __enter__(self) -> Connection:
+    def __enter__(self) -> Connection[D]:
         return self
 
     def __exit__(

@@ -15,9 +15,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from biris_hw.geometry import Frame, Mount, point_points, scan_points
 from regs.hctl1000 import COUNTS_PER_REV
 
-__all__ = ["ConnectionKind", "Direction", "Point", "Scan"]
+__all__ = ["ConnectionKind", "DeliveryPolicy", "Direction", "Point", "Scan"]
 
 _DEG_PER_COUNT = 360.0 / COUNTS_PER_REV
 
@@ -50,6 +51,32 @@ class ConnectionKind(enum.IntEnum):
 
     NORMAL = 0
     DATA = 1
+
+
+class DeliveryPolicy(enum.Enum):
+    """What a DATA connection is sent, and what happens when its client is slower than BIRIS.
+
+    The report's server handed a slow client "the latest complete scan", which delays data by up
+    to a sweep and loses the rest; these are the ways to choose. Whatever is thrown away is
+    counted in the connection's ``dropped``: nothing is lost silently.
+
+    * ``LATEST`` -- only the newest complete scan waits for the client; a newer one replaces it
+      (and counts one drop). The report's behaviour and the default.
+    * ``EVERY_BUFFER`` -- complete scans wait in a queue of ``depth``; when it is full the
+      oldest is dropped (and counted).
+    * ``EVERY_ACQUISITION`` -- every acquisition is sent as a :class:`Point` as soon as it is
+      read, without waiting for the end of the sweep; a queue of ``depth`` points, oldest
+      dropped (and counted) when full. Acquisitions the server itself lost count too.
+    """
+
+    LATEST = "latest"
+    EVERY_BUFFER = "every_buffer"
+    EVERY_ACQUISITION = "every_acquisition"
+
+    @property
+    def default_depth(self) -> int:
+        """Queue length when ``open`` is given none: 1, 8 scans, 256 points (8.5 s at 30 Hz)."""
+        return {"latest": 1, "every_buffer": 8, "every_acquisition": 256}[self.value]
 
 
 def _frozen(name: str, value: Any, dtype: type[np.generic], ndim: int) -> NDArray[Any]:
@@ -85,7 +112,8 @@ class Scan:
     clock seconds). ``seq`` counts completed scans of this direction; ``dropped`` counts
     acquisitions lost (a slow DATA client, a coalesced interrupt the data path could not recover).
     ``elevation`` is the tilt axis position in counts and ``t_delivered`` the hardware time the
-    scan was handed to the client, when known.
+    scan was handed to the client, when known. ``mount`` is the head's place on the vehicle, as
+    the server's init record gives it, so that :meth:`points` needs nothing else.
 
     Equality is identity: comparing array contents is the caller's choice (``np.array_equal``).
     """
@@ -100,6 +128,7 @@ class Scan:
     dropped: int = 0
     elevation: int = 0
     t_delivered: float | None = None
+    mount: Mount | None = None
 
     def __post_init__(self) -> None:
         def put(key: str, value: object) -> None:
@@ -110,6 +139,7 @@ class Scan:
         put("dropped", _count("dropped", self.dropped))
         put("elevation", operator.index(self.elevation))
         put("t_delivered", _optional_time("t_delivered", self.t_delivered))
+        _check_mount(self.mount)
         azimuth = _frozen("azimuth", self.azimuth, np.int32, 1)
         range_mm = _frozen("range_mm", self.range_mm, np.int16, 2)
         closest = _frozen("closest_mm", self.closest_mm, np.int16, 1)
@@ -147,6 +177,33 @@ class Scan:
         """``azimuth`` in degrees (a new array on each call)."""
         return np.multiply(self.azimuth, _DEG_PER_COUNT, dtype=np.float64)
 
+    def points(self, frame: Frame = "vehicle") -> NDArray[np.float64]:
+        """Every return of the scan as an ``(m, 3)`` array in metres; no-return samples left out.
+
+        ``frame`` is ``"vehicle"`` (the mount applied) or ``"sensor"`` (centred on the pan
+        axis at the optical centre's height); see :mod:`biris_hw.geometry`.
+        """
+        return scan_points(self, frame)
+
+    @property
+    def ages(self) -> NDArray[np.float64] | None:
+        """Per acquisition, how old it was when the scan was delivered (hardware seconds)."""
+        if self.t_delivered is None:
+            return None
+        return self.t_delivered - self.t
+
+    @property
+    def age(self) -> float | None:
+        """How old the scan's *newest* acquisition was when delivered (hardware seconds).
+
+        The freshest data is what a collision-avoidance client acts on, so this is the delay
+        the report worried about; :attr:`ages` has every acquisition's. None if not delivered
+        or empty.
+        """
+        if self.t_delivered is None or self.t.size == 0:
+            return None
+        return self.t_delivered - float(self.t.max())
+
 
 @dataclass(frozen=True, eq=False)
 class Point:
@@ -155,6 +212,8 @@ class Point:
     ``range_mm`` is the closest sample (what the report's initial server returned), ``profile``
     and ``intensity`` the full line. ``acq`` is its index in sequence ``scan_seq``; ``t`` its
     acquisition time and ``t_delivered`` the time it was handed over, both hardware seconds.
+    ``elevation`` is the tilt axis position (counts) and ``mount`` the head's place on the
+    vehicle, for :meth:`points`.
     """
 
     azimuth: int
@@ -166,6 +225,7 @@ class Point:
     scan_seq: int
     elevation: int = 0
     t_delivered: float | None = None
+    mount: Mount | None = None
 
     def __post_init__(self) -> None:
         def put(key: str, value: object) -> None:
@@ -181,6 +241,7 @@ class Point:
             raise ValueError("t must be a number, not None")
         put("t", t)
         put("t_delivered", _optional_time("t_delivered", self.t_delivered))
+        _check_mount(self.mount)
         profile = _frozen("profile", self.profile, np.int16, 1)
         intensity = _frozen("intensity", self.intensity, np.int16, 1)
         if intensity.shape != profile.shape:
@@ -197,6 +258,15 @@ class Point:
     def azimuth_deg(self) -> float:
         """``azimuth`` in degrees."""
         return self.azimuth * _DEG_PER_COUNT
+
+    def points(self, frame: Frame = "vehicle") -> NDArray[np.float64]:
+        """The profile's returns as an ``(m, 3)`` array in metres (see :meth:`Scan.points`)."""
+        return point_points(self, frame)
+
+
+def _check_mount(mount: object) -> None:
+    if mount is not None and not isinstance(mount, Mount):
+        raise ValueError(f"mount must be a geometry.Mount or None, not {type(mount).__name__}")
 
 
 def _count(name: str, value: int) -> int:

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from biris_hw.errors import RequestError
+from biris_hw.geometry import Mount
 from regs.hctl1000 import F_CLK_HZ, MOTION_LIMIT_COUNTS, accel_from_reg, sample_period
 
 if sys.version_info >= (3, 11):
@@ -168,7 +169,10 @@ class BirisInitRecord:
     hardware seconds; ``home_index_timeout_revs`` how far homing may turn looking for the zero
     index before it gives up; ``continuous_acquisition`` selects Appendix D's continuous mode;
     ``elevation_limits_counts`` bounds a future tilt axis; ``mount_offset_m`` places the pan axis
-    in the vehicle frame (x, y, z).
+    in the vehicle frame (x, y, z); ``head_height_m`` is the optical centre's height up the pan
+    axis from that point and ``head_offset_m`` its distance out from the pan axis along the
+    azimuth (the simulator's head: 0.5 m and 0). :attr:`mount` gathers the three for
+    :mod:`biris_hw.geometry`.
 
     The report's eight task indices are Harmony globals, not configuration: :attr:`tasks` names
     them, read-only, and is not part of the file.
@@ -184,6 +188,8 @@ class BirisInitRecord:
     continuous_acquisition: bool = False
     elevation_limits_counts: tuple[int, int] = (-512, 512)
     mount_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    head_height_m: float = 0.5
+    head_offset_m: float = 0.0
 
     tasks: ClassVar[tuple[str, ...]] = INTERNAL_TASKS
     """The internal tasks in creation order (see :data:`INTERNAL_TASKS`)."""
@@ -217,6 +223,13 @@ class BirisInitRecord:
         key = "mount_offset_m"
         x, y, z = (_float_field(key, v) for v in _tuple_field(key, self.mount_offset_m, 3))
         put(key, (x, y, z))
+        put("head_height_m", _float_field("head_height_m", self.head_height_m))
+        put("head_offset_m", _float_field("head_offset_m", self.head_offset_m))
+
+    @property
+    def mount(self) -> Mount:
+        """The head's place on the vehicle, as scans and points carry it."""
+        return Mount(self.mount_offset_m, self.head_height_m, self.head_offset_m)
 
     # -- dicts and TOML ------------------------------------------------------------------------
 

@@ -14,11 +14,17 @@ per physical level lets the fault panel shape delivery without the device models
 
 Counters obey ``raised == delivered + dropped + lost + pending``: ``lost`` counts interrupts the
 line refused because the driver had already closed it (a shutdown race, not a fault).
+
+**Measurement hook.** :attr:`InterruptGate.on_raise` (None by default) is called for every
+raise with the source and the ``time.perf_counter_ns()`` taken as the model raised it, so a
+benchmark can time the driver from the moment the hardware asserted the interrupt. It exists for
+``biris_hw.bench`` only and changes nothing about delivery.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable
 
@@ -62,10 +68,22 @@ class InterruptGate:
         self._dropped = 0
         self._lost = 0
         self._last_source: str | None = None
+        self.on_raise: Callable[[str, int], None] | None = None
+        """Measurement hook: ``on_raise(source, t_ns)`` for every raise (dropped ones too), in the
+        raising thread, after the interrupt was handed to the line; ``t_ns`` is
+        ``time.perf_counter_ns()`` at entry, so the hook's own work is not in the timestamp. Keep
+        it short: the device model waits for it."""
 
     # -- raising -------------------------------------------------------------------------------
     def raise_irq(self, source: str) -> None:
         """One interrupt from ``source`` ("data", "cmd", "perr", "berr", "motor", ...)."""
+        hook = self.on_raise
+        t_ns = time.perf_counter_ns() if hook is not None else 0
+        self._raise(source)
+        if hook is not None:
+            hook(source, t_ns)
+
+    def _raise(self, source: str) -> None:
         deliver = 0
         with self._lock:
             self._raised += 1

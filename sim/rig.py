@@ -84,6 +84,8 @@ class SimulatedBiris:
     ``seed`` (thread scheduling aside). On exit every thread is joined and every descriptor closed.
     ``biris_buffer`` puts BIRIS memory in the caller's buffer (a shared-memory segment, so a
     driver in another process can reach it); by default it is private to the rig.
+    ``initial_elevation_counts`` is where the tilt axis wakes (0, level, by default): the tilt's
+    zero index is at level, so a driver that homes it must find it from there.
     """
 
     def __init__(
@@ -97,8 +99,10 @@ class SimulatedBiris:
         initial_azimuth_counts: float | None = None,
         memory_map: BirisMemoryMap | None = None,
         biris_buffer: bytearray | memoryview | None = None,
+        initial_elevation_counts: float = 0.0,
     ) -> None:
         self.scene = scene if scene is not None else Scene.room()
+        self._initial_elevation = float(initial_elevation_counts)
         self.samples = samples
         self.seed = seed
         self.memory_map = memory_map if memory_map is not None else BirisMemoryMap(samples=samples)
@@ -135,7 +139,8 @@ class SimulatedBiris:
         self.level3_gate = InterruptGate(self._level3.trigger, self.clock)
 
         az_plant = MotorPlant(rngs[0], initial_azimuth_counts=initial_azimuth_counts)
-        el_plant = MotorPlant(rngs[1], initial_azimuth_counts=0.0)
+        # the tilt wakes where it was left (level by default): a tilt head rests on its stops
+        el_plant = MotorPlant(rngs[1], initial_azimuth_counts=self._initial_elevation)
         self.board = Model7600(
             self.clock,
             rngs[2],
@@ -235,6 +240,7 @@ class SimulatedBiris:
 
     @property
     def elevation_counts(self) -> float:
+        """The head's true tilt in counts (0 = level, the tilt's zero index), positive up."""
         with self.board.lock:
             self.board.catch_up()
             return float(self.board.plants[1].true_azimuth_counts)

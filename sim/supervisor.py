@@ -31,7 +31,8 @@ command completes. Data interrupts need ``_Biris_data_int_enable``. A BI_ACQUIRE
 ``_Biris_motor_access`` is clear is recorded as ``ACQUIRE_WITHOUT_MOTOR_ACCESS`` (when
 ``require_motor_access``); the acquisitions still run and untagged entries keep their old values.
 
-**Continuous (Appendix D).** BI_START_CONTINUOUS completes as soon as it is accepted, so the host
+**Continuous (Appendix D).** BI_START_CONTINUOUS completes as soon as it is accepted, answering
+the ring's length in frames (decimal, as BI_ACQUIRE answers its count), so the host
 can issue BI_STOP_CONTINUOUS (and queries, BI_LOAD_LUT) while acquisitions run; BI_ACQUIRE,
 BI_BOOT or a second start are refused with BAD_PARAM meanwhile. After one start-up, acquisitions
 run back to back into a ring of ``memory_map.max_acquisitions`` frames; ACQ_LINE and
@@ -609,7 +610,7 @@ class BirisSupervisor:
             return
         self._check_motor_access()
         self._begin_sequence(field, t, continuous=True, count=self._map.max_acquisitions)
-        self._finish_later(t, BiStatus.OK, "")
+        self._finish_later(t, BiStatus.OK, str(self._map.max_acquisitions))
 
     def _cmd_stop_continuous(self, done: float) -> None:
         seq = self._seq

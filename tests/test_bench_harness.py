@@ -240,4 +240,4 @@ def test_the_module_and_the_tools_script_run_from_a_checkout(tmp_path: Path) -> 
         timeout=60,
         check=False,
     )
-    assert listed.returncode == 0 and listed.stdout.startswith("registers")
+    assert listed.returncode == 0 and "registers" in listed.stdout.split()

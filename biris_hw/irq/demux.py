@@ -16,6 +16,16 @@ and raises one :class:`EventFdLine` per logical interrupt.
    data interrupt and BIRIS_DATA_DEV is raised with the count; zero means BIRIS has cleared it on
    completion, so BIRIS_CMD is raised.
 
+**Continuous mode** (Appendix D). While BIRIS acquires continuously, COMMAND stays zero during
+its data interrupts, so step 3 alone would take every one of them for a completion. The report
+foresees "a new flag to identify the continuous mode": :attr:`Level2Demux.continuous`, set by the
+server before it writes BI_START_CONTINUOUS and cleared once BI_STOP_CONTINUOUS has completed.
+While it is set, an interrupt with COMMAND zero raises BIRIS_DATA_DEV (counted) *and* wakes
+BIRIS_CMD (not counted: most of these wakes are not completions). Neither wake can mislead: the
+data path catches up by ACQ_LINE, so a wake with nothing new reads nothing, and the command
+notifier completes a command only if one is outstanding and COMMAND reads zero, which is exactly
+the state after BIRIS has finished it. An interrupt with COMMAND non-zero is data, as before.
+
 Coalescing (a count above 1) must not lose data. With COMMAND zero, a burst may hold data
 interrupts as well as the completion, and the last of them is the one that announces the final
 acquisition (ACQ_LINE -128). So BIRIS_DATA_DEV is raised too, before BIRIS_CMD, even when the
@@ -221,8 +231,8 @@ class _Demux(ABC):
         for logical_line in self._lines.values():
             logical_line.close()
 
-    def _raise(self, logical: Logical, count: int = 1) -> None:
-        """Raise a logical interrupt and count it.
+    def _raise(self, logical: Logical, count: int = 1, *, counted: bool = True) -> None:
+        """Raise a logical interrupt and (unless ``counted`` is False) count it.
 
         Counted under the same lock as the trigger, so a notifier that has been woken always
         finds its interrupt in :attr:`counts`.
@@ -233,7 +243,8 @@ class _Demux(ABC):
             except LineClosed:
                 log.debug("%s line closed by its user; interrupt dropped", logical.name)
                 return
-            self._counts[logical] += count
+            if counted:
+                self._counts[logical] += count
 
     def _count_spurious(self, count: int) -> None:
         with self._stats:
@@ -266,6 +277,16 @@ class Level2Demux(_Demux):
         self._biris = biris
         self._command_offset = biexec_offset + OFF_COMMAND
         self._seen_errors = 0  # only the service thread touches it
+        self._continuous = False
+
+    @property
+    def continuous(self) -> bool:
+        """Appendix D's continuous-mode flag (see the module notes)."""
+        return self._continuous
+
+    def set_continuous(self, on: bool) -> None:
+        """Set or clear the flag; a plain store, so a notifier may call it at any time."""
+        self._continuous = bool(on)
 
     def _service(self, count: int) -> None:
         error_raised = self._coupler_errors()
@@ -280,6 +301,10 @@ class Level2Demux(_Demux):
         biris_interrupts = count - 1 if error_raised else count
         if command:
             self._raise(Logical.BIRIS_DATA_DEV, biris_interrupts)
+            return
+        if self._continuous:
+            self._raise(Logical.BIRIS_DATA_DEV, max(1, biris_interrupts))
+            self._raise(Logical.BIRIS_CMD, counted=False)
             return
         if count > 1:
             self._raise(Logical.BIRIS_DATA_DEV, max(1, biris_interrupts - 1))

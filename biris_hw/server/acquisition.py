@@ -6,13 +6,41 @@ never counts them. Each time it is woken it looks at ACQ_LINE and reads every ac
 last one it delivered up to ACQ_LINE-1 (all of them once ACQ_LINE reads -128). An acquisition is
 therefore lost only if its frame was overwritten first, and then it is counted, never silent.
 
+Acquisition times. BIRIS does not time-stamp its frames, but its acquisitions are exactly one
+period apart (2 or 3 video fields) and ACQ_LINE = k tells that acquisition k has begun: so the
+start of acquisition 0 lies at or before ``now - k * period`` at every wake. The reader keeps the
+earliest such bound (the wake that came soonest after its interrupt) and stamps acquisition k
+with the middle of its exposure, ``t0 + (k + 0.5) * period``: times that are exactly periodic,
+increasing, and only as late as the promptest wake of the sequence, whatever a busy machine
+does to the others.
+
 Both the data notifier and the command notifier drain through one reader, under its lock, and
 send what they drained before releasing the lock: the administrator's inbox is FIFO, so every
 acquisition of a sequence reaches it before BIRIS_CMD_COMPLETE does.
+
+**Continuous mode** (Appendix D). After BI_START_CONTINUOUS, BIRIS acquires for ever into a ring
+of frames; ACQ_LINE is the ring slot being exposed. The reader then works in sweeps, and owns
+``_Biris_data_int_enable`` to do what the report asks: data interrupts are off between motor
+scans and back on once the next one has started. Its states:
+
+* ``priming`` -- BI_START_CONTINUOUS written, data interrupts on, waiting for the 240 ms
+  start-up to end; the first acquisition makes the ring *live* (reported, interrupts off);
+* ``idle`` -- live, interrupts off: the head stands still, nothing is read;
+* ``sweep`` -- the azimuth worker is starting a motor scan and has opened the sweep: the reader
+  resynchronises on ACQ_LINE (whatever was acquired while idle is at a constant azimuth and is
+  skipped) and reads as in a sequence, the ring slot giving the frame;
+* ``ending`` -- the motor has come to rest; the acquisition being exposed at that moment is the
+  sweep's last, and once it has been read the sweep is done (reported) and interrupts go off.
+
+Acquisitions are numbered from 0 within a sweep. A few at each end are still made at a constant
+azimuth (the exposure under way when the motor starts, and the one when it stops): the reader
+hands them over, and the administrator keeps only acquisitions at which the head had moved.
 """
 
 from __future__ import annotations
 
+import enum
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,7 +53,17 @@ from biris_hw.server.messages import Acquisition
 from regs.biexec import ACQ_LINE_END, ACQ_LINE_STARTUP
 from regs.layout import AZIMUTH_DTYPE, FRAME_DTYPE, FrameAddressing
 
-__all__ = ["AcquisitionReader", "Drained"]
+__all__ = ["AcquisitionReader", "Drained", "RingState"]
+
+
+class RingState(enum.Enum):
+    """Where continuous acquisition stands, as the reader sees it (module notes)."""
+
+    OFF = "off"
+    PRIMING = "priming"
+    IDLE = "idle"
+    SWEEP = "sweep"
+    ENDING = "ending"
 
 
 @dataclass(frozen=True)
@@ -33,10 +71,17 @@ class Drained:
     acquisitions: tuple[Acquisition, ...]
     lost: int
     finished: bool
+    live: bool = False
+    """Continuous mode: the ring has just become live (first acquisition begun)."""
+    sweep_done: int = 0
+    """Continuous mode: the seq_id of the sweep whose last acquisition this drain read."""
+
+
+_NOTHING = Drained((), 0, False)
 
 
 class AcquisitionReader:
-    """Catch-up reader for one acquisition sequence at a time."""
+    """Catch-up reader for one acquisition sequence, or for continuous-mode sweeps."""
 
     def __init__(
         self,
@@ -57,7 +102,14 @@ class AcquisitionReader:
         self._seq_id = 0
         self._n = 0
         self._next = 0
+        self._t0 = math.inf
         self.spurious = 0
+        # continuous mode
+        self._ring_state = RingState.OFF
+        self._ring = 0
+        self._exposing = 0
+        self._end: int | None = None
+        self._index = 0
 
     def configure(self, addressing: FrameAddressing, samples: int, period_s: float) -> None:
         """Where the frames are, as learned from BIRIS at initialisation."""
@@ -70,6 +122,11 @@ class AcquisitionReader:
     def samples(self) -> int:
         return self._samples
 
+    @property
+    def ring_state(self) -> RingState:
+        return self._ring_state
+
+    # -- single sequences (BI_ACQUIRE) ----------------------------------------------------------
     def begin(self, seq_id: int, n: int) -> None:
         """A BI_ACQUIRE of ``n`` acquisitions is about to be written; call before COMMAND."""
         with self.lock:
@@ -77,6 +134,7 @@ class AcquisitionReader:
             self._seq_id = seq_id
             self._n = n
             self._next = 0
+            self._t0 = math.inf
 
     def abandon(self) -> None:
         with self.lock:
@@ -85,13 +143,23 @@ class AcquisitionReader:
     def drain(self, final: bool = False) -> Drained:
         """Read every acquisition completed since the last drain. Hold ``self.lock``.
 
+        In continuous mode this is the ring's drain; otherwise the sequence's (see
+        :meth:`drain_sequence`).
+        """
+        if self._ring_state is not RingState.OFF:
+            return self._drain_ring()
+        return self.drain_sequence(final)
+
+    def drain_sequence(self, final: bool = False) -> Drained:
+        """The BI_ACQUIRE sequence's drain. Hold ``self.lock``.
+
         ``final`` is set by the command notifier: BIRIS has finished the sequence, so whatever
         ACQ_LINE says, nothing more will complete.
         """
         if not self._active or self._addr is None:
-            if not final:
+            if not final and self._ring_state is RingState.OFF:
                 self.spurious += 1
-            return Drained((), 0, False)
+            return _NOTHING
         line = self._link.acq_line()
         now = self._clock()
         if line == ACQ_LINE_END:
@@ -102,9 +170,11 @@ class AcquisitionReader:
             last, ref = -1, 0.0
         else:  # garbage in ACQ_LINE: read nothing now, the end of the sequence will tell
             last, ref = -1, 0.0
+        if line == ACQ_LINE_END or line >= 0:
+            self._observe(now, ref)
         out: list[Acquisition] = []
         for k in range(self._next, last + 1):
-            out.append(self._read(k, now - (ref - k - 0.5) * self._period))
+            out.append(self._read(k, k, self._time_of(k)))
         self._next = max(self._next, last + 1)
         finished = line == ACQ_LINE_END or final
         lost = 0
@@ -113,15 +183,123 @@ class AcquisitionReader:
             self._active = False
         return Drained(tuple(out), lost, finished)
 
-    def _read(self, k: int, t: float) -> Acquisition:
+    def _observe(self, now: float, begun: float) -> None:
+        """Acquisition ``begun`` has started by ``now``: tighten the bound on acquisition 0's."""
+        self._t0 = min(self._t0, now - begun * self._period)
+
+    def _time_of(self, k: int) -> float:
+        """Middle of acquisition k's exposure, on the hardware clock."""
+        return self._t0 + (k + 0.5) * self._period
+
+    # -- continuous mode (BI_START_CONTINUOUS) ----------------------------------------------------
+    def prime_ring(self) -> None:
+        """BI_START_CONTINUOUS is about to be written: wait, interrupts on, for the first frame."""
+        with self.lock:
+            self._active = False
+            self._ring_state = RingState.PRIMING
+            self._ring = 0
+            self._link.set_flags(data_int=True)
+
+    def ring_started(self, ring: int) -> None:
+        """BI_START_CONTINUOUS completed: BIRIS answered the ring length (0 if it did not)."""
+        with self.lock:
+            self._ring = max(0, ring)
+
+    def stop_ring(self) -> None:
+        """BI_STOP_CONTINUOUS completed (or the start failed): back to sequences."""
+        with self.lock:
+            self._ring_state = RingState.OFF
+            self._ring = 0
+            self._end = None
+            self._link.set_flags(data_int=True)  # single sequences announce every frame
+
+    def open_sweep(self, seq_id: int) -> None:
+        """The motor scan of sweep ``seq_id`` starts now: collect from the frame in exposure,
+        and turn data interrupts back on."""
+        with self.lock:
+            if self._ring_state is not RingState.IDLE:
+                return
+            line = self._link.acq_line()
+            self._exposing = max(0, line)
+            self._next = self._exposing
+            self._seq_id = seq_id
+            self._index = 0
+            self._end = None
+            self._t0 = math.inf
+            self._observe(self._clock(), self._exposing)
+            self._ring_state = RingState.SWEEP
+            self._link.set_flags(data_int=True)
+
+    def end_sweep(self) -> Drained:
+        """The motor has come to rest: what is complete now, and mark the frame in exposure as
+        the sweep's last. Hold ``self.lock``."""
+        if self._ring_state is not RingState.SWEEP:
+            return _NOTHING
+        line = self._link.acq_line()
+        if line < 0:
+            return self._close_sweep([], 0)
+        out, lost = self._read_ring_to(line)
+        self._end = self._exposing
+        self._ring_state = RingState.ENDING
+        return Drained(tuple(out), lost, False)
+
+    def _drain_ring(self) -> Drained:
+        state = self._ring_state
+        if self._addr is None or state is RingState.IDLE:
+            return _NOTHING  # a completion's wake, or an interrupt from before the gate shut
+        line = self._link.acq_line()
+        if state is RingState.PRIMING:
+            if line >= 0 and self._ring > 0:
+                self._ring_state = RingState.IDLE
+                self._link.set_flags(data_int=False)
+                return Drained((), 0, False, live=True)
+            return _NOTHING
+        if line == ACQ_LINE_STARTUP:
+            return _NOTHING
+        if line < 0:  # BIRIS stopped under the sweep: nothing more will come
+            return self._close_sweep([], 0)
+        out, lost = self._read_ring_to(line)
+        if state is RingState.ENDING and self._end is not None and self._next > self._end:
+            return self._close_sweep(out, lost)
+        return Drained(tuple(out), lost, False)
+
+    def _read_ring_to(self, line: int) -> tuple[list[Acquisition], int]:
+        """Read every frame completed before slot ``line`` (now in exposure)."""
+        ring = self._ring
+        if ring <= 0 or line >= ring:
+            return [], 0
+        self._exposing += (line - self._exposing) % ring
+        self._observe(self._clock(), self._exposing)
+        last = self._exposing - 1
+        if self._end is not None:
+            last = min(last, self._end)
+        lost = max(0, (self._exposing - ring + 1) - self._next)  # overwritten by a later lap
+        self._next += lost
+        out: list[Acquisition] = []
+        for k in range(self._next, last + 1):
+            out.append(self._read(k % ring, self._index, self._time_of(k)))
+            self._index += 1
+        self._next = max(self._next, last + 1)
+        return out, lost
+
+    def _close_sweep(self, out: list[Acquisition], lost: int) -> Drained:
+        self._ring_state = RingState.IDLE
+        self._end = None
+        self._link.set_flags(data_int=False)
+        return Drained(tuple(out), lost, True, sweep_done=self._seq_id)
+
+    # -- frames -----------------------------------------------------------------------------------
+    def _read(self, slot: int, index: int, t: float) -> Acquisition:
         assert self._addr is not None
         count = self._samples + 1
-        raw = self._window.read(self._addr.range_frame(k), count * 2)
+        raw = self._window.read(self._addr.range_frame(slot), count * 2)
         rng = np.frombuffer(raw, dtype=FRAME_DTYPE, count=count).astype(np.int16)
-        raw_i = self._window.read(self._addr.intensity_frame(k), count * 2)
+        raw_i = self._window.read(self._addr.intensity_frame(slot), count * 2)
         inten = np.frombuffer(raw_i, dtype=FRAME_DTYPE, count=count).astype(np.int16)
         azimuth = int(
-            np.frombuffer(self._window.read(self._addr.azimuth_entry(k), 4), dtype=AZIMUTH_DTYPE)[0]
+            np.frombuffer(
+                self._window.read(self._addr.azimuth_entry(slot), 4), dtype=AZIMUTH_DTYPE
+            )[0]
         )
         profile = rng[1:].copy()
         bad = (profile > self._max_range) | (profile < 0)
@@ -135,7 +313,7 @@ class AcquisitionReader:
         intensity.setflags(write=False)
         return Acquisition(
             seq_id=self._seq_id,
-            index=k,
+            index=index,
             azimuth=azimuth,
             closest_mm=closest,
             profile=profile,

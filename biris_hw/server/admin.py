@@ -5,18 +5,45 @@ a register. Workers get their orders in *replies*; clients that must wait (wait_
 READY_FOR_DATA, reset) are parked and replied to later. Rules of the report kept here:
 
 * a new BIRIS command only after BIRIS_CMD of the previous one was serviced (``biris_ready``);
-* a scan completes when both AZ_SCAN_DONE and BIRIS_CMD_COMPLETE have arrived;
+* a scan completes when both AZ_SCAN_DONE and BIRIS_CMD_COMPLETE have arrived (in continuous
+  acquisition, AZ_SCAN_DONE and SWEEP_DATA_DONE);
 * continuous scans alternate CW and CCW and start the next sweep by themselves, until
   BIRIS_STOP_SCAN_RQST, which ends scanning at the completion of the current sweep;
 * data are buffered per direction and double-buffered: a client always gets the last complete
   scan of a direction, never a mix;
 * BIRIS_HOME is pending while the motor moves or a motion is pending, and during continuous
   scanning it waits for STOP; HOME and new motor parameters use the trapezoid only;
-* every motor destination goes through _Scan_limit (+-0x1000 counts).
+* every motor destination goes through _Scan_limit (+-0x1000 counts);
+* "any change in sensor elevation must be completed before an acquisition scan is executed", with
+  the calibration table for the new elevation loaded: see *Elevation* below;
+* Appendix D's continuous mode: see *Continuous acquisition* below.
+
+**Elevation** (the report's future tilt axis). SET_ELEVATION is clamped to the init record's
+``elevation_limits_counts``, replied at once with the destination used, and carried out as a
+*tilt*: the tilt motor moves (through el_scan_start / el_scan_notifier) while BI_LOAD_LUT loads
+that elevation's calibration table, and the tilt is over when both are. No acquisition runs
+meanwhile: a tilt asked for during a scan waits for the end of that sweep (in continuous scanning,
+it happens between two sweeps), and a scan asked for during a tilt *waits* for the tilt (the
+request is accepted and replied at once; the sweep starts when the tilt is over; a second scan
+request meanwhile is refused as for any scan in progress). A BI_LOAD_LUT that BIRIS refuses (no
+table for that elevation) is a ``protocol`` fault: the record's limits promise tables BIRIS does
+not have.
+
+**Continuous acquisition** (Appendix D, ``BirisInitRecord.continuous_acquisition``). BIRIS is
+started once (BI_START_CONTINUOUS) after initialisation and keeps acquiring into its ring, so the
+240 ms start-up is paid once, not per sweep; it is stopped for a tilt (no acquisition while
+tilting) and restarted after. A sweep starts only once the ring is *live* (its first acquisition
+has begun), and needs no BIRIS command: the azimuth worker opens the sweep (data interrupts
+back on) once the motor runs, and the sweep's data are complete when the acquisition in
+exposure as the motor came to rest has been read (SWEEP_DATA_DONE). Acquisitions made with the
+head standing at either end of the sweep (before it left the start, and after the first one at
+the destination) are *dropped* from the scan and counted (``constant_azimuth``); a scan's
+``dropped`` still counts only acquisitions lost.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import weakref
@@ -39,13 +66,20 @@ from biris_hw.errors import (
 from biris_hw.ipc import Envelope, Mailbox, TaskStopped
 from biris_hw.records import BirisInitRecord, MotorParams, acquisitions_for
 from biris_hw.server import messages as m
+from biris_hw.server.delivery import ClientConn, check_policy, stamp
 from biris_hw.server.initialiser import InitResult
+from biris_hw.server.motion import AxisState, Motion
 from biris_hw.server.tasks import DeadlineTimer
-from regs.biexec import BiCommand, BiStatus
+from regs.biexec import BiCommand, BiStatus, decode_param
+from regs.tech80 import Axis
 
 __all__ = ["Administrator"]
 
 log = logging.getLogger(__name__)
+
+STILL_COUNTS = 2
+"""How near (counts) to where a continuous-mode sweep starts or ends an acquisition counts as made
+with the head standing there: a head at rest may sit a count or two off its command."""
 
 
 @dataclass
@@ -60,35 +94,45 @@ class _Command:
 
 
 @dataclass
-class _Motion:
-    order: m.MoveOrder | m.ParamsOrder
-    on_done: Callable[[str | None], object]
-    on_fail: Callable[[BaseException], object]
-
-
-@dataclass
 class _ActiveScan:
     direction: Direction
     destination: int
     n: int
     seq_id: int
+    elevation: int = 0
+    ring: bool = False
+    """Continuous acquisition: the sweep's data come from the ring, not from a BI_ACQUIRE."""
+    start: int = 0
+    left_start: bool = False
+    """Continuous acquisition: an acquisition away from the start has been kept."""
+    at_end: bool = False
+    """Continuous acquisition: an acquisition at the destination has been kept."""
     acqs: dict[int, m.Acquisition] = field(default_factory=dict)
     lost: int = 0
-    discarded: int = 0
     az_done: bool = False
     cmd_done: bool = False
     status: int = 0
 
 
 @dataclass
-class _Conn:
-    ident: int
-    kind: ConnectionKind
-    owner: weakref.ref[threading.Thread]
-    waiting: Envelope | None = None
-    pending: Scan | None = None
-    dropped: int = 0
-    delivered: int = 0
+class _Tilt:
+    destination: int
+    moved: bool = False
+    lut: bool = False
+
+
+def _status_name(status: int) -> str:
+    try:
+        return BiStatus(status).name
+    except ValueError:
+        return "error"
+
+
+def _ring_answer(param: bytes) -> int:
+    try:
+        return int(decode_param(param).strip(), 10)
+    except ValueError:
+        return 0
 
 
 class Administrator:
@@ -102,13 +146,13 @@ class Administrator:
         biris_timeout: DeadlineTimer,
         motor_watchdog: DeadlineTimer,
         start_initialiser: Callable[[], None],
+        elevation_watchdog: DeadlineTimer | None = None,
     ) -> None:
         self.record = record
-        self.motor: MotorParams = record.motor
+        self.mount = record.mount
         self.inbox = inbox
         self.clock = clock
         self.biris_timeout = biris_timeout
-        self.motor_watchdog = motor_watchdog
         self._start_initialiser = start_initialiser
         self.phase = "initialising"
         self.fault: HardwareFault | None = None
@@ -117,7 +161,6 @@ class Administrator:
         # workers parked on their last report
         self.transfer_env: Envelope | None = None
         self.cmd_notifier_env: Envelope | None = None
-        self.az_env: Envelope | None = None
         # BIRIS commands
         self.cmd_queue: deque[_Command] = deque()
         self.current_cmd: _Command | None = None
@@ -125,14 +168,14 @@ class Administrator:
         self.cmd_token = 0
         self.timeout_enabled = False
         self.timeout_gen = -1
-        # motion
-        self.motion_queue: deque[_Motion] = deque()
-        self.current_motion: _Motion | None = None
-        self.watchdog_gen = -1
-        self.position = 0
+        # motion: one record per axis (the tilt's watchdog is the pan's if none is given)
+        self.az = AxisState(Axis.AZIMUTH, motor_watchdog, record.motor)
+        self.el = AxisState(Axis.ELEVATION, elevation_watchdog or motor_watchdog, record.motor)
         # scanning
         self.seq_counter = 0
         self.scan: _ActiveScan | None = None
+        self.deferred_scan: Callable[[], None] | None = None
+        """A scan accepted while it could not start (tilting, ring not live): its start."""
         self.continuous: tuple[int, int] | None = None
         self.stop_pending = False
         self.home_pending = False
@@ -142,16 +185,34 @@ class Administrator:
         self.seq: dict[Direction, int] = {Direction.CW: 0, Direction.CCW: 0}
         self.latest_point: Point | None = None
         self.samples = 0
+        # elevation
+        self.elevation = 0
+        """Where the tilt stands (counts) once the last tilt is over."""
+        self.lut: int | None = None
+        """Elevation (counts) of the calibration table BIRIS holds, None when unknown."""
+        self.tilt: _Tilt | None = None
+        self.elevation_pending: int | None = None
+        # continuous acquisition (Appendix D)
+        self.ring_mode = record.continuous_acquisition
+        self.ring = "off"
+        """BIRIS's continuous acquisition: off, starting, live or stopping."""
+        self.ring_stop_waiters: list[Callable[[], None]] = []
         # clients
-        self.conns: dict[int, _Conn] = {}
+        self.conns: dict[int, ClientConn] = {}
         self.next_conn = 1
         self.idle_waiters: list[Envelope] = []
+        self.closed_drops = 0
         # counters for status()
         self.counters: dict[str, int] = {
             "acquisitions": 0,
             "scans": 0,
             "dropped_acquisitions": 0,
             "discarded_samples": 0,
+            "constant_azimuth": 0,
+            "deliveries": 0,
+            "tilts": 0,
+            "lut_loads": 0,
+            "continuous_starts": 0,
             "faults": 0,
             "spurious_motor_end": 0,
             "stale_acquisitions": 0,
@@ -160,9 +221,13 @@ class Administrator:
         self._handlers: dict[type, Callable[[Envelope, Any], None]] = {
             m.NewPoint: self._on_new_point,
             m.CmdTransferRdy: self._on_cmd_transfer_rdy,
-            m.AzReady: self._on_az_ready,
-            m.AzScanDone: self._on_az_scan_done,
+            m.AzReady: lambda env, msg: self._on_axis_ready(self.az, env, msg.error),
+            m.AzScanDone: lambda env, msg: self._on_axis_done(self.az, env),
+            m.ElReady: lambda env, msg: self._on_axis_ready(self.el, env, msg.error),
+            m.ElScanDone: lambda env, msg: self._on_axis_done(self.el, env),
             m.BirisCmdComplete: self._on_cmd_complete,
+            m.ContinuousLive: self._on_continuous_live,
+            m.SweepDataDone: self._on_sweep_data_done,
             m.BirisTimeoutErr: self._on_timeout_err,
             m.MotorWatchdogErr: self._on_watchdog_err,
             m.BirisBusErr: lambda env, msg: self._task_fault(
@@ -185,6 +250,7 @@ class Administrator:
             m.ContScanRqst: self._on_cont_scan,
             m.StopScanRqst: self._on_stop_scan,
             m.BirisHome: self._on_home,
+            m.SetElevation: self._on_set_elevation,
             m.ReadyForData: self._on_ready_for_data,
             m.WaitIdle: self._on_wait_idle,
             m.ResetRequest: self._on_reset,
@@ -211,7 +277,20 @@ class Administrator:
                 _fail(env, exc)
 
     # ============================================================================ helpers
-    def _conn(self, ident: int, *, data: bool = False) -> _Conn:
+    @property
+    def motor(self) -> MotorParams:
+        """The pan motor's parameters in force."""
+        return self.az.motor
+
+    @property
+    def position(self) -> int:
+        """Where the pan axis stands, or will once its current move ends (counts)."""
+        return self.az.position
+
+    def _axis(self, axis: Axis) -> AxisState:
+        return self.az if axis is Axis.AZIMUTH else self.el
+
+    def _conn(self, ident: int, *, data: bool = False) -> ClientConn:
         conn = self.conns.get(ident)
         if conn is None:
             raise ConnectionClosed(f"connection {ident} is not open")
@@ -225,18 +304,23 @@ class Administrator:
         if self.phase == "initialising":
             raise RequestError("the server is initialising")
 
-    def _motion_busy(self) -> bool:
-        return self.current_motion is not None or bool(self.motion_queue)
+    def _scan_busy(self) -> bool:
+        """A scan runs or waits to start."""
+        return self.scan is not None or self.deferred_scan is not None
 
     def is_idle(self) -> bool:
         return (
             self.phase == "idle"
-            and self.scan is None
-            and not self._motion_busy()
+            and not self._scan_busy()
+            and not self.az.busy()
+            and not self.el.busy()
+            and self.tilt is None
+            and self.elevation_pending is None
             and not self.home_pending
             and self.params_pending is None
             and self.current_cmd is None
             and not self.cmd_queue
+            and self.ring in ("off", "live")
         )
 
     def _check_idle_waiters(self) -> None:
@@ -244,13 +328,6 @@ class Administrator:
             waiters, self.idle_waiters = self.idle_waiters, []
             for env in waiters:
                 env.reply(None)
-
-    def _expected_move_s(self, distance: int, params: MotorParams) -> float:
-        period = params.sample_period_s
-        vmax = max(params.max_vel, 1)
-        accel = max(params.max_accel / 256.0, 1.0 / 256.0)
-        samples = abs(distance) / vmax + 2.0 * vmax / accel + 2.0
-        return samples * period
 
     # ============================================================================ commands
     def _submit_command(self, cmd: _Command) -> None:
@@ -272,8 +349,7 @@ class Administrator:
         self.cmd_token += 1
         cmd.token = self.cmd_token
         env.reply(m.TransferOrder(cmd.code, cmd.param, cmd.seq_id, cmd.n, cmd.token))
-        if self.timeout_enabled:
-            self.timeout_gen = self.biris_timeout.arm(self.record.timeout_s)
+        self._rearm_timeout()
 
     def _on_cmd_transfer_rdy(self, env: Envelope, msg: m.CmdTransferRdy) -> None:
         self.transfer_env = env
@@ -286,15 +362,30 @@ class Administrator:
             return
         cmd, self.current_cmd = self.current_cmd, None
         self.biris_ready = True
-        self.biris_timeout.disarm()
-        if cmd is not None:
-            cmd.on_done(msg.status, msg.param)
+        self._rearm_timeout()
+        cmd.on_done(msg.status, msg.param)
         self._pump_commands()
         self._check_idle_waiters()
 
+    # -- the BIRIS timeout: armed whenever BIRIS owes the server an answer ------------------------
+    def _biris_expected(self) -> bool:
+        """BIRIS owes a completion, a continuous-mode sweep's data, or its ring's start."""
+        scan = self.scan
+        return (
+            self.current_cmd is not None
+            or (scan is not None and scan.ring and not scan.cmd_done)
+            or self.ring == "starting"
+        )
+
+    def _rearm_timeout(self) -> None:
+        if self.timeout_enabled and self._biris_expected():
+            self.timeout_gen = self.biris_timeout.arm(self.record.timeout_s)
+        else:
+            self.biris_timeout.disarm()
+
     def _on_timeout_err(self, env: Envelope, msg: m.BirisTimeoutErr) -> None:
         env.reply(None)
-        if msg.generation == self.timeout_gen and self.current_cmd is not None:
+        if msg.generation == self.timeout_gen and self._biris_expected():
             self._fault(
                 "timeout", f"BIRIS did not respond for {self.record.timeout_s:g} s of hardware time"
             )
@@ -303,8 +394,7 @@ class Administrator:
         self._conn(msg.conn)
         self._check_usable()
         self.timeout_enabled = True
-        if self.current_cmd is not None:
-            self.timeout_gen = self.biris_timeout.arm(self.record.timeout_s)
+        self._rearm_timeout()
         env.reply(None)
 
     def _on_timeout_disable(self, env: Envelope, msg: m.TimeoutDisable) -> None:
@@ -315,70 +405,79 @@ class Administrator:
         env.reply(None)
 
     # ============================================================================ motion
-    def _submit_motion(self, job: _Motion) -> None:
-        self.motion_queue.append(job)
-        self._pump_motion()
+    def _submit_motion(self, axis: AxisState, job: Motion) -> None:
+        axis.submit(job)
+        self._pump_motion(axis)
 
-    def _pump_motion(self) -> None:
-        if self.fault is not None or self.current_motion is not None or self.az_env is None:
-            return
-        if not self.motion_queue:
-            return
-        job = self.motion_queue.popleft()
-        self.current_motion = job
-        env, self.az_env = self.az_env, None
-        order = job.order
-        if isinstance(order, m.MoveOrder):
-            dest = clamp_counts(order.destination)  # _Scan_limit, whatever asked for it
-            order = m.MoveOrder(dest)
-            duration = self._expected_move_s(dest - self.position, self.motor)
-            self.watchdog_gen = self.motor_watchdog.arm(duration * 1.5 + 1.0)
-            self.position = dest
-        env.reply(order)
+    def _pump_motion(self, axis: AxisState) -> None:
+        if self.fault is None:
+            axis.dispatch()
 
-    def _on_az_ready(self, env: Envelope, msg: m.AzReady) -> None:
-        self.az_env = env
-        job = self.current_motion
+    def _on_axis_ready(self, axis: AxisState, env: Envelope, error: str | None) -> None:
+        """AZ_READY / EL_READY: the worker is parked again; a parameter load is then done."""
+        axis.env = env
+        job = axis.current
         if job is not None:
-            if msg.error is not None:
-                self.current_motion = None
-                self.motor_watchdog.disarm()
-                self._fault("motor_stall" if "profile" in msg.error else "bus", msg.error)
+            if error is not None:
+                axis.finish_current()
+                self._fault("motor_stall" if "profile" in error else "bus", error)
                 return
             if isinstance(job.order, m.ParamsOrder):
-                self.current_motion = None
+                axis.finish_current()
                 job.on_done(None)
-        self._pump_motion()
+        self._pump_motion(axis)
         self._check_idle_waiters()
 
-    def _on_az_scan_done(self, env: Envelope, msg: m.AzScanDone) -> None:
+    def _on_axis_done(self, axis: AxisState, env: Envelope) -> None:
+        """AZ_SCAN_DONE / EL_SCAN_DONE: the move has ended and the axis has come to rest."""
         env.reply(None)
-        job = self.current_motion
+        job = axis.current
         if job is None or not isinstance(job.order, m.MoveOrder):
             self.counters["spurious_motor_end"] += 1
             return
-        self.current_motion = None
-        self.motor_watchdog.disarm()
+        axis.finish_current()
         job.on_done(None)
-        self._pump_motion()
+        self._pump_motion(axis)
         self._check_idle_waiters()
 
     def _on_watchdog_err(self, env: Envelope, msg: m.MotorWatchdogErr) -> None:
         env.reply(None)
-        if msg.generation == self.watchdog_gen and self.current_motion is not None:
-            self._fault("motor_stall", "the azimuth motor did not reach its destination")
+        axis = self._axis(msg.axis)
+        if msg.generation == axis.watchdog_gen and axis.current is not None:
+            self._fault("motor_stall", f"the {axis.name} motor did not reach its destination")
 
     # ============================================================================ scans
     def _direction_to(self, dest: int) -> Direction:
         return Direction.CCW if dest > self.position else Direction.CW
 
+    def _ready_to_acquire(self) -> bool:
+        """No tilt under way, and in continuous acquisition the ring is live."""
+        return self.tilt is None and (not self.ring_mode or self.ring == "live")
+
+    def _when_ready(self, start: Callable[[], None]) -> None:
+        """Start a scan now if BIRIS may acquire, else once it may (a tilt, the ring)."""
+        if self._ready_to_acquire():
+            start()
+            return
+        self.deferred_scan = start
+        if self.ring_mode and self.tilt is None:
+            self._start_ring()
+
+    def _run_deferred(self) -> None:
+        if self.deferred_scan is not None and self._ready_to_acquire() and self.fault is None:
+            start, self.deferred_scan = self.deferred_scan, None
+            start()
+
     def _start_scan(self, dest: int) -> None:
         if dest == self.position:
             raise RequestError(f"the head is already at {dest} counts; a scan needs a length")
         direction = self._direction_to(dest)
-        n = acquisitions_for(abs(dest - self.position), self._record_with_motor())
         self.seq_counter += 1
-        scan = _ActiveScan(direction, dest, n, self.seq_counter)
+        if self.ring_mode:
+            self._start_sweep(dest, direction)
+            return
+        n = acquisitions_for(abs(dest - self.position), self._record_with_motor())
+        scan = _ActiveScan(direction, dest, n, self.seq_counter, elevation=self.elevation)
         self.scan = scan
         self._submit_command(
             _Command(
@@ -391,20 +490,40 @@ class Administrator:
             )
         )
         self._submit_motion(
-            _Motion(
+            self.az,
+            Motion(
                 m.MoveOrder(dest),
                 on_done=lambda err: self._scan_part_done(scan, motion=True),
                 on_fail=lambda exc: None,
-            )
+            ),
         )
+
+    def _start_sweep(self, dest: int, direction: Direction) -> None:
+        """A continuous-acquisition scan: only the motor is ordered; the ring supplies data."""
+        scan = _ActiveScan(
+            direction,
+            dest,
+            0,
+            self.seq_counter,
+            elevation=self.elevation,
+            ring=True,
+            start=self.position,
+        )
+        self.scan = scan
+        self._submit_motion(
+            self.az,
+            Motion(
+                m.MoveOrder(dest, sweep=scan.seq_id),
+                on_done=lambda err: self._scan_part_done(scan, motion=True),
+                on_fail=lambda exc: None,
+            ),
+        )
+        self._rearm_timeout()
 
     def _record_with_motor(self) -> BirisInitRecord:
         """The record with the motor parameters the next move will run with: a parameter load
         still queued ahead of it counts, since the motion queue is served in order."""
-        motor = self.motor
-        for job in [*([self.current_motion] if self.current_motion else []), *self.motion_queue]:
-            if isinstance(job.order, m.ParamsOrder):
-                motor = job.order.params
+        motor = self.az.motor_for_next_move()
         return self.record if motor == self.record.motor else replace(self.record, motor=motor)
 
     def _scan_part_done(
@@ -417,8 +536,17 @@ class Administrator:
         if cmd_status is not None:
             scan.cmd_done = True
             scan.status = cmd_status
+            self._rearm_timeout()
         if scan.az_done and scan.cmd_done:
             self._finish_scan(scan)
+
+    def _on_sweep_data_done(self, env: Envelope, msg: m.SweepDataDone) -> None:
+        env.reply(None)
+        scan = self.scan
+        if scan is None or not scan.ring or scan.seq_id != msg.seq_id:
+            self.counters["stale_completions"] += 1
+            return
+        self._scan_part_done(scan, cmd_status=int(BiStatus.OK))
 
     def _finish_scan(self, scan: _ActiveScan) -> None:
         self.scan = None
@@ -431,12 +559,23 @@ class Administrator:
         self.counters["scans"] += 1
         self.counters["dropped_acquisitions"] += result.dropped
         self._deliver(result)
+        following: int | None = None
         if self.continuous is not None and not self.stop_pending:
             cw, ccw = self.continuous
-            self._start_scan(ccw if scan.destination == cw else cw)  # the other limit
+            following = ccw if scan.destination == cw else cw  # the other limit
         else:
             self.continuous = None
             self.stop_pending = False
+        pending = self.elevation_pending
+        if pending is not None:  # a tilt asked for during the sweep goes between sweeps
+            if following is not None:
+                dest = following
+                self.deferred_scan = lambda: self._start_scan(dest)
+            self._start_tilt(pending)
+            self._after_motion_settles()
+        elif following is not None:
+            self._start_scan(following)
+        else:
             self._after_motion_settles()
         self._check_idle_waiters()
 
@@ -453,14 +592,13 @@ class Administrator:
         else:
             rng = np.zeros((0, samples), dtype=np.int16)
             inten = np.zeros((0, samples), dtype=np.int16)
-        dropped = max(0, scan.n - n)
+        dropped = scan.lost if scan.ring else max(0, scan.n - n)
         if dropped:
             log.warning(
-                "scan %d (%s): %d of %d acquisitions lost",
+                "scan %d (%s): %d acquisitions lost",
                 scan.seq_id,
                 scan.direction.name,
                 dropped,
-                scan.n,
             )
         return Scan(
             direction=scan.direction,
@@ -471,21 +609,29 @@ class Administrator:
             intensity=inten,
             t=t,
             dropped=dropped,
+            elevation=scan.elevation,
+            mount=self.mount,
         )
 
     def _on_new_point(self, env: Envelope, msg: m.NewPoint) -> None:
         env.reply(None)
         scan = self.scan
-        if self.timeout_enabled and self.current_cmd is not None:
+        if self.timeout_enabled and self._biris_expected():
             self.timeout_gen = self.biris_timeout.arm(self.record.timeout_s)  # BIRIS is alive
+        points: list[Point] = []
         for acq in msg.acquisitions:
             if scan is None or acq.seq_id != scan.seq_id:
                 self.counters["stale_acquisitions"] += 1
                 continue
+            if scan.ring:
+                if not self._head_moving(scan, acq.azimuth):
+                    self.counters["constant_azimuth"] += 1  # the head stood still: dropped
+                    continue
+                acq = dataclasses.replace(acq, index=len(scan.acqs))
             scan.acqs[acq.index] = acq
             self.counters["acquisitions"] += 1
             self.counters["discarded_samples"] += acq.discarded
-            self.latest_point = Point(
+            point = Point(
                 azimuth=acq.azimuth,
                 range_mm=acq.closest_mm,
                 profile=acq.profile,
@@ -493,45 +639,96 @@ class Administrator:
                 t=acq.t,
                 acq=acq.index,
                 scan_seq=self.seq[scan.direction] + 1,
+                elevation=scan.elevation,
+                mount=self.mount,
             )
+            self.latest_point = point
+            points.append(point)
         if scan is not None:
             scan.lost += msg.lost
+        if points or (scan is not None and msg.lost):
+            self._deliver_points(points, msg.lost if scan is not None else 0)
 
-    def _deliver(self, scan: Scan) -> None:
+    @staticmethod
+    def _head_moving(scan: _ActiveScan, azimuth: int) -> bool:
+        """Whether a continuous-mode acquisition belongs to the sweep: not made while the head
+        still stood at the start, nor after one was made with it standing at the end.
+
+        Only the ends are judged: those are where the report expects "samples at constant
+        azimuth". An acquisition in between is kept whatever its tag, so that a stall or a
+        tagging hiccup shows in the data instead of being hidden.
+        """
+        if not scan.left_start:
+            if abs(azimuth - scan.start) <= STILL_COUNTS:
+                return False
+            scan.left_start = True
+        if scan.at_end:
+            return False
+        if abs(azimuth - scan.destination) <= STILL_COUNTS:
+            scan.at_end = True
+        return True
+
+    # ============================================================================ delivery
+    def _live_conns(self) -> list[ClientConn]:
+        """Open connections whose owners still run; the others are released on the way."""
+        live = []
         for conn in list(self.conns.values()):
-            owner = conn.owner()
-            if owner is None or not owner.is_alive():
+            if not conn.alive:
                 self._drop_conn(conn, "its owning thread has ended")
                 continue
-            if conn.kind is not ConnectionKind.DATA:
+            live.append(conn)
+        return live
+
+    def _deliver(self, scan: Scan) -> None:
+        now = self.clock()
+        for conn in self._live_conns():
+            if conn.wants_scans:
+                before = conn.delivered
+                conn.offer(scan, now)
+                self.counters["deliveries"] += conn.delivered - before
+
+    def _deliver_points(self, points: list[Point], lost: int) -> None:
+        now = self.clock()
+        for conn in self._live_conns():
+            if not conn.wants_points:
                 continue
-            if conn.waiting is not None:
-                env, conn.waiting = conn.waiting, None
-                if _reply(env, (scan, conn.dropped)):
-                    conn.delivered += 1
-                    continue
-            if conn.pending is not None:
-                conn.dropped += 1
-            conn.pending = scan
+            if lost:
+                conn.lost(lost)
+            before = conn.delivered
+            for point in points:
+                conn.offer(point, now)
+            self.counters["deliveries"] += conn.delivered - before
+
+    def _hand_over(self, env: Envelope, conn: ClientConn, item: Scan | Point | None) -> None:
+        """Answer REQUEST_POINT / REQUEST_SCAN_DATA: stamped, and its latency recorded."""
+        if item is None:
+            env.reply(None)
+            return
+        sent = stamp(item, self.clock())
+        if env.reply(sent) is not False:
+            conn.record(sent)
+            self.counters["deliveries"] += 1
 
     def _after_motion_settles(self) -> None:
         """Pending HOME and motor parameters run once nothing else moves."""
-        if self.scan is not None or self._motion_busy() or self.fault is not None:
+        if self.scan is not None or self.az.busy() or self.fault is not None:
             return
         if self.params_pending is not None:
             params, self.params_pending = self.params_pending, None
             self._load_params(params)
-        if self.home_pending and self.continuous is None:
+        if self.home_pending and self.continuous is None and self.deferred_scan is None:
             self.home_pending = False
             self._go_home()
 
     def _load_params(self, params: MotorParams) -> None:
         def done(err: str | None) -> None:
             if err is None:
-                self.motor = params
+                self.az.motor = params
             self._after_motion_settles()
 
-        self._submit_motion(_Motion(m.ParamsOrder(params), on_done=done, on_fail=lambda e: None))
+        self._submit_motion(
+            self.az, Motion(m.ParamsOrder(params), on_done=done, on_fail=lambda e: None)
+        )
 
     def _go_home(self) -> None:
         if self.position == 0:
@@ -542,16 +739,152 @@ class Administrator:
             self.homing = False
             self._after_motion_settles()
 
-        self._submit_motion(_Motion(m.MoveOrder(0), on_done=done, on_fail=lambda e: None))
+        self._submit_motion(self.az, Motion(m.MoveOrder(0), on_done=done, on_fail=lambda e: None))
+
+    # ============================================================================ elevation
+    def _on_set_elevation(self, env: Envelope, msg: m.SetElevation) -> None:
+        self._conn(msg.conn)
+        self._check_usable()
+        lo, hi = self.record.elevation_limits_counts
+        dest = min(max(clamp_counts(msg.destination), lo), hi)
+        if self.scan is not None or self.tilt is not None:
+            # after the sweep under way (or the tilt under way); the latest request wins
+            settled = self.tilt is None and dest == self.elevation and self.lut == dest
+            self.elevation_pending = None if settled else dest
+        elif dest != self.elevation or self.lut != dest:
+            self._start_tilt(dest)
+        env.reply(dest)
+
+    def _start_tilt(self, dest: int) -> None:
+        """Tilt to ``dest`` and load its table; BIRIS must not be acquiring meanwhile."""
+        self.elevation_pending = None
+        tilt = _Tilt(dest)
+        self.tilt = tilt
+        self.counters["tilts"] += 1
+        if self.ring in ("starting", "live", "stopping"):
+            self._stop_ring(lambda: self._tilt_go(tilt))
+        else:
+            self._tilt_go(tilt)
+
+    def _tilt_go(self, tilt: _Tilt) -> None:
+        if self.tilt is not tilt or self.fault is not None:
+            return
+        dest = tilt.destination
+        if dest != self.el.position:
+            self._submit_motion(
+                self.el,
+                Motion(
+                    m.MoveOrder(dest),
+                    on_done=lambda err: self._tilt_part(tilt, moved=True),
+                    on_fail=lambda exc: None,
+                ),
+            )
+        else:
+            tilt.moved = True
+        self._submit_command(
+            _Command(
+                int(BiCommand.BI_LOAD_LUT),
+                str(dest),
+                0,
+                0,
+                on_done=lambda status, param: self._tilt_lut_loaded(tilt, status),
+                on_fail=lambda exc: None,
+            )
+        )
+
+    def _tilt_lut_loaded(self, tilt: _Tilt, status: int) -> None:
+        if self.tilt is not tilt:
+            return
+        if status != BiStatus.OK:
+            self._fault(
+                "protocol",
+                f"BI_LOAD_LUT {tilt.destination} failed: STATUS {status} ({_status_name(status)})"
+                " -- BIRIS has no calibration for an elevation the init record allows",
+            )
+            return
+        self.lut = tilt.destination
+        self.counters["lut_loads"] += 1
+        tilt.lut = True
+        self._tilt_part(tilt)
+
+    def _tilt_part(self, tilt: _Tilt, *, moved: bool = False) -> None:
+        if self.tilt is not tilt:
+            return
+        if moved:
+            tilt.moved = True
+        if not (tilt.moved and tilt.lut):
+            return
+        self.tilt = None
+        self.elevation = tilt.destination
+        pending, self.elevation_pending = self.elevation_pending, None
+        if pending is not None and (pending != self.elevation or self.lut != pending):
+            self._start_tilt(pending)
+            return
+        if self.ring_mode:
+            self._start_ring()
+        self._run_deferred()
+        self._after_motion_settles()
+        self._check_idle_waiters()
+
+    # ============================================================================ continuous mode
+    def _start_ring(self) -> None:
+        """BI_START_CONTINUOUS, unless BIRIS already acquires continuously (or cannot)."""
+        if not self.ring_mode or self.ring != "off" or self.fault is not None:
+            return
+        if self.phase != "idle" or self.tilt is not None:
+            return
+        self.ring = "starting"
+
+        def started(status: int, param: bytes) -> None:
+            if status != BiStatus.OK or _ring_answer(param) <= 0:
+                self._fault(
+                    "protocol",
+                    f"BI_START_CONTINUOUS failed: STATUS {status} ({_status_name(status)}), "
+                    f"answer {param.split(bytes(1))[0]!r}",
+                )
+
+        self._submit_command(
+            _Command(int(BiCommand.BI_START_CONTINUOUS), "", 0, 0, started, lambda e: None)
+        )
+
+    def _on_continuous_live(self, env: Envelope, msg: m.ContinuousLive) -> None:
+        env.reply(None)
+        if self.ring != "starting":
+            return  # stopped again before its first acquisition
+        self.ring = "live"
+        self.counters["continuous_starts"] += 1
+        self._rearm_timeout()
+        self._run_deferred()
+        self._check_idle_waiters()
+
+    def _stop_ring(self, then: Callable[[], None]) -> None:
+        """BI_STOP_CONTINUOUS, then ``then`` (also when a stop is already on its way)."""
+        self.ring_stop_waiters.append(then)
+        if self.ring == "stopping":
+            return
+        self.ring = "stopping"
+
+        def stopped(status: int, param: bytes) -> None:
+            self.ring = "off"
+            waiters, self.ring_stop_waiters = self.ring_stop_waiters, []
+            for waiter in waiters:
+                waiter()
+            self._check_idle_waiters()
+
+        self._submit_command(
+            _Command(int(BiCommand.BI_STOP_CONTINUOUS), "", 0, 0, stopped, lambda e: None)
+        )
 
     # ============================================================================ client requests
     def _on_open(self, env: Envelope, msg: m.OpenRequest) -> None:
-        ident = self.next_conn
-        self.next_conn += 1
+        kind = ConnectionKind(msg.kind)
+        policy, depth = check_policy(kind, msg.policy, msg.depth)
         owner = msg.owner_ident
         assert isinstance(owner, threading.Thread)
-        self.conns[ident] = _Conn(ident, msg.kind, weakref.ref(owner))
-        env.reply(ident)
+        ident = self.next_conn
+        self.next_conn += 1
+        self.conns[ident] = ClientConn(ident, kind, weakref.ref(owner), policy, depth)
+        env.reply((ident, policy, depth))
 
     def _on_close(self, env: Envelope, msg: m.CloseRequest) -> None:
         conn = self.conns.get(msg.conn)
@@ -559,41 +892,37 @@ class Administrator:
             self._drop_conn(conn, "closed")
         env.reply(None)
 
-    def _drop_conn(self, conn: _Conn, why: str) -> None:
+    def _drop_conn(self, conn: ClientConn, why: str) -> None:
         self.conns.pop(conn.ident, None)
+        self.closed_drops += conn.dropped
         if conn.waiting is not None:
             _fail(conn.waiting, ConnectionClosed(f"connection {conn.ident} {why}"))
             conn.waiting = None
         log.debug("connection %d released: %s", conn.ident, why)
 
     def _on_request_point(self, env: Envelope, msg: m.RequestPoint) -> None:
-        self._conn(msg.conn)
+        conn = self._conn(msg.conn)
         self._check_usable()
-        env.reply(self.latest_point)
+        self._hand_over(env, conn, self.latest_point)
 
     def _on_request_scan_data(self, env: Envelope, msg: m.RequestScanData) -> None:
-        self._conn(msg.conn)
+        conn = self._conn(msg.conn)
         self._check_usable()
-        env.reply(self.buffers[Direction(msg.direction)])
+        self._hand_over(env, conn, self.buffers[Direction(msg.direction)])
 
     def _on_motor_params(self, env: Envelope, msg: m.BirisMotorParams) -> None:
         self._conn(msg.conn)
         self._check_usable()
-        if self.scan is None and not self._moving():
+        if not self._scan_busy() and not self.az.moving():
             self._load_params(msg.params)
         else:
             self.params_pending = msg.params
         env.reply(None)
 
-    def _moving(self) -> bool:
-        """A move (not a parameter load) is running or queued."""
-        jobs = [*self.motion_queue, *([self.current_motion] if self.current_motion else [])]
-        return any(isinstance(job.order, m.MoveOrder) for job in jobs)
-
     def _check_can_scan(self) -> None:
-        if self.scan is not None or self.continuous is not None:
+        if self._scan_busy() or self.continuous is not None:
             raise RequestError("a scan is in progress; stop it or wait for it to end first")
-        if self._moving() or self.home_pending:
+        if self.az.moving() or self.home_pending:
             raise RequestError("the motor is moving; wait until it is idle")
         if self.params_pending is not None:  # cannot be: it is only set while moving
             self._load_params(self.params_pending)
@@ -606,7 +935,7 @@ class Administrator:
         dest = clamp_counts(msg.destination)
         if dest == self.position:
             raise RequestError(f"the head is already at {dest} counts; a scan needs a length")
-        self._start_scan(dest)
+        self._when_ready(lambda: self._start_scan(dest))
         env.reply(dest)
 
     def _on_cont_scan(self, env: Envelope, msg: m.ContScanRqst) -> None:
@@ -620,20 +949,26 @@ class Administrator:
             )
         self.continuous = (cw, ccw)
         self.stop_pending = False
-        self._start_scan(cw if self.position != cw else ccw)
+        self._when_ready(lambda: self._start_scan(cw if self.position != cw else ccw))
         env.reply((cw, ccw))
 
     def _on_stop_scan(self, env: Envelope, msg: m.StopScanRqst) -> None:
         self._conn(msg.conn)
         self._check_usable()
         if self.continuous is not None:
-            self.stop_pending = True
+            if self.scan is None and self.deferred_scan is not None:
+                self.deferred_scan = None  # no sweep has started yet: nothing to complete
+                self.continuous = None
+                self._after_motion_settles()
+            else:
+                self.stop_pending = True
         env.reply(None)
+        self._check_idle_waiters()
 
     def _on_home(self, env: Envelope, msg: m.BirisHome) -> None:
         self._conn(msg.conn)
         self._check_usable()
-        if self.scan is None and not self._motion_busy() and self.params_pending is None:
+        if not self._scan_busy() and not self.az.busy() and self.params_pending is None:
             self._go_home()
         else:
             self.home_pending = True
@@ -642,16 +977,9 @@ class Administrator:
     def _on_ready_for_data(self, env: Envelope, msg: m.ReadyForData) -> None:
         conn = self._conn(msg.conn, data=True)
         self._check_usable()
-        if conn.pending is not None:
-            scan, conn.pending = conn.pending, None
-            if _reply(env, (scan, conn.dropped)):
-                conn.delivered += 1
-            else:
-                conn.pending = scan
-            return
-        if conn.waiting is not None:
-            _fail(conn.waiting, RequestError("superseded by a newer READY_FOR_DATA"))
-        conn.waiting = env
+        before = conn.delivered
+        conn.ready(env, self.clock())
+        self.counters["deliveries"] += conn.delivered - before
 
     def _on_wait_idle(self, env: Envelope, msg: m.WaitIdle) -> None:
         self._conn(msg.conn)
@@ -664,26 +992,35 @@ class Administrator:
     def _on_status(self, env: Envelope, msg: m.StatusRequest) -> None:
         env.reply(self.status())
 
-    def status(self) -> dict[str, Any]:
+    def state(self) -> str:
+        """What the server is doing, for status(): the most telling of its activities."""
         if self.fault is not None:
-            state = f"fault:{self.fault.kind}"
-        elif self.phase == "initialising":
-            state = "initialising"
-        elif self.homing:
-            state = "homing"
-        elif self.scan is not None:
-            state = "scanning"
-        else:
-            state = "idle"
+            return f"fault:{self.fault.kind}"
+        if self.phase == "initialising":
+            return "initialising"
+        if self.homing:
+            return "homing"
+        if self.tilt is not None:
+            return "tilting"
+        if self._scan_busy() or self.continuous is not None:
+            return "scanning"
+        return "idle"
+
+    def status(self) -> dict[str, Any]:
+        counters = dict(self.counters)
+        counters["dropped_deliveries"] = self.closed_drops + sum(
+            c.dropped for c in self.conns.values()
+        )
         return {
-            "state": state,
+            "state": self.state(),
             "azimuth": self.position,
+            "elevation": self.el.position,
+            "calibration": self.lut,
             "continuous": self.continuous is not None,
-            "counters": dict(self.counters),
-            "connections": {
-                c.ident: {"kind": c.kind.name, "delivered": c.delivered, "dropped": c.dropped}
-                for c in self.conns.values()
-            },
+            "acquisition": "continuous" if self.ring_mode else "single",
+            "ring": self.ring,
+            "counters": counters,
+            "connections": {c.ident: c.summary() for c in self.conns.values()},
         }
 
     # ============================================================================ init / reset
@@ -695,19 +1032,26 @@ class Administrator:
         self.init_waiters.append(env)
         self.phase = "initialising"
         self.fault = None
+        self._clear_activity()
+        self.ring = "off"
+        self._start_initialiser()
+
+    def _clear_activity(self) -> None:
+        """Forget every scan, tilt and motion under way or waiting (reset, fault)."""
         self.scan = None
+        self.deferred_scan = None
         self.continuous = None
         self.stop_pending = self.home_pending = self.homing = False
         self.params_pending = None
-        self.motion_queue.clear()
-        self.current_motion = None
-        self.motor_watchdog.disarm()
-        self._start_initialiser()
+        self.tilt = None
+        self.elevation_pending = None
+        self.ring_stop_waiters.clear()
+        for axis in (self.az, self.el):
+            axis.queue.clear()
+            axis.current = None
+            axis.watchdog.disarm()
 
     def _on_init_command(self, env: Envelope, msg: m.InitCommand) -> None:
-        if self.fault is not None:  # a fault during initialisation ends it, at once
-            _fail(env, self.fault)
-            return
         cmd = _Command(
             msg.code,
             msg.param,
@@ -720,10 +1064,6 @@ class Administrator:
         self._submit_command(cmd)
 
     def _on_init_move(self, env: Envelope, msg: m.InitMove) -> None:
-        if self.fault is not None:
-            _fail(env, self.fault)
-            return
-
         def done(err: str | None) -> None:
             if err is None:
                 _reply(env, None)
@@ -731,7 +1071,8 @@ class Administrator:
                 _fail(env, HardwareFault("motor_stall", err))
 
         self._submit_motion(
-            _Motion(m.MoveOrder(msg.destination), on_done=done, on_fail=lambda exc: _fail(env, exc))
+            self._axis(msg.axis),
+            Motion(m.MoveOrder(msg.destination), on_done=done, on_fail=lambda exc: _fail(env, exc)),
         )
 
     def _on_init_done(self, env: Envelope, msg: m.InitDone) -> None:
@@ -757,9 +1098,13 @@ class Administrator:
         assert isinstance(result, InitResult)
         self.samples = result.samples
         self.phase = "idle"
-        self.position = 0
+        self.az.position = 0
+        self.el.position = 0
+        self.elevation = 0
+        self.lut = 0  # the initialiser loaded the table for the level head
         for w in waiters:
             _reply(w, result)
+        self._start_ring()
         self._check_idle_waiters()
 
     # ============================================================================ faults
@@ -776,17 +1121,9 @@ class Administrator:
         self.fault = fault
         self.counters["faults"] += 1
         self.biris_timeout.disarm()
-        self.motor_watchdog.disarm()
-        self.scan = None
-        self.continuous = None
-        self.stop_pending = self.home_pending = self.homing = False
-        self.params_pending = None
-        for job in list(self.motion_queue):
-            job.on_fail(fault)
-        self.motion_queue.clear()
-        if self.current_motion is not None:
-            self.current_motion.on_fail(fault)
-            self.current_motion = None
+        for axis in (self.az, self.el):
+            axis.fail_all(fault)  # before forgetting them: the initialiser may wait on one
+        self._clear_activity()
         for cmd in list(self.cmd_queue):
             cmd.on_fail(fault)
         self.cmd_queue.clear()

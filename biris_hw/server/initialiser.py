@@ -1,9 +1,20 @@
 """Initialisation of the server's hardware (report: "Initialization of the BIRIS Server").
 
 Runs as a worker of its own so the administrator never waits on it: configures both HCTL-1000s
-with the init record's motor parameters, finds the azimuth zero index by polling the board's
-index latch and stands at 0 degrees, boots BIRIS with the record's boot file, then asks BIRIS
-where its range array, azimuth table and frame size are. Moves and BIRIS commands go through the
+with the init record's motor parameters, finds the zero index of each drive by polling the
+board's index latch ("the zero index of each drive is found by polling") and stands at 0 on
+both, boots BIRIS with the record's boot file, asks BIRIS where its range array, azimuth table
+and frame size are, and loads the calibration table for elevation 0.
+
+The tilt axis is homed like the pan axis but within its own reach: a tilt head cannot turn a
+revolution looking for its index, so the search stays within the widest of the record's
+elevation limits either side of where the head woke up (the head is assumed to power up within
+its limits, as a tilt head resting on its stops does). Its index marks the level head.
+
+A BI_STOP_CONTINUOUS goes first, before anything moves: a server that stopped (or faulted)
+during Appendix D's continuous mode leaves BIRIS acquiring, homing the tilt under a running
+acquisition is exactly what must not happen, and BIRIS refuses to boot meanwhile; when BIRIS is
+not acquiring the stop simply completes. Moves and BIRIS commands go through the
 administrator (InitMove, InitCommand) so that they use the same workers and notifiers as scans.
 Every step is bounded: no index within the configured revolutions, a command BIRIS never
 completes, or a move that never ends is a HardwareFault, never a hang.
@@ -37,6 +48,10 @@ LEVEL2_VECTOR = 0x42
 HOMING_CHUNK = 256
 """Counts per coarse homing move: small enough to stop soon after the index, large enough to
 cover a revolution in a few moves."""
+
+TILT_HOMING_CHUNK = 64
+"""The tilt's first coarse move (5.6 degrees): a tilt head wakes near level, so its index is
+near, and every count searched costs a bisection step."""
 
 
 @dataclass(frozen=True)
@@ -96,18 +111,27 @@ class Initialiser:
         self.elevation = AxisDriver(hw.motion, Axis.ELEVATION)
         self.coupler = Coupler(hw.coupler)
         self.link = BirisLink(hw.biris, hw.biexec_offset)
-        self._position = 0
+        self._position = {Axis.AZIMUTH: 0, Axis.ELEVATION: 0}
 
     # -- steps ---------------------------------------------------------------------------------
     def run(self) -> InitResult:
         self.coupler.clear_errors()
         self.coupler.enable_interrupts(LEVEL2_VECTOR)
+        self.stop_acquisition()
         self.configure_axes()
         self.find_zero_index()
+        self.find_zero_index(Axis.ELEVATION)
         return self.boot_biris()
 
+    def stop_acquisition(self) -> None:
+        """Quiet BIRIS before anything moves: interrupts as the server wants them, and
+        BI_STOP_CONTINUOUS, since a tilt must never happen under a running acquisition."""
+        self.link.set_flags(cmd_int=True, data_int=False, motor_access=True)
+        self._command(BiCommand.BI_STOP_CONTINUOUS)
+
     def configure_axes(self) -> None:
-        """Reset both chips, load the motor parameters, hold each axis where it stands."""
+        """Reset both chips, load the motor parameters, hold each axis where it stands, and
+        enable both end-of-scan interrupts (MOTOR_END_OF_SCAN, ELEVATION_END_OF_SCAN)."""
         self.board.disable_all()
         for axis in (self.azimuth, self.elevation):
             self.board.reset_chip(axis.axis)
@@ -115,8 +139,9 @@ class Initialiser:
             self._wait_still(axis)
             axis.hold_here()
             self.board.acknowledge(axis.axis)
+            self._position[axis.axis] = axis.command_position()
         self.board.enable_end_of_scan(Axis.AZIMUTH, DEFAULT_IRQ_VECTOR)
-        self._position = self.azimuth.command_position()
+        self.board.enable_end_of_scan(Axis.ELEVATION, DEFAULT_IRQ_VECTOR)
 
     def _wait_still(self, axis: AxisDriver) -> None:
         """After a reset the motor coasts; wait until the encoder stops changing."""
@@ -130,11 +155,11 @@ class Initialiser:
             steady = steady + 1 if pos == last else 0
             last = pos
 
-    def _move(self, destination: int) -> None:
-        if destination == self._position:
+    def _move(self, destination: int, axis: Axis = Axis.AZIMUTH) -> None:
+        if destination == self._position[axis]:
             return
-        self._send(InitMove(destination))
-        self._position = destination
+        self._send(InitMove(destination, axis))
+        self._position[axis] = destination
 
     def _send(self, message: object) -> object:
         timeout = (self.record.timeout_s * 4.0) / self.hw.time_scale + 5.0
@@ -143,7 +168,7 @@ class Initialiser:
         except TimeoutError as exc:
             raise HardwareFault("timeout", f"initialisation step {message} timed out") from exc
 
-    def find_zero_index(self) -> None:
+    def find_zero_index(self, axis: Axis = Axis.AZIMUTH) -> None:
         """Find the index nearest the power-up position, then stand on it as encoder count 0.
 
         Coarse: sweep alternately counter-clockwise and clockwise, each sweep reaching further
@@ -152,11 +177,18 @@ class Initialiser:
         territory that sweep added. Searching outwards keeps the head within half a revolution
         of where it woke up, so the cable is never wound further than it has to be. Fine: bisect
         that territory, crossing the index again for each half, to one count.
+
+        The tilt searches the same way from 64 counts, within the widest elevation limit.
         """
-        board, axis = self.board, Axis.AZIMUTH
-        start = self._position
-        half = max(1, round(self.record.home_index_timeout_revs * COUNTS_PER_REV / 2))
-        reach, targets = min(HOMING_CHUNK, half), []
+        board = self.board
+        start = self._position[axis]
+        if axis is Axis.AZIMUTH:
+            half = max(1, round(self.record.home_index_timeout_revs * COUNTS_PER_REV / 2))
+            chunk, driver, what = HOMING_CHUNK, self.azimuth, "revolution(s)"
+        else:
+            half = max(1, *(abs(v) for v in self.record.elevation_limits_counts))
+            chunk, driver, what = TILT_HOMING_CHUNK, self.elevation, "counts of tilt"
+        reach, targets = min(chunk, half), []
         while True:
             targets += [start + reach, start - reach]
             if reach >= half:
@@ -166,7 +198,7 @@ class Initialiser:
         bracket: tuple[int, int] | None = None
         for target in targets:
             board.clear_index(axis)
-            self._move(target)
+            self._move(target, axis)
             if board.index_seen(axis):
                 if target > covered_hi:
                     bracket = (covered_hi - 2, target)
@@ -175,27 +207,30 @@ class Initialiser:
                 break
             covered_lo, covered_hi = min(covered_lo, target), max(covered_hi, target)
         if bracket is None:
+            reach_text = (
+                f"{self.record.home_index_timeout_revs:g}" if axis is Axis.AZIMUTH else f"{half}"
+            )
             raise HardwareFault(
                 "motor_stall",
-                f"no zero index within {self.record.home_index_timeout_revs:g} revolution(s)",
+                f"{driver.axis.name.lower()}: no zero index within {reach_text} {what}",
             )
         low, high = bracket
         while high - low > 1:
             mid = (low + high) // 2
-            self._move(low)  # going back may cross the index: clear the latch afterwards
+            self._move(low, axis)  # going back may cross the index: clear the latch afterwards
             board.clear_index(axis)
-            self._move(mid)
+            self._move(mid, axis)
             if board.index_seen(axis):
                 high = mid
             else:
                 low = mid
-        self._move(high)
-        self.azimuth.idle()
-        self._wait_still(self.azimuth)
-        self.azimuth.hold_here(zero_counter=True)
-        self._position = 0
+        self._move(high, axis)
+        driver.idle()
+        self._wait_still(driver)
+        driver.hold_here(zero_counter=True)
+        self._position[axis] = 0
         board.clear_index(axis)
-        log.info("zero index found at encoder count %d", high)
+        log.info("%s zero index found at encoder count %d", axis.name.lower(), high)
 
     def _command(self, code: BiCommand, param: str = "") -> str:
         reply = self._send(InitCommand(int(code), param))
@@ -213,8 +248,8 @@ class Initialiser:
             raise HardwareFault("protocol", f"{code.name}: malformed PARAM answer {raw!r}") from exc
 
     def boot_biris(self) -> InitResult:
-        self.link.set_flags(cmd_int=True, data_int=False, motor_access=True)
         self._command(BiCommand.BI_BOOT, self.record.boot_file)
+        self._command(BiCommand.BI_LOAD_LUT, "0")  # the table for the level head
         range_addr = _parse_int(self._command(BiCommand.BI_GET_VME_ADDR_DIST), 16, "range base")
         azim_addr = _parse_int(self._command(BiCommand.BI_GET_VME_ADDR_AZIM), 16, "azimuth table")
         frame_size = _parse_int(self._command(BiCommand.BI_GET_VME_INC_FRAME), 10, "frame size")

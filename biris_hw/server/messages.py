@@ -1,9 +1,12 @@
 """Every message the BIRIS server's administrator receives, named after the report.
 
 Internal tasks send the first group (NEW_POINT, CMD_TRANSFER_RDY, AZ_READY, AZ_SCAN_DONE,
-BIRIS_CMD_COMPLETE and the three *_ERR reports); clients send the second (REQUEST_POINT,
-REQUEST_SCAN_DATA, ... READY_FOR_DATA). Orders the administrator *replies* to its workers are the
-third group. All are immutable; arrays inside them are read-only.
+BIRIS_CMD_COMPLETE and the three *_ERR reports; the tilt axis's EL_READY and EL_SCAN_DONE, which
+the report foresees with its future tasks _el_scan_start and _el_scan_notifier; and the two
+reports of Appendix D's continuous mode, CONTINUOUS_LIVE and SWEEP_DATA_DONE); clients send the
+second (REQUEST_POINT, REQUEST_SCAN_DATA, ... READY_FOR_DATA, and SET_ELEVATION, the "new
+message" the report asks for to servo the elevation axis). Orders the administrator *replies* to
+its workers are the third group. All are immutable; arrays inside them are read-only.
 """
 
 from __future__ import annotations
@@ -13,8 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from biris_hw.data import ConnectionKind, Direction
+from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction
 from biris_hw.records import MotorParams
+from regs.tech80 import Axis
 
 # --- from internal tasks ---------------------------------------------------------------------
 
@@ -62,6 +66,36 @@ class AzScanDone:
 
 
 @dataclass(frozen=True, slots=True)
+class ElReady:
+    """EL_READY: the elevation worker (_el_scan_start) is free to start the next tilt."""
+
+    error: str | None = None
+    """Why the previous order failed, if it did."""
+
+
+@dataclass(frozen=True, slots=True)
+class ElScanDone:
+    """EL_SCAN_DONE: ELEVATION_END_OF_SCAN arrived and the tilt has come to rest."""
+
+
+@dataclass(frozen=True, slots=True)
+class ContinuousLive:
+    """CONTINUOUS_LIVE: after BI_START_CONTINUOUS, the first acquisition has begun (the 240 ms
+    start-up is over), so a sweep started now loses nothing."""
+
+
+@dataclass(frozen=True, slots=True)
+class SweepDataDone:
+    """SWEEP_DATA_DONE: every acquisition of continuous-mode sweep ``seq_id`` has been sent.
+
+    The continuous-mode counterpart of BIRIS_CMD_COMPLETE for a BI_ACQUIRE: with AZ_SCAN_DONE it
+    completes a scan. It follows the last NEW_POINT of the sweep (the inbox is FIFO).
+    """
+
+    seq_id: int
+
+
+@dataclass(frozen=True, slots=True)
 class BirisCmdComplete:
     """BIRIS_CMD_COMPLETE: BIRIS cleared COMMAND; its STATUS and PARAM answer."""
 
@@ -83,6 +117,7 @@ class MotorWatchdogErr:
     """The motor did not report the end of its scan in time (beyond the report)."""
 
     generation: int
+    axis: Axis = Axis.AZIMUTH
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,9 +140,10 @@ class InitCommand:
 
 @dataclass(frozen=True, slots=True)
 class InitMove:
-    """The initialiser asks for a trapezoid; replied when AZ_SCAN_DONE arrives."""
+    """The initialiser asks for a trapezoid; replied when AZ_SCAN_DONE (EL_SCAN_DONE) arrives."""
 
     destination: int
+    axis: Axis = Axis.AZIMUTH
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,7 +160,11 @@ class InitDone:
 @dataclass(frozen=True, slots=True)
 class OpenRequest:
     kind: ConnectionKind
-    owner_ident: int
+    owner_ident: object
+    """The opening thread: the connection is released when it ends."""
+    policy: DeliveryPolicy = DeliveryPolicy.LATEST
+    depth: int | None = None
+    """None: the policy's default."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -183,6 +223,15 @@ class BirisHome:
 
 
 @dataclass(frozen=True, slots=True)
+class SetElevation:
+    """The report's future elevation message: tilt to ``destination`` counts and reload the
+    calibration table for it."""
+
+    conn: int
+    destination: int
+
+
+@dataclass(frozen=True, slots=True)
 class ReadyForData:
     conn: int
 
@@ -219,9 +268,14 @@ class TransferOrder:
 
 @dataclass(frozen=True, slots=True)
 class MoveOrder:
-    """To az_scan_start: drive to ``destination`` with the trapezoid."""
+    """To az_scan_start (el_scan_start): drive to ``destination`` with the trapezoid.
+
+    ``sweep`` (continuous acquisition only) is the scan whose data interrupts the worker turns
+    back on once the motor is moving: Appendix D's "re-enabled after the next scan is started".
+    """
 
     destination: int
+    sweep: int = 0
 
 
 @dataclass(frozen=True, slots=True)

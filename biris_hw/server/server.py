@@ -3,8 +3,9 @@
 The threads, in creation order (Appendix B's task list, plus the demultiplexers that play the
 interrupt service routine and the initialiser that plays _Create_server's start-up):
 level-2 and level-3 demultiplexers; biris_cmd_notifier, biris_cmd_transfer, biris_data_notifier,
-biris_az_notifier, az_scan_start, biris_timeout, biris_parity_err, biris_bus_err; the motor
-watchdog; the administrator. ``close()`` stops them in reverse and leaves no thread behind.
+biris_az_notifier, az_scan_start, biris_timeout, biris_parity_err, biris_bus_err; the report's
+future tilt tasks el_scan_notifier and el_scan_start; the two motor watchdogs; the
+administrator. ``close()`` stops them in reverse and leaves no thread behind.
 """
 
 from __future__ import annotations
@@ -13,10 +14,10 @@ import logging
 import threading
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal, overload
 
 from biris_hw.client import Connection
-from biris_hw.data import ConnectionKind
+from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
 from biris_hw.errors import ConnectionClosed, HardwareFault
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
@@ -60,6 +61,7 @@ class BirisServer:
         self.inbox = Mailbox("BIRISSERV")
         self.link = BirisLink(hw.biris, hw.biexec_offset)
         self.azimuth = AxisDriver(hw.motion, Axis.AZIMUTH)
+        self.elevation = AxisDriver(hw.motion, Axis.ELEVATION)
         self.board = MotionBoard(hw.motion)
         self.coupler = Coupler(hw.coupler)
         self.reader = AcquisitionReader(hw.biris, self.link, hw.clock, self.record.max_range)
@@ -72,6 +74,13 @@ class BirisServer:
         self.motor_watchdog = tasks.DeadlineTimer(
             "az_watchdog", self.inbox, hw.clock, hw.time_scale, MotorWatchdogErr
         )
+        self.elevation_watchdog = tasks.DeadlineTimer(
+            "el_watchdog",
+            self.inbox,
+            hw.clock,
+            hw.time_scale,
+            lambda generation: MotorWatchdogErr(generation, Axis.ELEVATION),
+        )
         self.admin = Administrator(
             self.record,
             self.inbox,
@@ -79,6 +88,7 @@ class BirisServer:
             self.biris_timeout,
             self.motor_watchdog,
             self._start_initialiser,
+            self.elevation_watchdog,
         )
         try:
             self._create_tasks()
@@ -108,6 +118,7 @@ class BirisServer:
             self.link,
             self.reader,
             self.ledger,
+            self.level2.set_continuous,
         )
         self._spawn(
             "biris_cmd_transfer",
@@ -116,6 +127,7 @@ class BirisServer:
             self.link,
             self.reader,
             self.ledger,
+            self.level2.set_continuous,
         )
         self._spawn(
             "biris_data_notifier",
@@ -131,8 +143,9 @@ class BirisServer:
             inbox,
             self.azimuth,
             self._settle,
+            self.reader,
         )
-        self._spawn("az_scan_start", tasks.az_scan_start, inbox, self.azimuth)
+        self._spawn("az_scan_start", tasks.az_scan_start, inbox, self.azimuth, self.reader)
         self.biris_timeout.start()
         self._spawn(
             "biris_parity_err", tasks.biris_parity_err, self.level2.line(Logical.BIT3_PERR), inbox
@@ -140,7 +153,17 @@ class BirisServer:
         self._spawn(
             "biris_bus_err", tasks.biris_bus_err, self.level2.line(Logical.BIT3_BERR), inbox
         )
+        self._spawn(
+            "el_scan_notifier",
+            tasks.el_scan_notifier,
+            self.level3.line(Logical.ELEVATION_END_OF_SCAN),
+            inbox,
+            self.elevation,
+            self._settle,
+        )
+        self._spawn("el_scan_start", tasks.el_scan_start, inbox, self.elevation)
         self.motor_watchdog.start()
+        self.elevation_watchdog.start()
         self._spawn("biris_server", self.admin.run)
 
     def _start_initialiser(self) -> None:
@@ -169,17 +192,62 @@ class BirisServer:
         self.inbox.send(ResetRequest(0))
 
     # -- public ----------------------------------------------------------------------------
-    def open(self, kind: ConnectionKind = ConnectionKind.NORMAL) -> Connection:
-        """OPEN_REQUEST: a NORMAL connection, or a DATA one that receives every buffer."""
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: Literal[DeliveryPolicy.EVERY_ACQUISITION],
+        depth: int | None = ...,
+    ) -> Connection[Point]: ...
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: Literal[DeliveryPolicy.LATEST, DeliveryPolicy.EVERY_BUFFER] = ...,
+        depth: int | None = ...,
+    ) -> Connection[Scan]: ...
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: DeliveryPolicy,
+        depth: int | None = ...,
+    ) -> Connection[Scan] | Connection[Point]: ...
+
+    def open(
+        self,
+        kind: ConnectionKind = ConnectionKind.NORMAL,
+        *,
+        policy: DeliveryPolicy = DeliveryPolicy.LATEST,
+        depth: int | None = None,
+    ) -> Connection[Scan] | Connection[Point]:
+        """OPEN_REQUEST: a NORMAL connection, or a DATA one that is sent data as they come.
+
+        ``policy`` (DATA connections only) says what READY_FOR_DATA delivers and what a slow
+        client loses; ``depth`` how much waits for it (default: the policy's). A bad choice is a
+        RequestError. The connection belongs to the calling thread and is released when that
+        thread ends.
+        """
         if self._closed:
             raise ConnectionClosed("the BIRIS server has stopped")
         owner = threading.current_thread()
-        ident = self.inbox.send(OpenRequest(ConnectionKind(kind), owner))  # type: ignore[arg-type]
-        assert isinstance(ident, int)
-        return Connection(self.inbox, ident, ConnectionKind(kind))
+        answer = self.inbox.send(OpenRequest(ConnectionKind(kind), owner, policy, depth))
+        assert isinstance(answer, tuple)
+        number, chosen, used = answer
+        if chosen is DeliveryPolicy.EVERY_ACQUISITION:
+            return Connection[Point](self.inbox, number, ConnectionKind(kind), chosen, used)
+        return Connection[Scan](self.inbox, number, ConnectionKind(kind), chosen, used)
 
     def status(self) -> dict[str, Any]:
-        """State, azimuth, counters and per-connection figures (see the README)."""
+        """What the server is doing and has done: ``state`` (initialising, idle, scanning,
+        homing, tilting, fault:<kind>), ``azimuth`` and ``elevation`` (counts), ``counters``,
+        ``interrupts`` by logical kind, and per connection its policy, queue, deliveries, drops
+        and delivery-latency histogram with p50 and p99 (see the README)."""
         if self._closed:
             raise ConnectionClosed("the BIRIS server has stopped")
         result = self.inbox.send(StatusRequest())
@@ -217,6 +285,7 @@ class BirisServer:
         self.level3.close()
         self.biris_timeout.stop()
         self.motor_watchdog.stop()
+        self.elevation_watchdog.stop()
         for thread in self._threads:
             if thread is not threading.current_thread():
                 thread.join()

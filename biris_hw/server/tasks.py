@@ -1,11 +1,19 @@
 """The BIRIS server's internal tasks (report Fig. 4), one function or class each.
 
 Notifiers block on an interrupt and *send* to the administrator: ``biris_cmd_notifier``,
-``biris_data_notifier``, ``biris_az_notifier``, ``biris_parity_err``, ``biris_bus_err``.
-Workers report ready and block until the administrator *replies* with an order:
-``biris_cmd_transfer`` (writes the next BIRIS command) and ``az_scan_start`` (starts the next
-trapezoid). ``biris_timeout`` and the motor watchdog are timers. Every task ends when its line is
-closed or the administrator's mailbox stops.
+``biris_data_notifier``, ``biris_az_notifier``, ``el_scan_notifier``, ``biris_parity_err``,
+``biris_bus_err``. Workers report ready and block until the administrator *replies* with an
+order: ``biris_cmd_transfer`` (writes the next BIRIS command), ``az_scan_start`` and
+``el_scan_start`` (start the next pan or tilt trapezoid). ``biris_timeout`` and the motor
+watchdogs are timers. Every task ends when its line is closed or the administrator's mailbox
+stops. ``el_scan_notifier`` and ``el_scan_start`` are the report's "future tasks" for a tilt
+axis, "similar to [the azimuth ones] except that they apply to the elevation scan".
+
+Continuous mode (Appendix D) touches three tasks: ``biris_cmd_transfer`` raises the
+continuous-mode flag of the level-2 demultiplexer and primes the reader before it writes
+BI_START_CONTINUOUS; ``biris_cmd_notifier`` lowers the flag once BI_STOP_CONTINUOUS has completed;
+``az_scan_start`` re-enables the data interrupts (opens the sweep) once the motor is moving, and
+``biris_az_notifier`` marks the sweep's end when the motor has come to rest.
 """
 
 from __future__ import annotations
@@ -17,7 +25,7 @@ from collections.abc import Callable
 from biris_hw.errors import BirisError, BusError, LineClosed
 from biris_hw.ipc import Mailbox, TaskStopped
 from biris_hw.irq.base import InterruptLine
-from biris_hw.server.acquisition import AcquisitionReader
+from biris_hw.server.acquisition import AcquisitionReader, Drained
 from biris_hw.server.devices import AxisDriver, BirisLink
 from biris_hw.server.messages import (
     AzReady,
@@ -26,12 +34,16 @@ from biris_hw.server.messages import (
     BirisCmdComplete,
     BirisParityErr,
     CmdTransferRdy,
+    ContinuousLive,
+    ElReady,
+    ElScanDone,
     MoveOrder,
     NewPoint,
     ParamsOrder,
+    SweepDataDone,
     TransferOrder,
 )
-from regs.biexec import BiCommand
+from regs.biexec import BiCommand, BiStatus, decode_param
 
 __all__ = [
     "CommandLedger",
@@ -43,6 +55,8 @@ __all__ = [
     "biris_cmd_transfer",
     "biris_data_notifier",
     "biris_parity_err",
+    "el_scan_notifier",
+    "el_scan_start",
 ]
 
 log = logging.getLogger(__name__)
@@ -75,17 +89,42 @@ class CommandLedger:
         self.outstanding: TransferOrder | None = None
 
 
+def _no_flag(on: bool) -> None:
+    """Stand-in for the demultiplexer's continuous-mode flag when there is none to set."""
+
+
+def _ring_length(param: bytes) -> int:
+    """BI_START_CONTINUOUS's answer: the ring's length in frames, 0 if unreadable."""
+    try:
+        return max(0, int(decode_param(param).strip(), 10))
+    except ValueError:
+        return 0
+
+
+def _send_drained(admin: Mailbox, drained: Drained) -> None:
+    """What a drain produced, as messages, in order: NEW_POINT, then what it completed."""
+    if drained.acquisitions or drained.lost:
+        admin.send(NewPoint(drained.acquisitions, drained.lost))
+    if drained.live:
+        admin.send(ContinuousLive())
+    if drained.sweep_done:
+        admin.send(SweepDataDone(drained.sweep_done))
+
+
 def biris_cmd_notifier(
     line: InterruptLine,
     admin: Mailbox,
     link: BirisLink,
     reader: AcquisitionReader,
     ledger: CommandLedger,
+    set_continuous: Callable[[bool], None] = _no_flag,
 ) -> None:
     """BIRIS_CMD -> BIRIS_CMD_COMPLETE (after handing over any acquisitions not yet read).
 
     The administrator holds the reply until it is about to issue the next command, so this task
-    is back on the interrupt before that command can complete.
+    is back on the interrupt before that command can complete. A completed BI_START_CONTINUOUS
+    tells the reader the ring's length; a completed BI_STOP_CONTINUOUS (or a refused start) ends
+    continuous mode in the reader and lowers the demultiplexer's flag.
     """
     while _await(line) is not None:
         try:
@@ -94,11 +133,15 @@ def biris_cmd_notifier(
                 if order is None or link.command() != 0:
                     continue  # stale, spurious, or BIRIS still busy: not a completion
                 ledger.outstanding = None
+            status, param = link.status(), link.param_raw()
+            if order.code == BiCommand.BI_START_CONTINUOUS and status == BiStatus.OK:
+                reader.ring_started(_ring_length(param))
+            elif order.code in (BiCommand.BI_START_CONTINUOUS, BiCommand.BI_STOP_CONTINUOUS):
+                reader.stop_ring()
+                set_continuous(False)
             with reader.lock:
-                drained = reader.drain(final=True)
-                if drained.acquisitions or drained.lost:
-                    admin.send(NewPoint(drained.acquisitions, drained.lost))
-            admin.send(BirisCmdComplete(link.status(), link.param_raw(), order.token))
+                _send_drained(admin, reader.drain_sequence(final=True))
+            admin.send(BirisCmdComplete(status, param, order.token))
         except TaskStopped:
             return
         except BusError:
@@ -106,17 +149,41 @@ def biris_cmd_notifier(
 
 
 def biris_data_notifier(line: InterruptLine, admin: Mailbox, reader: AcquisitionReader) -> None:
-    """BIRIS_DATA_DEV -> NEW_POINT with every acquisition completed since the last one."""
+    """BIRIS_DATA_DEV -> NEW_POINT with every acquisition completed since the last one.
+
+    In continuous mode also CONTINUOUS_LIVE (the start-up is over) and SWEEP_DATA_DONE (the
+    sweep's last acquisition has been sent).
+    """
     while _await(line) is not None:
         try:
             with reader.lock:
-                drained = reader.drain()
-                if drained.acquisitions or drained.lost:
-                    admin.send(NewPoint(drained.acquisitions, drained.lost))
+                _send_drained(admin, reader.drain())
         except TaskStopped:
             return
         except BusError:
             log.exception("biris_data_notifier: bus error reading a frame")
+
+
+def _axis_notifier(
+    line: InterruptLine,
+    admin: Mailbox,
+    axis: AxisDriver,
+    settle: Callable[[AxisDriver], None],
+    done: object,
+    reader: AcquisitionReader | None = None,
+) -> None:
+    """Shared body of the two motor notifiers: end of profile -> settled -> ``done``."""
+    while _await(line) is not None:
+        try:
+            settle(axis)
+            if reader is not None:
+                with reader.lock:
+                    _send_drained(admin, reader.end_sweep())
+            admin.send(done)
+        except TaskStopped:
+            return
+        except BusError:
+            log.exception("%s notifier: bus error while settling", axis.axis.name.lower())
 
 
 def biris_az_notifier(
@@ -124,21 +191,27 @@ def biris_az_notifier(
     admin: Mailbox,
     axis: AxisDriver,
     settle: Callable[[AxisDriver], None],
+    reader: AcquisitionReader | None = None,
 ) -> None:
     """MOTOR_END_OF_SCAN -> AZ_SCAN_DONE, once the head has actually come to rest.
 
     The chip signals the end of the profile when it issues the last setpoint, not when the motor
     stops; the notifier polls the position briefly (``settle``) so that AZ_SCAN_DONE means what
-    the report says: motion has terminated.
+    the report says: motion has terminated. In continuous mode it then tells the reader that
+    the sweep ends with the frame in exposure (and sends what is already complete) first.
     """
-    while _await(line) is not None:
-        try:
-            settle(axis)
-            admin.send(AzScanDone())
-        except TaskStopped:
-            return
-        except BusError:
-            log.exception("biris_az_notifier: bus error while settling")
+    _axis_notifier(line, admin, axis, settle, AzScanDone(), reader)
+
+
+def el_scan_notifier(
+    line: InterruptLine,
+    admin: Mailbox,
+    axis: AxisDriver,
+    settle: Callable[[AxisDriver], None],
+) -> None:
+    """ELEVATION_END_OF_SCAN -> EL_SCAN_DONE, once the tilt has come to rest (the report's
+    future _el_scan_notifier)."""
+    _axis_notifier(line, admin, axis, settle, ElScanDone())
 
 
 def error_notifier(line: InterruptLine, admin: Mailbox, message: object) -> None:
@@ -164,9 +237,17 @@ def biris_bus_err(line: InterruptLine, admin: Mailbox) -> None:
 
 
 def biris_cmd_transfer(
-    admin: Mailbox, link: BirisLink, reader: AcquisitionReader, ledger: CommandLedger
+    admin: Mailbox,
+    link: BirisLink,
+    reader: AcquisitionReader,
+    ledger: CommandLedger,
+    set_continuous: Callable[[bool], None] = _no_flag,
 ) -> None:
-    """CMD_TRANSFER_RDY, then write whatever command the reply carries; forever."""
+    """CMD_TRANSFER_RDY, then write whatever command the reply carries; forever.
+
+    Before BI_START_CONTINUOUS the continuous-mode flag goes up, so that the demultiplexer
+    classifies the first data interrupt right.
+    """
     ready = CmdTransferRdy()
     while True:
         try:
@@ -177,6 +258,9 @@ def biris_cmd_transfer(
             continue
         if order.code == BiCommand.BI_ACQUIRE:
             reader.begin(order.seq_id, order.n_acquisitions)
+        elif order.code == BiCommand.BI_START_CONTINUOUS:
+            set_continuous(True)
+            reader.prime_ring()
         try:
             with ledger.lock:
                 ledger.outstanding = order
@@ -185,9 +269,14 @@ def biris_cmd_transfer(
             log.exception("biris_cmd_transfer: could not write command %d", order.code)
 
 
-def az_scan_start(admin: Mailbox, axis: AxisDriver) -> None:
-    """AZ_READY, then start the motion the reply carries; forever."""
-    ready = AzReady()
+def _axis_worker(
+    admin: Mailbox,
+    axis: AxisDriver,
+    make_ready: Callable[[str | None], object],
+    reader: AcquisitionReader | None = None,
+) -> None:
+    """Shared body of the two motor workers: report ready, carry out the reply; forever."""
+    ready = make_ready(None)
     while True:
         try:
             order = admin.send(ready)
@@ -195,12 +284,35 @@ def az_scan_start(admin: Mailbox, axis: AxisDriver) -> None:
             return
         try:
             if isinstance(order, MoveOrder):
+                if order.sweep and reader is not None:
+                    # just before the motor starts, so that a worker the machine runs late
+                    # cannot cost the sweep its beginning; what is read before the head
+                    # moves is at the start azimuth, and the administrator drops it
+                    reader.open_sweep(order.sweep)
                 axis.start_trapezoid(order.destination)
             elif isinstance(order, ParamsOrder):
                 axis.configure(order.params)
-            ready = AzReady()
+            ready = make_ready(None)
         except BirisError as exc:
-            ready = AzReady(error=str(exc))
+            ready = make_ready(str(exc))
+
+
+def az_scan_start(
+    admin: Mailbox, axis: AxisDriver, reader: AcquisitionReader | None = None
+) -> None:
+    """AZ_READY, then start the motion the reply carries; forever.
+
+    A continuous-mode sweep's order also opens the sweep as the motor starts: data interrupts
+    back on, "after the next scan is started" (Appendix D) -- here an instant before, so that
+    the head's first move is never missed.
+    """
+    _axis_worker(admin, axis, lambda error: AzReady(error=error), reader)
+
+
+def el_scan_start(admin: Mailbox, axis: AxisDriver) -> None:
+    """EL_READY, then start the tilt the reply carries; forever (the report's future
+    _el_scan_start)."""
+    _axis_worker(admin, axis, lambda error: ElReady(error=error))
 
 
 # --- timers --------------------------------------------------------------------------------------
@@ -239,11 +351,16 @@ class DeadlineTimer:
     def generation(self) -> int:
         return self._generation
 
-    def arm(self, hw_seconds: float) -> int:
-        """(Re)start the countdown; returns the generation an expiry will carry."""
+    def arm(self, hw_seconds: float, real_slack_s: float = 0.0) -> int:
+        """(Re)start the countdown; returns the generation an expiry will carry.
+
+        ``real_slack_s`` adds real seconds (scaled to hardware time): a watchdog on work that
+        threads do (settling polls) must not fire because a busy machine ran them late, which
+        on a fast simulator clock is many hardware seconds.
+        """
         with self._cond:
             self._generation += 1
-            self._deadline = self._clock() + hw_seconds
+            self._deadline = self._clock() + hw_seconds + real_slack_s * self._scale
             self._cond.notify()
             return self._generation
 

@@ -1,0 +1,358 @@
+"""Shared machinery of the server benchmarks: a rig with a server on it, interrupt timestamps,
+CPU accounting, and the detection of server features that have not landed yet.
+
+This module registers no benchmark (it holds no ``@benchmark``), so discovery imports it
+harmlessly. Everything here is about measuring *honestly* in one process:
+
+* the simulator and the server share the process and its GIL, so whatever the simulator spends
+  is load on the server; :class:`CpuMeter` therefore splits CPU time between the server's
+  threads, the simulator's and the rest (clients), per thread from ``/proc``;
+* latencies start at the moment the simulated hardware raised its interrupt
+  (:class:`IrqRecorder`, through :attr:`sim.irqgate.InterruptGate.on_raise`), not at some point
+  inside the driver, so the whole driver path is inside the figure;
+* a feature another engineer is still adding (delivery policies, continuous acquisition) is
+  detected at run time; :class:`FeatureMissing` turns into a "not measured" figure that says
+  what is needed, and the code measures it as soon as the feature is there.
+"""
+
+from __future__ import annotations
+
+import bisect
+import inspect
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import biris_hw
+from biris_hw.bench.harness import BenchSkipped, Figure, Target
+from biris_hw.client import Connection
+from biris_hw.data import ConnectionKind, Point, Scan
+from biris_hw.records import BirisInitRecord
+from biris_hw.server import BirisServer
+from regs.biexec import ACQ_LINE_END, OFF_ACQ_LINE
+from sim.clock import FIELD_PERIOD
+from sim.rig import SimulatedBiris
+from sim.scene import Scene
+
+__all__ = [
+    "HOME_NEAR_COUNTS",
+    "Bench",
+    "CpuMeter",
+    "DataRaise",
+    "FeatureMissing",
+    "IrqRecorder",
+    "acquisition_period_s",
+    "continuous_acquisition_record",
+    "not_measured",
+    "open_every_acquisition",
+    "running_server",
+    "snap_to",
+    "stream_point",
+]
+
+HOME_NEAR_COUNTS = -200.0
+"""Where the head stands at power-up in the benchmarks: near the zero index, so homing takes
+about a second at time_scale 1 instead of five. Initialisation is not what is measured."""
+
+_NANO = 1_000_000_000
+
+
+class FeatureMissing(BenchSkipped):
+    """A server feature a figure needs is not there (yet); the message says which."""
+
+
+def not_measured(key: str, unit: str, target: Target | None, reason: str) -> Figure:
+    """The figure that stands in for one whose feature is missing: n = 0 and the reason.
+
+    A section keeps the figures it could measure; this row says, in the report, what the other
+    one needs, so a missing feature is visible rather than an absent row.
+    """
+    return Figure(
+        key=key,
+        values={"n": 0.0},
+        unit=unit,
+        target=target,
+        method=f"NOT MEASURED: {reason}. Measured automatically once the feature exists.",
+    )
+
+
+def acquisition_period_s(samples: int) -> float:
+    """Hardware seconds per acquisition: 2 video fields at 64 samples, 3 at 128."""
+    return (2 if samples <= 64 else 3) * FIELD_PERIOD
+
+
+# -- rig and server ------------------------------------------------------------------------------
+
+
+@dataclass
+class Bench:
+    """A rig, the server on it, and which threads are whose (for :class:`CpuMeter`)."""
+
+    rig: SimulatedBiris
+    server: BirisServer
+    server_threads: list[threading.Thread]
+    sim_threads: list[threading.Thread]
+
+    def cpu(self, **extra: list[threading.Thread]) -> CpuMeter:
+        """A CPU meter over the server's and the simulator's threads, plus ``extra`` groups."""
+        return CpuMeter({"server": self.server_threads, "sim": self.sim_threads, **extra})
+
+
+@contextmanager
+def running_server(
+    *,
+    samples: int = 64,
+    time_scale: float = 1.0,
+    seed: int = 1,
+    record: BirisInitRecord | None = None,
+) -> Iterator[Bench]:
+    """A simulated BIRIS with an initialised server on it; both closed on exit.
+
+    The scene is a 2 m circle (the cheapest optics: benchmarks time the server, not the scene)
+    and the head starts near the index (:data:`HOME_NEAR_COUNTS`) so set-up stays short.
+    """
+    before = set(threading.enumerate())
+    with SimulatedBiris(
+        scene=Scene.circle(2.0),
+        samples=samples,
+        time_scale=time_scale,
+        seed=seed,
+        initial_azimuth_counts=HOME_NEAR_COUNTS,
+    ) as rig:
+        sim_threads = [t for t in threading.enumerate() if t not in before]
+        known = before | set(sim_threads)
+        with BirisServer(rig.hardware, record if record is not None else BirisInitRecord()) as srv:
+            srv_threads = [t for t in threading.enumerate() if t not in known]
+            yield Bench(rig, srv, srv_threads, sim_threads)
+
+
+# -- interrupt timestamps ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DataRaise:
+    """One BIRIS data interrupt as the simulator raised it.
+
+    ``announces`` is the acquisition it tells the driver is complete: ACQ_LINE - 1, or the last
+    one of the sequence when ACQ_LINE reads -128; -1 for the interrupt that starts acquisition
+    0 (it announces nothing). ``line`` is ACQ_LINE as written just before the raise.
+    """
+
+    t_ns: int
+    t_hw: float
+    line: int
+    announces: int
+
+
+class IrqRecorder:
+    """Timestamps of every data, command and motor interrupt the simulator raises.
+
+    Installed on the rig's level-2 and level-3 gates for the duration of a ``with`` block. The
+    hook runs in the simulator's thread right after the interrupt was handed to the line: it
+    reads ACQ_LINE (to know which acquisition the interrupt announces), appends to a list and,
+    with ``listen``, puts the raise on :attr:`events` for a client thread to react to; a few
+    microseconds, and inside the figures.
+    """
+
+    def __init__(self, rig: SimulatedBiris, *, listen: bool = False) -> None:
+        self.rig = rig
+        self.listen = listen
+        self.data: list[DataRaise] = []
+        self.cmd: list[tuple[int, float]] = []
+        """(perf_counter_ns, hardware time) of each command-completion interrupt."""
+        self.motor: list[tuple[int, float]] = []
+        """(perf_counter_ns, hardware time) of each end-of-profile interrupt."""
+        self.events: queue.SimpleQueue[DataRaise] = queue.SimpleQueue()
+        self._window = rig.hardware.biris
+        self._line_at = rig.memory_map.biexec_offset + OFF_ACQ_LINE
+        self._now = rig.clock.now
+        self._prev_line = ACQ_LINE_END
+
+    def __enter__(self) -> IrqRecorder:
+        self.rig.level2_gate.on_raise = self._on_level2
+        self.rig.level3_gate.on_raise = self._on_level3
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.rig.level2_gate.on_raise = None
+        self.rig.level3_gate.on_raise = None
+
+    def clear(self) -> None:
+        """Forget what was recorded (the next phase of a benchmark starts afresh)."""
+        self.data.clear()
+        self.cmd.clear()
+        self.motor.clear()
+
+    def _on_level2(self, source: str, t_ns: int) -> None:
+        if source == "data":
+            raw = self._window.read16(self._line_at)
+            line = raw - 0x10000 if raw & 0x8000 else raw
+            if line == ACQ_LINE_END:
+                announces = self._prev_line if self._prev_line >= 0 else -1
+            else:
+                announces = line - 1 if line > 0 else -1
+            self._prev_line = line
+            event = DataRaise(t_ns, self._now(), line, announces)
+            self.data.append(event)
+            if self.listen and announces >= 0:
+                self.events.put(event)
+        elif source == "cmd":
+            self.cmd.append((t_ns, self._now()))
+
+    def _on_level3(self, source: str, t_ns: int) -> None:
+        if source == "motor":
+            self.motor.append((t_ns, self._now()))
+
+    def announcing(self) -> dict[int, list[int]]:
+        """Raise times (ns, ascending) of the data interrupts announcing each acquisition index."""
+        out: dict[int, list[int]] = {}
+        for event in self.data:
+            if event.announces >= 0:
+                out.setdefault(event.announces, []).append(event.t_ns)
+        return out
+
+    def sequence_spans(self) -> list[tuple[int, int]]:
+        """(acquisitions, wall ns) of each complete sequence, start-up excluded.
+
+        From the data interrupt that starts acquisition 0 to the one that announces the last, n
+        acquisitions pass: the rate BIRIS (the simulator) actually ran at, which differs from
+        nominal when the process cannot keep up (slower, or faster while catching up).
+        """
+        spans: list[tuple[int, int]] = []
+        start: DataRaise | None = None
+        for event in self.data:
+            if event.line == 0:
+                start = event
+            elif event.line == ACQ_LINE_END and start is not None:
+                n = event.announces + 1
+                if n > 1 and event.t_ns > start.t_ns:
+                    spans.append((n, event.t_ns - start.t_ns))
+                start = None
+        return spans
+
+    def lags_hw(self, acquisition_times: Sequence[float], period: float) -> list[float]:
+        """How late (hardware seconds) the simulator raised each announcing data interrupt.
+
+        The interrupt announcing acquisition j is due at the end of its exposure: its
+        mid-exposure time (``acquisition_times[j]``, the simulator's schedule, exact) plus half
+        a period. Raises and acquisitions pair in order, both counted from when this recorder
+        was installed, so pass the acquisition times made since then.
+        """
+        raises = [e for e in self.data if e.announces >= 0]
+        return [
+            e.t_hw - (t + period / 2.0) for e, t in zip(raises, acquisition_times, strict=False)
+        ]
+
+
+def snap_to(times: Sequence[float], t: float, tolerance: float) -> float | None:
+    """The entry of sorted ``times`` nearest ``t``, if within ``tolerance``; else None.
+
+    The server stamps acquisitions with an *estimate* of their mid-exposure time made when it
+    reads them, so any delay in reading shifts the estimate by the same amount and would hide
+    itself in an age. Snapping to the simulator's exact times removes that.
+    """
+    i = bisect.bisect_left(times, t)
+    best: float | None = None
+    for j in (i - 1, i):
+        if 0 <= j < len(times) and (best is None or abs(times[j] - t) < abs(best - t)):
+            best = times[j]
+    return best if best is not None and abs(best - t) <= tolerance else None
+
+
+# -- CPU -----------------------------------------------------------------------------------------
+
+
+def _thread_cpu_ns(threads: Iterable[threading.Thread]) -> int:
+    """CPU time of these threads, from /proc (0 where unavailable: not Linux, thread gone)."""
+    total = 0
+    for thread in threads:
+        tid = thread.native_id
+        if tid is None:
+            continue
+        try:
+            with open(f"/proc/self/task/{tid}/schedstat", encoding="ascii") as f:
+                total += int(f.read().split()[0])
+        except (OSError, ValueError, IndexError):
+            continue
+    return total
+
+
+class CpuMeter:
+    """Process CPU over wall time, with the share of named thread groups.
+
+    100 % is one core. ``cpu_percent`` is the whole process (simulator, server and client
+    threads: they cannot be run apart in one process); ``<group>_cpu_percent`` comes from the
+    per-thread run time the kernel keeps (``/proc/self/task/*/schedstat``) and is absent where
+    that is not available. A thread that ends inside the window takes its time with it.
+    """
+
+    def __init__(self, groups: dict[str, list[threading.Thread]]) -> None:
+        self.groups = groups
+        self.values: dict[str, float] = {}
+
+    def __enter__(self) -> CpuMeter:
+        self._wall0 = time.perf_counter()
+        self._cpu0 = time.process_time()
+        self._thread0 = {name: _thread_cpu_ns(ts) for name, ts in self.groups.items()}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        wall = time.perf_counter() - self._wall0
+        cpu = time.process_time() - self._cpu0
+        self.values = {"cpu_percent": 100.0 * cpu / wall if wall > 0 else float("nan")}
+        if os.path.exists("/proc/self/task"):
+            for name, threads in self.groups.items():
+                used = (_thread_cpu_ns(threads) - self._thread0[name]) / _NANO
+                self.values[f"{name}_cpu_percent"] = 100.0 * used / wall if wall > 0 else 0.0
+        self.values["wall_s"] = wall
+
+
+# -- features that may not exist yet -------------------------------------------------------------
+
+
+def open_every_acquisition(server: BirisServer) -> Connection:
+    """A DATA connection delivering every acquisition (DeliveryPolicy.EVERY_ACQUISITION).
+
+    Raises :class:`FeatureMissing` until the server has delivery policies; written against the
+    planned API (``server.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_ACQUISITION)``,
+    ``DeliveryPolicy`` exported by ``biris_hw``), so it works the day they land.
+    """
+    policies = getattr(biris_hw, "DeliveryPolicy", None)
+    member = getattr(policies, "EVERY_ACQUISITION", None) if policies is not None else None
+    if member is None:
+        raise FeatureMissing("needs DeliveryPolicy.EVERY_ACQUISITION (not in biris_hw yet)")
+    opener: Callable[..., Connection] = server.open
+    try:
+        accepts_policy = "policy" in inspect.signature(opener).parameters
+    except (TypeError, ValueError):
+        accepts_policy = True
+    if not accepts_policy:
+        raise FeatureMissing("needs BirisServer.open(kind, policy=...) (no policy parameter yet)")
+    return opener(ConnectionKind.DATA, policy=member)
+
+
+def stream_point(conn: Connection, timeout: float) -> Point:
+    """The next acquisition on an EVERY_ACQUISITION connection; FeatureMissing if it is a Scan."""
+    result: object = conn.ready_for_data(timeout=timeout)
+    if not isinstance(result, Point):
+        kind = "a Scan" if isinstance(result, Scan) else type(result).__name__
+        raise FeatureMissing(
+            f"needs ready_for_data to return a Point on an EVERY_ACQUISITION connection "
+            f"(it returned {kind})"
+        )
+    return result
+
+
+def continuous_acquisition_record() -> BirisInitRecord:
+    """BirisInitRecord(continuous_acquisition=True), or FeatureMissing if it cannot be made."""
+    try:
+        record = BirisInitRecord(continuous_acquisition=True)
+    except TypeError as exc:
+        raise FeatureMissing(f"needs BirisInitRecord(continuous_acquisition=True) ({exc})") from exc
+    if getattr(record, "continuous_acquisition", False) is not True:
+        raise FeatureMissing("needs BirisInitRecord.continuous_acquisition")
+    return record

@@ -1,0 +1,136 @@
+"""A client connection as the administrator keeps it: its kind, its delivery policy, its queue.
+
+The report's DATA connection is "issued data automatically when a buffer is acquired": the
+client sends READY_FOR_DATA and the administrator replies when there is something to give. What
+waits for a client that is not ready depends on the connection's :class:`DeliveryPolicy`; what
+no longer fits is dropped *and counted*, never lost silently.
+
+Every hand-over -- a parked READY_FOR_DATA replied, or REQUEST_POINT / REQUEST_SCAN_DATA
+answered -- stamps the data with ``t_delivered`` (hardware clock) and records its age in the
+connection's :class:`LatencyHistogram`. Only the administrator thread touches these objects.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import weakref
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
+from biris_hw.errors import RequestError
+from biris_hw.ipc import Envelope
+from biris_hw.server.latency import LatencyHistogram
+
+__all__ = ["ClientConn", "check_policy", "stamp"]
+
+_Data = TypeVar("_Data", bound=Scan | Point)
+
+MAX_DEPTH = 1 << 16
+"""Largest queue a connection may ask for (a bound on the server's memory, not a BIRIS limit)."""
+
+
+def check_policy(kind: ConnectionKind, policy: object, depth: object) -> tuple[DeliveryPolicy, int]:
+    """The policy and queue depth an OPEN_REQUEST asks for, checked; RequestError if bad."""
+    try:
+        chosen = DeliveryPolicy(policy)
+    except ValueError:
+        raise RequestError(f"no delivery policy {policy!r}") from None
+    if kind is not ConnectionKind.DATA and chosen is not DeliveryPolicy.LATEST:
+        raise RequestError("a delivery policy is for DATA connections")
+    if depth is None:
+        return chosen, chosen.default_depth
+    if isinstance(depth, bool) or not isinstance(depth, int) or not 1 <= depth <= MAX_DEPTH:
+        raise RequestError(f"depth must be a whole number in 1..{MAX_DEPTH}, not {depth!r}")
+    if chosen is DeliveryPolicy.LATEST and depth != 1:
+        raise RequestError("LATEST keeps only the newest scan: its depth is 1")
+    return chosen, depth
+
+
+def stamp(item: _Data, now: float) -> _Data:
+    """A copy of ``item`` handed over at ``now`` (arrays are shared: they are read-only)."""
+    return dataclasses.replace(item, t_delivered=now)
+
+
+@dataclass
+class ClientConn:
+    """One open connection: who owns it, what it wants, what waits for it."""
+
+    ident: int
+    kind: ConnectionKind
+    owner: weakref.ref[threading.Thread]
+    policy: DeliveryPolicy = DeliveryPolicy.LATEST
+    depth: int = 1
+    waiting: Envelope | None = None
+    """A READY_FOR_DATA parked until there is something to send."""
+    queue: deque[Scan | Point] = field(default_factory=deque)
+    dropped: int = 0
+    delivered: int = 0
+    latency: LatencyHistogram = field(default_factory=LatencyHistogram)
+
+    @property
+    def alive(self) -> bool:
+        owner = self.owner()
+        return owner is not None and owner.is_alive()
+
+    @property
+    def wants_scans(self) -> bool:
+        return (
+            self.kind is ConnectionKind.DATA and self.policy is not DeliveryPolicy.EVERY_ACQUISITION
+        )
+
+    @property
+    def wants_points(self) -> bool:
+        return self.kind is ConnectionKind.DATA and self.policy is DeliveryPolicy.EVERY_ACQUISITION
+
+    def record(self, item: Scan | Point) -> None:
+        """Count a hand-over and its latency (``item`` is already stamped)."""
+        self.delivered += 1
+        age = item.age
+        if age is not None:
+            self.latency.add(age)
+
+    def offer(self, item: Scan | Point, now: float) -> None:
+        """A new buffer (or acquisition): straight to a waiting client, else into the queue."""
+        if self.waiting is not None:
+            env, self.waiting = self.waiting, None
+            sent = stamp(item, now)
+            if env.reply((sent, self.dropped)) is not False:
+                self.record(sent)
+                return
+        self.queue.append(item)
+        while len(self.queue) > self.depth:  # LATEST: depth 1, so the newer replaces the older
+            self.queue.popleft()
+            self.dropped += 1
+
+    def lost(self, count: int) -> None:
+        """Acquisitions the server never had (a point stream would have carried them)."""
+        self.dropped += count
+
+    def ready(self, env: Envelope, now: float) -> bool:
+        """READY_FOR_DATA: reply at once from the queue (True), or park the request (False)."""
+        if self.queue:
+            item = self.queue[0]
+            sent = stamp(item, now)
+            if env.reply((sent, self.dropped)) is not False:
+                self.queue.popleft()
+                self.record(sent)
+            return True
+        if self.waiting is not None:
+            self.waiting.fail(RequestError("superseded by a newer READY_FOR_DATA"))
+        self.waiting = env
+        return False
+
+    def summary(self) -> dict[str, Any]:
+        """This connection's part of ``server.status()``."""
+        return {
+            "kind": self.kind.name,
+            "policy": self.policy.name,
+            "depth": self.depth,
+            "queued": len(self.queue),
+            "delivered": self.delivered,
+            "dropped": self.dropped,
+            "latency": self.latency.summary(),
+        }

@@ -1,0 +1,129 @@
+"""One motor axis as the administrator keeps it: its worker, its queue of orders, its watchdog.
+
+The report drives the pan motor through two tasks -- _az_scan_start, a worker that reports
+AZ_READY and is *replied* the next destination, and _Biris_az_notifier, which reports AZ_SCAN_DONE
+-- and foresees the same pair for a tilt motor (_el_scan_start, _el_scan_notifier). Both axes
+are therefore the same bookkeeping: orders wait in a queue until the worker is free, one runs at
+a time, and a watchdog (beyond the report) turns a motion that never ends into a fault instead
+of a hang. Only the administrator thread touches these objects; they never block.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from biris_hw.angles import clamp_counts
+from biris_hw.ipc import Envelope
+from biris_hw.records import MotorParams
+from biris_hw.server.messages import MoveOrder, ParamsOrder
+from biris_hw.server.tasks import DeadlineTimer
+from regs.tech80 import Axis
+
+__all__ = ["AxisState", "Motion", "expected_move_s"]
+
+SETTLE_LIMIT_S = 1.0
+"""Longest a motor notifier polls for the head to come to rest (``wait_settled``'s default)."""
+
+WATCHDOG_REAL_SLACK_S = 0.5
+"""Real seconds a motor watchdog allows on top, for notifier threads that a busy machine runs
+late: on a simulator clock 20 times fast, 50 ms of starvation is a whole hardware second."""
+
+
+@dataclass
+class Motion:
+    """One order for an axis worker and what to do when it is done (or fails)."""
+
+    order: MoveOrder | ParamsOrder
+    on_done: Callable[[str | None], object]
+    on_fail: Callable[[BaseException], object]
+
+
+def expected_move_s(distance: int, params: MotorParams) -> float:
+    """How long a trapezoid of ``distance`` counts should take (hardware seconds)."""
+    period = params.sample_period_s
+    vmax = max(params.max_vel, 1)
+    accel = max(params.max_accel / 256.0, 1.0 / 256.0)
+    samples = abs(distance) / vmax + 2.0 * vmax / accel + 2.0
+    return samples * period
+
+
+class AxisState:
+    """The administrator's record of one axis; ``position`` is where its last move ends."""
+
+    def __init__(self, axis: Axis, watchdog: DeadlineTimer, motor: MotorParams) -> None:
+        self.axis = axis
+        self.watchdog = watchdog
+        self.motor = motor
+        """The parameters the chip runs with (what the latest ParamsOrder loaded)."""
+        self.env: Envelope | None = None
+        """The worker, parked on its last READY report."""
+        self.queue: deque[Motion] = deque()
+        self.current: Motion | None = None
+        self.position = 0
+        self.watchdog_gen = -1
+
+    @property
+    def name(self) -> str:
+        return "azimuth" if self.axis is Axis.AZIMUTH else "elevation"
+
+    def busy(self) -> bool:
+        """An order runs or waits."""
+        return self.current is not None or bool(self.queue)
+
+    def moving(self) -> bool:
+        """A move (not a parameter load) runs or waits."""
+        jobs = [*self.queue, *([self.current] if self.current else [])]
+        return any(isinstance(job.order, MoveOrder) for job in jobs)
+
+    def motor_for_next_move(self) -> MotorParams:
+        """The parameters the next queued move will run with: a load ahead of it counts."""
+        motor = self.motor
+        for job in [*([self.current] if self.current else []), *self.queue]:
+            if isinstance(job.order, ParamsOrder):
+                motor = job.order.params
+        return motor
+
+    def submit(self, job: Motion) -> None:
+        self.queue.append(job)
+
+    def dispatch(self) -> bool:
+        """Reply the next order to the parked worker, if both exist; True if one was sent.
+
+        Every destination goes through _Scan_limit here, whoever asked for it.
+        """
+        if self.current is not None or self.env is None or not self.queue:
+            return False
+        job = self.queue.popleft()
+        self.current = job
+        env, self.env = self.env, None
+        order = job.order
+        if isinstance(order, MoveOrder):
+            dest = clamp_counts(order.destination)
+            order = MoveOrder(dest, order.sweep)
+            duration = expected_move_s(dest - self.position, self.motor)
+            # the notifier's settling may take up to SETTLE_LIMIT_S more, then threads run late
+            self.watchdog_gen = self.watchdog.arm(
+                duration * 1.5 + SETTLE_LIMIT_S + 1.0, real_slack_s=WATCHDOG_REAL_SLACK_S
+            )
+            self.position = dest
+        env.reply(order)
+        return True
+
+    def finish_current(self) -> Motion | None:
+        """The running order is over (its end was reported); returns it."""
+        job, self.current = self.current, None
+        if job is not None and isinstance(job.order, MoveOrder):
+            self.watchdog.disarm()
+        return job
+
+    def fail_all(self, fault: BaseException) -> None:
+        """A fault: every order, running or waiting, fails with it."""
+        self.watchdog.disarm()
+        for job in list(self.queue):
+            job.on_fail(fault)
+        self.queue.clear()
+        if self.current is not None:
+            self.current.on_fail(fault)
+            self.current = None

@@ -1,0 +1,313 @@
+"""A real VME target, described in TOML, opened as a :class:`~biris_hw.hardware.BirisHardware`.
+
+The simulator builds its hardware bundle in code; the robot's VME host cannot, because where the
+coupler window, the Model 7600 board and the interrupt lines live depends on how that machine is
+wired and which kernel drivers it runs. So the wiring is data: one file whose top-level keys are
+the bundle's own fields (``biris``, ``motion``, ``coupler``, ``level2``, ``level3``,
+``biexec_offset``, ``biris_base``, ``clock``), each window and line named by its registry kind
+with that kind's options. ``docs/target-example.toml`` documents every key.
+
+Everything is checked before the server sees it, and every message names the key at fault: a
+server must not start on half a description, and a person reading ``biris: ...`` must be able to
+find the line to fix without a traceback. Content errors are :class:`RequestError`; failures of
+the operating system to open a device (missing node, no permission) are :class:`BusError` with
+the system's errno, so callers can tell "fix the file" from "fix the machine".
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import math
+import re
+import sys
+import time
+from collections.abc import Callable, Mapping
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+from biris_hw.bus.base import BusWindow
+from biris_hw.bus.registry import open_window
+from biris_hw.errors import BusError, RequestError, UnknownKind
+from biris_hw.hardware import BirisHardware
+from biris_hw.irq.base import InterruptLine
+from biris_hw.irq.poll import PollLine
+from biris_hw.irq.registry import open_line
+from regs.biexec import BIEXEC_COM_SIZE
+from regs.bit3 import BIT3_SPACE
+from regs.tech80 import MOTION_WINDOW_SIZE
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # tomli is a declared dependency below 3.11
+    import tomli as tomllib  # type: ignore[import-not-found, unused-ignore]
+
+__all__ = ["CLOCKS", "TARGET_KEYS", "WINDOW_MINIMUM", "load_target", "target_from_dict"]
+
+WINDOW_MINIMUM: dict[str, int] = {
+    "biris": BIEXEC_COM_SIZE,
+    "motion": MOTION_WINDOW_SIZE,
+    "coupler": BIT3_SPACE,
+}
+"""Bytes each window must at least hold (BIRIS: BIEXEC_COM beyond ``biexec_offset``); a smaller
+window would only fail later, with a bus error in the middle of a scan."""
+
+CLOCKS: dict[str, Callable[[], float]] = {"monotonic": time.monotonic}
+"""Hardware clocks a target may name. The real sensor runs in real time, so the host's monotonic
+clock is the hardware clock; the key exists so that a description says so explicitly."""
+
+TARGET_KEYS = (
+    "biris",
+    "motion",
+    "coupler",
+    "level2",
+    "level3",
+    "biexec_offset",
+    "biris_base",
+    "clock",
+)
+
+_WIDTHS = (8, 16, 32)
+_SCALAR = (str, int, float, bool)
+_BAD_KEYWORD = re.compile(r"unexpected keyword argument '(\w+)'")
+
+
+# -- small validators ------------------------------------------------------------------------------
+
+
+def _int(key: str, value: object, lo: int, hi: int) -> int:
+    """A whole number in lo..hi; TOML booleans and floats are refused (0.5 is no address)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise RequestError(f"{key}: must be an integer, not {_type(value)}")
+    if not lo <= value <= hi:
+        raise RequestError(f"{key}: must be in 0x{lo:X}..0x{hi:X}, not 0x{value:X}")
+    return value
+
+
+def _seconds(key: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise RequestError(f"{key}: must be a number of seconds, not {_type(value)}")
+    if not (math.isfinite(value) and value > 0):
+        raise RequestError(f"{key}: must be a positive number of seconds, not {value}")
+    return float(value)
+
+
+def _table(key: str, value: object) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise RequestError(f"{key}: must be a table such as {{kind = ...}}, not {_type(value)}")
+    return value
+
+
+def _kind(key: str, table: Mapping[str, Any]) -> str:
+    kind = table.get("kind")
+    if kind is None:
+        raise RequestError(f"{key}.kind: missing (say which kind of {_what(key)} this is)")
+    if not isinstance(kind, str):
+        raise RequestError(f"{key}.kind: must be a string, not {_type(kind)}")
+    return kind
+
+
+def _options(key: str, table: Mapping[str, Any]) -> dict[str, Any]:
+    """The table less ``kind``; only scalars, since every window and line option is one."""
+    options = {k: v for k, v in table.items() if k != "kind"}
+    for name, value in options.items():
+        if not isinstance(value, _SCALAR):
+            raise RequestError(f"{key}.{name}: must be a number, string or boolean")
+        if name in ("offset", "size") and isinstance(value, int) and value < 0:
+            raise RequestError(f"{key}.{name}: must not be negative, not {value}")
+    return options
+
+
+def _type(value: object) -> str:
+    if isinstance(value, Mapping):
+        return "a table"
+    if isinstance(value, list):
+        return "an array"
+    return type(value).__name__
+
+
+def _what(key: str) -> str:
+    return "interrupt line" if key.startswith("level") else "bus window"
+
+
+def _opening_error(key: str, kind: str, exc: Exception) -> Exception:
+    """Turn what a window or line constructor raised into a message that names the key."""
+    if isinstance(exc, UnknownKind):
+        return RequestError(f"{key}.kind: {exc}")
+    if isinstance(exc, TypeError):
+        bad = _BAD_KEYWORD.search(str(exc))
+        if bad:
+            return RequestError(f"{key}.{bad[1]}: not an option of kind {kind!r}")
+        return RequestError(f"{key}: {exc}")
+    if isinstance(exc, OSError):
+        return BusError(f"{key}: {exc.strerror or exc}", exc.errno or errno.EIO)
+    return RequestError(f"{key}: {exc}")
+
+
+# -- windows and lines -----------------------------------------------------------------------------
+
+
+def _open_window(key: str, spec: object, minimum: int) -> BusWindow:
+    table = _table(key, spec)
+    kind = _kind(key, table)
+    try:
+        window = open_window(kind, **_options(key, table))
+    except RequestError:
+        raise
+    except (UnknownKind, TypeError, ValueError, OSError) as exc:
+        raise _opening_error(key, kind, exc) from exc
+    if window.size < minimum:
+        size = window.size
+        window.close()
+        raise RequestError(
+            f"{key}: the window holds 0x{size:X} bytes, it needs at least 0x{minimum:X}"
+        )
+    return window
+
+
+def _poll_line(key: str, table: Mapping[str, Any], windows: Mapping[str, BusWindow]) -> PollLine:
+    """A register predicate: ``(register & mask) != 0``, or ``== equals`` when given."""
+    known = {"kind", "window", "offset", "width", "mask", "equals", "period", "acknowledge"}
+    for name in table:
+        if name not in known:
+            raise RequestError(f"{key}.{name}: not an option of kind 'poll'")
+    named = table.get("window")
+    if not isinstance(named, str) or named not in windows:
+        raise RequestError(f"{key}.window: must be one of {', '.join(windows)}, not {named!r}")
+    window = windows[named]
+    width = table.get("width", 8)
+    if width not in _WIDTHS or isinstance(width, bool):
+        raise RequestError(f"{key}.width: must be 8, 16 or 32 (bits), not {width!r}")
+    full = (1 << width) - 1
+    offset = _register(f"{key}.offset", table.get("offset"), width, window)
+    mask = _int(f"{key}.mask", table.get("mask", full), 1, full)
+    equals = table.get("equals")
+    if equals is not None:
+        equals = _int(f"{key}.equals", equals, 0, full)
+        if equals & ~mask:
+            raise RequestError(f"{key}.equals: 0x{equals:X} has bits outside the mask 0x{mask:X}")
+    period = _seconds(f"{key}.period", table.get("period", 0.001))
+    read = _reader(window, width)
+
+    def predicate() -> bool:
+        value = read(offset) & mask
+        return value == equals if equals is not None else value != 0
+
+    acknowledge: Callable[[], None] | None = None
+    if "acknowledge" in table:
+        ack = _table(f"{key}.acknowledge", table["acknowledge"])
+        extra = sorted(set(ack) - {"offset", "value", "width"})
+        if extra:
+            raise RequestError(f"{key}.acknowledge.{extra[0]}: not an option of an acknowledgement")
+        ack_width = ack.get("width", width)
+        if ack_width not in _WIDTHS or isinstance(ack_width, bool):
+            raise RequestError(f"{key}.acknowledge.width: must be 8, 16 or 32, not {ack_width!r}")
+        ack_offset = _register(f"{key}.acknowledge.offset", ack.get("offset"), ack_width, window)
+        ack_value = _int(f"{key}.acknowledge.value", ack.get("value"), 0, (1 << ack_width) - 1)
+        write = _writer(window, ack_width)
+
+        def acknowledge() -> None:
+            write(ack_offset, ack_value)
+
+    return PollLine(predicate, period, acknowledge=acknowledge)
+
+
+def _register(key: str, value: object, width: int, window: BusWindow) -> int:
+    if value is None:
+        raise RequestError(f"{key}: missing (the register's offset in its window)")
+    nbytes = width // 8
+    offset = _int(key, value, 0, max(0, window.size - nbytes))
+    if offset % nbytes:
+        raise RequestError(f"{key}: 0x{offset:X} is not aligned for a {width}-bit register")
+    return offset
+
+
+def _reader(window: BusWindow, width: int) -> Callable[[int], int]:
+    return {8: window.read8, 16: window.read16, 32: window.read32}[width]
+
+
+def _writer(window: BusWindow, width: int) -> Callable[[int, int], None]:
+    return {8: window.write8, 16: window.write16, 32: window.write32}[width]
+
+
+def _open_line(key: str, spec: object, windows: Mapping[str, BusWindow]) -> InterruptLine:
+    table = _table(key, spec)
+    kind = _kind(key, table)
+    if kind == "poll":
+        return _poll_line(key, table, windows)
+    try:
+        return open_line(kind, **_options(key, table))
+    except RequestError:
+        raise
+    except (UnknownKind, TypeError, ValueError, OSError) as exc:
+        raise _opening_error(key, kind, exc) from exc
+
+
+# -- the whole description -------------------------------------------------------------------------
+
+
+def target_from_dict(data: Mapping[str, Any]) -> BirisHardware:
+    """Open every window and line a parsed description names; on any error, close what was
+    opened and raise (RequestError for the description, BusError for the machine)."""
+    if not isinstance(data, Mapping):
+        raise RequestError(f"a target description must be a table, not {_type(data)}")
+    for key in data:
+        if key not in TARGET_KEYS:
+            raise RequestError(f"unknown key {key!r} (known: {', '.join(TARGET_KEYS)})")
+    for key in TARGET_KEYS[:5]:
+        if key not in data:
+            raise RequestError(
+                f"{key}: missing (a target names biris, motion, coupler, level2 and level3)"
+            )
+    biexec_offset = _int("biexec_offset", data.get("biexec_offset", 0x100), 0, 0xFFFF_FFFF)
+    if biexec_offset % 2:
+        raise RequestError(
+            f"biexec_offset: must be even (16-bit registers), not 0x{biexec_offset:X}"
+        )
+    biris_base = _int("biris_base", data.get("biris_base", 0x00C0_0000), 0, 0xFFFF_FFFF)
+    clock_name = data.get("clock", "monotonic")
+    if clock_name not in CLOCKS:
+        raise RequestError(f"clock: must be one of {', '.join(CLOCKS)}, not {clock_name!r}")
+    minimum = dict(WINDOW_MINIMUM, biris=biexec_offset + BIEXEC_COM_SIZE)
+    with contextlib.ExitStack() as opened:
+        windows: dict[str, BusWindow] = {}
+        for key in ("biris", "motion", "coupler"):
+            windows[key] = _open_window(key, data[key], minimum[key])
+            opened.callback(windows[key].close)
+        lines: dict[str, InterruptLine] = {}
+        for key in ("level2", "level3"):
+            lines[key] = _open_line(key, data[key], windows)
+            opened.callback(lines[key].close)
+        hardware = BirisHardware(
+            biris=windows["biris"],
+            motion=windows["motion"],
+            coupler=windows["coupler"],
+            level2=lines["level2"],
+            level3=lines["level3"],
+            biexec_offset=biexec_offset,
+            biris_base=biris_base,
+            clock=CLOCKS[clock_name],
+            time_scale=1.0,
+        )
+        opened.pop_all()
+    return hardware
+
+
+def load_target(path: str | PathLike[str]) -> BirisHardware:
+    """Open the target a TOML file describes; the caller closes it (``hardware.close()``).
+
+    A file that cannot be read is the OSError it is; every message about its content starts
+    with the file's name and names the key.
+    """
+    text = Path(path).read_text(encoding="utf-8")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise RequestError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        return target_from_dict(data)
+    except RequestError as exc:
+        raise RequestError(f"{path}: {exc}") from None
+    except BusError as exc:
+        raise BusError(f"{path}: {exc}", exc.errno or errno.EIO) from exc
