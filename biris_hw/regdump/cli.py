@@ -1,0 +1,138 @@
+"""``biris regdump``'s command line: its options, and one dump or a ``--watch`` of them."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import traceback
+from typing import TextIO
+
+from biris_hw import regdump as package
+from biris_hw.errors import BirisError
+from biris_hw.regdump.decode import snapshot
+from biris_hw.regdump.images import image_layout, images
+from biris_hw.regdump.model import Dump, DumpError, changed_rows
+from biris_hw.regdump.render import format_table, to_json
+from regs.layout import TargetImage
+
+__all__ = ["add_arguments", "run"]
+
+
+def _offset(text: str) -> int:
+    try:
+        value = int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an offset: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"offset must not be negative: {text}")
+    return value
+
+
+def _positive(text: str) -> int:
+    value = _offset(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError("must be at least 1")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``regdump`` options (the caller owns the parser)."""
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--file", metavar="PATH", help="a raw image file")
+    src.add_argument("--mmap", metavar="PATH", help="map a file or device (see --offset)")
+    src.add_argument("--shm", metavar="NAME", help="a shared-memory segment (the simulator's)")
+    parser.add_argument(
+        "--offset", type=_offset, default=0, metavar="N", help="where the image starts (bytes)"
+    )
+    img = TargetImage()
+    mm = img.biris
+    for flag, default, what in (
+        ("--coupler-at", img.coupler_offset, "Bit 3 coupler registers"),
+        ("--motion-at", img.motion_offset, "Model 7600 board"),
+        ("--biris-at", img.biris_offset, "BIRIS memory"),
+    ):
+        parser.add_argument(
+            flag, type=_offset, default=default, metavar="N", help=f"image offset of the {what}"
+        )
+    parser.add_argument(
+        "--samples", type=int, choices=(64, 128), default=mm.samples, help="samples per frame"
+    )
+    parser.add_argument(
+        "--biexec-offset", type=_offset, default=mm.biexec_offset, metavar="N",
+        help="BIEXEC_COM's offset in the BIRIS window",
+    )  # fmt: skip
+    parser.add_argument(
+        "--range-base", type=_offset, default=mm.range_offset, metavar="N",
+        help="range array's offset in the BIRIS window",
+    )  # fmt: skip
+    parser.add_argument(
+        "--frame-size", type=_positive, default=None, metavar="N",
+        help="bytes per frame (default: from --samples)",
+    )  # fmt: skip
+    parser.add_argument("--json", action="store_true", help="one JSON object per dump")
+    parser.add_argument(
+        "--watch",
+        type=_positive,
+        default=None,
+        metavar="MS",
+        help="dump every MS ms, marking changes with *",
+    )
+    parser.add_argument(
+        "--count", type=_positive, default=None, metavar="K", help="stop after K dumps"
+    )
+    parser.add_argument(
+        "--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks"
+    )
+
+
+def _emit(
+    dump: Dump, changed: frozenset[tuple[str, str]], n: int, args: argparse.Namespace, out: TextIO
+) -> None:
+    if args.json:
+        data = to_json(dump, changed)
+        data["dump"] = n
+        text = json.dumps(data, separators=(",", ":")) if args.watch else json.dumps(data, indent=2)
+        out.write(text + "\n")
+    else:
+        if args.watch:
+            out.write(f"=== dump {n}: {len(changed)} changed ===\n")
+        out.write(format_table(dump, changed))
+    out.flush()
+
+
+def _dump_loop(args: argparse.Namespace, out: TextIO) -> int:
+    if args.count is not None and args.watch is None:
+        raise DumpError("--count needs --watch")
+    image = image_layout(args)
+    context, base, label = images(args, image.size)
+    with context as next_window:
+        previous: Dump | None = None
+        n = 0
+        while True:
+            n += 1
+            window = next_window()
+            try:
+                dump = snapshot(window, image, base=base, frame_size=args.frame_size, source=label)
+            finally:
+                if args.file is not None:
+                    window.close()
+            _emit(dump, changed_rows(previous, dump), n, args, out)
+            previous = dump
+            if args.watch is None or (args.count is not None and n >= args.count):
+                return 0
+            package._sleep(args.watch / 1000.0)  # looked up each time: tests replace it
+
+
+def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    """Run ``biris regdump``: 0 when done (or on Ctrl-C), 2 with one line on stderr on error."""
+    try:
+        return _dump_loop(args, out or sys.stdout)
+    except KeyboardInterrupt:
+        return 0
+    except (BirisError, OSError, ValueError, LookupError) as exc:
+        if getattr(args, "debug", False):
+            traceback.print_exc(file=sys.stderr)
+        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"biris regdump: {message}", file=sys.stderr)
+        return 2

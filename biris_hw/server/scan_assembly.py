@@ -1,0 +1,119 @@
+"""A scan while its acquisitions arrive, and the :class:`Scan` it becomes when it completes.
+
+Acquisitions reach the administrator in NEW_POINT messages, possibly several at once on catch-up
+and possibly out of a sweep that is already over; a scan keeps only those of its own sequence,
+by index, so the finished :class:`Scan` is in acquisition order whatever the arrival order was.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from biris_hw.data import Direction, Point, Scan
+from biris_hw.geometry import Mount
+from biris_hw.server.messages import Acquisition
+
+__all__ = ["STILL_COUNTS", "ActiveScan", "build_scan", "point_of"]
+
+log = logging.getLogger("biris_hw.server.admin")
+"""The administrator thread's messages, whichever module writes them: one name to configure."""
+
+STILL_COUNTS = 2
+"""How near (counts) to where a continuous-mode sweep starts or ends an acquisition counts as made
+with the head standing there: a head at rest may sit a count or two off its command."""
+
+
+@dataclass
+class ActiveScan:
+    """A sweep under way: ended when both its motion and its data are done."""
+
+    direction: Direction
+    destination: int
+    n: int
+    seq_id: int
+    elevation: int = 0
+    ring: bool = False
+    """Continuous acquisition: the sweep's data come from the ring, not from a BI_ACQUIRE."""
+    start: int = 0
+    left_start: bool = False
+    """Continuous acquisition: an acquisition away from the start has been kept."""
+    at_end: bool = False
+    """Continuous acquisition: an acquisition at the destination has been kept."""
+    acqs: dict[int, Acquisition] = field(default_factory=dict)
+    lost: int = 0
+    az_done: bool = False
+    """AZ_SCAN_DONE has arrived: the motor has come to rest at the destination."""
+    cmd_done: bool = False
+    """BIRIS_CMD_COMPLETE of its BI_ACQUIRE (SWEEP_DATA_DONE in continuous mode) has arrived."""
+    status: int = 0
+
+    def head_moving(self, azimuth: int) -> bool:
+        """Whether a continuous-mode acquisition belongs to the sweep: not made while the head
+        still stood at the start, nor after one was made with it standing at the end.
+
+        Only the ends are judged: those are where the report expects "samples at constant
+        azimuth". An acquisition in between is kept whatever its tag, so that a stall or a
+        tagging hiccup shows in the data instead of being hidden.
+        """
+        if not self.left_start:
+            if abs(azimuth - self.start) <= STILL_COUNTS:
+                return False
+            self.left_start = True
+        if self.at_end:
+            return False
+        if abs(azimuth - self.destination) <= STILL_COUNTS:
+            self.at_end = True
+        return True
+
+
+def point_of(acq: Acquisition, scan: ActiveScan, scan_seq: int, mount: Mount | None) -> Point:
+    """REQUEST_POINT's answer for one acquisition of ``scan`` (to be scan ``scan_seq``)."""
+    return Point(
+        azimuth=acq.azimuth,
+        range_mm=acq.closest_mm,
+        profile=acq.profile,
+        intensity=acq.intensity,
+        t=acq.t,
+        acq=acq.index,
+        scan_seq=scan_seq,
+        elevation=scan.elevation,
+        mount=mount,
+    )
+
+
+def build_scan(scan: ActiveScan, samples: int, seq: int, mount: Mount | None) -> Scan:
+    """The completed ``scan`` as buffer number ``seq`` of its direction."""
+    acqs = [scan.acqs[k] for k in sorted(scan.acqs)]
+    n = len(acqs)
+    azimuth = np.fromiter((a.azimuth for a in acqs), dtype=np.int32, count=n)
+    closest = np.fromiter((a.closest_mm for a in acqs), dtype=np.int16, count=n)
+    t = np.fromiter((a.t for a in acqs), dtype=np.float64, count=n)
+    if n:
+        rng = np.stack([a.profile for a in acqs]).astype(np.int16)
+        inten = np.stack([a.intensity for a in acqs]).astype(np.int16)
+    else:
+        rng = np.zeros((0, samples), dtype=np.int16)
+        inten = np.zeros((0, samples), dtype=np.int16)
+    dropped = scan.lost if scan.ring else max(0, scan.n - n)
+    if dropped:
+        log.warning(
+            "scan %d (%s): %d acquisitions lost",
+            scan.seq_id,
+            scan.direction.name,
+            dropped,
+        )
+    return Scan(
+        direction=scan.direction,
+        seq=seq,
+        azimuth=azimuth,
+        range_mm=rng,
+        closest_mm=closest,
+        intensity=inten,
+        t=t,
+        dropped=dropped,
+        elevation=scan.elevation,
+        mount=mount,
+    )

@@ -1,0 +1,173 @@
+"""``BirisSupervisor``: the supervisor thread, woken at every video field, and its public face.
+
+The thread sleeps on the simulator clock until the next field or event; at a field it ends the
+exposure due, polls COMMAND, then starts the next exposure, in that order, so a command written
+during an exposure is seen at the field that ends it. Everything the thread changes is
+observable under the lock, and :meth:`BirisSupervisor.wait_for` lets a test wait for any state
+without sleeping.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+
+from sim.clock import FIELD_PERIOD
+from sim.supervisor.acquisition import Acquisition
+from sim.supervisor.boot import Boot
+from sim.supervisor.commands import Commands
+from sim.supervisor.faults import SupervisorFaults
+
+__all__ = ["BirisSupervisor"]
+
+log = logging.getLogger("sim.supervisor")
+
+
+class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
+    """The BIRIS side of BIEXEC_COM, run by one thread on the simulator clock."""
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> None:
+        """Run the supervisor thread; does nothing if it already runs."""
+        with self._lock:
+            if self._thread is not None and self._thread.is_alive():
+                return
+            self._stopping = False
+            self._kick.clear()
+            self._shift_schedule()
+            self._thread = threading.Thread(target=self._run, name="biris-supervisor", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the thread and join it; idempotent. State and memory are left as they are."""
+        with self._lock:
+            self._stopping = True
+            thread = self._thread
+        self._kick.set()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join()
+
+    def __enter__(self) -> BirisSupervisor:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def booted(self) -> bool:
+        with self._lock:
+            return self._boot is not None
+
+    @property
+    def busy(self) -> bool:
+        """A command has been accepted and not yet completed."""
+        with self._lock:
+            return self._executing != 0
+
+    @property
+    def current_command(self) -> int:
+        """The code being executed, 0 when idle."""
+        with self._lock:
+            return self._executing
+
+    @property
+    def continuous(self) -> bool:
+        with self._lock:
+            return self._continuous
+
+    @property
+    def hung(self) -> bool:
+        with self._lock:
+            return self._hung_since is not None
+
+    @property
+    def loaded_lut(self) -> int | None:
+        """Elevation (counts) of the calibration table in use, None before boot."""
+        with self._lock:
+            return self._lut
+
+    @property
+    def commands_completed(self) -> int:
+        with self._lock:
+            return self._commands_completed
+
+    @property
+    def acquisitions_made(self) -> int:
+        """Acquisitions whose frames were written (abandoned ones do not count)."""
+        with self._lock:
+            return self._acquisitions_made
+
+    @property
+    def acquisitions_abandoned(self) -> int:
+        """Exposures cut short by BI_STOP_CONTINUOUS (their slot was restored)."""
+        with self._lock:
+            return self._acquisitions_abandoned
+
+    @property
+    def exposing(self) -> int | None:
+        """The frame (ring slot) being exposed now, None in start-up or between sequences."""
+        with self._lock:
+            seq = self._seq
+            return seq.slot if seq is not None and seq.exposing is not None else None
+
+    @property
+    def acquisition_times(self) -> list[float]:
+        """Mid-exposure clock time of every acquisition made, oldest first."""
+        with self._lock:
+            return list(self._acquisition_times)
+
+    @property
+    def sequence_starts(self) -> list[float]:
+        """Clock time (a field) at which each acquisition sequence was accepted."""
+        with self._lock:
+            return list(self._sequence_starts)
+
+    @property
+    def failure(self) -> BaseException | None:
+        """What stopped the thread, if it died (a bad frame from ``acquire``, a closed window)."""
+        with self._lock:
+            return self._failure
+
+    def wait_for(self, predicate: Callable[[BirisSupervisor], bool], timeout: float) -> bool:
+        """Block up to ``timeout`` real seconds until ``predicate(self)`` holds; its last value.
+
+        The predicate is re-evaluated whenever the supervisor's state may have changed, so tests
+        can wait for "busy", "acquisition k exposed" and the like without sleeping.
+        """
+        with self._changed:
+            return self._changed.wait_for(lambda: predicate(self), timeout)
+
+    # -- the thread -------------------------------------------------------------------------------
+
+    # -- the thread --------------------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            while True:
+                with self._lock:
+                    if self._stopping:
+                        return
+                    self._kick.clear()
+                    hung = self._hung_since is not None
+                    wake = self._fields.next_wake()
+                if hung:
+                    self._kick.wait()
+                    continue
+                if not self._clock.wait_until(wake, self._kick):
+                    continue
+                with self._changed:
+                    if self._hung_since is None and not self._stopping:
+                        self._fields.run_due(self._clock.now(), self._on_vsync)
+                    self._changed.notify_all()
+        except Exception as exc:
+            log.exception("BIRIS supervisor stopped")
+            with self._changed:
+                self._failure = exc
+                self._changed.notify_all()
+
+    def _on_vsync(self, field: int) -> None:
+        """One vertical sync: end the exposure due now, poll COMMAND, start the next exposure."""
+        self._exposure_ends(field)
+        self._poll_command(field, field * FIELD_PERIOD)
+        self._exposure_starts(field, field * FIELD_PERIOD)
