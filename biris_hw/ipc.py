@@ -225,6 +225,7 @@ class Mailbox:
         self._arrived = threading.Condition(self._lock)
         self._queue: deque[Envelope] = deque()  # senders SEND-blocked, in order of sending
         self._held: set[Envelope] = set()  # received, not answered: REPLY-blocked senders
+        self._receiving = 0  # receivers blocked in receive(): only they need a notify
         self._closed = False
         self._reason: BaseException | None = None
 
@@ -249,7 +250,8 @@ class Mailbox:
             if self._closed:
                 raise self._stopped()
             self._queue.append(envelope)
-            self._arrived.notify()
+            if self._receiving:
+                self._arrived.notify()
         return envelope
 
     # -- receiver side -------------------------------------------------------------------------
@@ -262,10 +264,18 @@ class Mailbox:
         """
         with self._lock:
             if not self._queue and not self._closed:
-                ready = self._arrived.wait_for(lambda: self._queue or self._closed, timeout)
+                self._receiving += 1
+                try:
+                    ready = self._arrived.wait_for(self._has_news, timeout)
+                finally:
+                    self._receiving -= 1
                 if not ready:
                     raise TimeoutError(f"no message for {self.name!r} in {timeout} s")
             return self._take_locked()
+
+    def _has_news(self) -> bool:
+        """Something for a receiver: a message, or the close. Caller holds the lock."""
+        return bool(self._queue) or self._closed
 
     def try_receive(self) -> Envelope | None:
         """The oldest message, or None at once if there is none (Harmony's _Try_receive)."""

@@ -151,6 +151,20 @@ class Mode(enum.Enum):
 
 _MOVES = frozenset({Mode.TRAPEZOID, Mode.PROPORTIONAL_VELOCITY, Mode.INTEGRAL_VELOCITY})
 
+# Plain names for the per-sample code: one global lookup each instead of an enum attribute and
+# an ``__index__`` call per use.
+_POSITION = Mode.POSITION
+_RESET = Mode.RESET
+_INIT_IDLE = Mode.INIT_IDLE
+_R_MOTOR_COMMAND = int(Reg.MOTOR_COMMAND)
+_R_FILTER_ZERO = int(Reg.FILTER_ZERO)
+_R_FILTER_POLE = int(Reg.FILTER_POLE)
+_R_FILTER_GAIN = int(Reg.FILTER_GAIN)
+_R_ACT_VEL_LSB = int(Reg.ACT_VEL_LSB)
+_R_ACT_VEL_MSB = int(Reg.ACT_VEL_MSB)
+_R_CMD_VEL_LSB = int(Reg.CMD_VEL_LSB)
+_R_CMD_VEL_MSB = int(Reg.CMD_VEL_MSB)
+
 
 def _wrap24(value: int) -> int:
     return ((value + 0x80_0000) & 0xFF_FFFF) - 0x80_0000
@@ -205,7 +219,15 @@ class _Trapezoid:
             return self.start
         if k >= n:
             return self.final
-        return self.start + self.sign * math.floor(self._along(k) + 0.5)
+        # _along(k), written out: this runs once per sample of every move
+        a, ta = self.accel, self.t_accel
+        if k <= ta:
+            along = 0.5 * a * k * k
+        elif k <= ta + self.t_cruise:
+            along = 0.5 * a * ta * ta + self.peak * (k - ta)
+        else:
+            along = self._along(k)
+        return self.start + self.sign * math.floor(along + 0.5)
 
 
 class Hctl1000:
@@ -268,6 +290,8 @@ class Hctl1000:
         self._sig_new: tuple[object, ...] | None = None
         self._rest_mcs = (0, 0)
         self._quiescent = False
+        self._fixed = False
+        self._rest_stalled = False
 
     def _mode_of(self, state: Mode, flags: int) -> Mode:
         if state is not Mode.POSITION:
@@ -610,92 +634,104 @@ class Hctl1000:
         """Run every sample due by ``t``; False if ``max_ticks`` cut the catch-up short.
 
         Periods in which nothing can change are skipped two at a time (the longest cycle the
-        truncating filter settles into), which keeps an idle or holding chip almost free.
+        truncating filter settles into), which keeps an idle or holding chip almost free. A
+        sample left over in a fixed point (the last three samples alike) only steps the plant:
+        the chip's registers would come out as they are.
         """
+        cap = math.inf if max_ticks is None else max_ticks
         ticks = 0
+        step = self.step
         while self._next_sample <= t:
-            if max_ticks is not None and ticks >= max_ticks:
+            if ticks >= cap:
                 return False
-            period = self._period
             if self._quiescent and self._still_quiescent():
+                period = self._period
                 pairs = int((t - self._next_sample) / (2.0 * period))
                 if pairs > 0:
                     self._next_sample += 2 * pairs * period
                     continue
-            self.step()
+                if self._fixed and self.plant.stalled == self._rest_stalled:
+                    # A sample in a fixed point recomputes the same registers: only the plant
+                    # (the held motor's winding current) and the time move, exactly as step().
+                    self.plant.step(self._regs[_R_MOTOR_COMMAND] - 0x80, period)
+                    self._next_sample += period
+                    ticks += 1
+                    continue
+            step()
             ticks += 1
         return True
 
     def _still_quiescent(self) -> bool:
         plant = self.plant
         first, second = self._rest_mcs
-        return plant.holds_at_rest(first) and plant.holds_at_rest(second)
+        if not plant.holds_at_rest(first):
+            return False
+        return first == second or plant.holds_at_rest(second)
 
     def step(self) -> None:
-        """One sample period: encoder, profile generator, filter, R08H, then the plant."""
+        """One sample period: encoder, profile generator, filter, R08H, then the plant.
+
+        The per-sample path of a busy simulator, so written out in one function with plain
+        integer register indices; the arithmetic is the module docstring's, in the same order.
+        """
         regs = self._regs
         plant = self.plant
         period = self._period
         prev_actual = self._actual
-        actual = _wrap24(plant.encoder_counts - self._act_offset)
+        actual = ((plant.encoder_counts - self._act_offset + 0x80_0000) & 0xFF_FFFF) - 0x80_0000
         self._actual = actual
         ended = False
-        state = self._state
-        if state is Mode.POSITION:
+        if self._state is _POSITION:
             flags = self._flags
-            if flags & _F0:
-                trap = self._trap
-                if trap is not None and not plant.stalled and trap.n_samples is not None:
-                    self._trap_k += 1
-                    self._cmd = trap.setpoint(self._trap_k)
-                    if self._trap_k >= trap.n_samples:
-                        self._flags = flags & ~_F0
-                        self._trap = None
-                        ended = True
-                mc = self._position_filter(actual)
-            elif flags & _F3:
-                velocity = _wrap24(actual - prev_actual)
-                regs[Reg.ACT_VEL_LSB] = velocity & 0xFF
-                regs[Reg.ACT_VEL_MSB] = (velocity >> 8) & 0xFF
-                raw = (regs[Reg.CMD_VEL_MSB] << 8) | regs[Reg.CMD_VEL_LSB]
+            if flags & _F3 and not flags & _F0:
+                velocity = ((actual - prev_actual + 0x80_0000) & 0xFF_FFFF) - 0x80_0000
+                regs[_R_ACT_VEL_LSB] = velocity & 0xFF
+                regs[_R_ACT_VEL_MSB] = (velocity >> 8) & 0xFF
+                raw = (regs[_R_CMD_VEL_MSB] << 8) | regs[_R_CMD_VEL_LSB]
                 command = (raw - 0x10000 if raw & 0x8000 else raw) / 16.0
-                mc = int(regs[Reg.FILTER_GAIN] * 0.25 * (command - velocity))
+                mc = int(regs[_R_FILTER_GAIN] * 0.25 * (command - velocity))
                 mc = -128 if mc < -128 else (127 if mc > 127 else mc)
                 self._cmd = actual
                 self._x_prev = 0
                 self._mc_prev = mc
-            elif flags & _F5:
-                self._integral_velocity()
-                mc = self._position_filter(actual)
             else:
-                mc = self._position_filter(actual)
+                if flags & _F0:
+                    trap = self._trap
+                    if trap is not None and not plant.stalled and trap.n_samples is not None:
+                        k = self._trap_k = self._trap_k + 1
+                        self._cmd = trap.setpoint(k)
+                        if k >= trap.n_samples:
+                            self._flags = flags & ~_F0
+                            self._trap = None
+                            ended = True
+                elif flags & _F5:
+                    self._integral_velocity()
+                # the position filter: MC = (K/4)(X - (A/256) X[n-1]) - (B/256) MC[n-1]
+                x = ((self._cmd - actual + 0x80_0000) & 0xFF_FFFF) - 0x80_0000
+                mc = int(
+                    regs[_R_FILTER_GAIN]
+                    * 0.25
+                    * (x - regs[_R_FILTER_ZERO] * (1.0 / 256.0) * self._x_prev)
+                    - regs[_R_FILTER_POLE] * (1.0 / 256.0) * self._mc_prev
+                )
+                mc = -128 if mc < -128 else (127 if mc > 127 else mc)
+                self._x_prev = x
+                self._mc_prev = mc
             if flags & _F2 and mc < 0:
                 mc = 0
-            regs[Reg.MOTOR_COMMAND] = mc + 0x80
+            regs[_R_MOTOR_COMMAND] = mc + 0x80
         else:
-            if state is Mode.RESET:
-                self._state = Mode.INIT_IDLE
-            mc = regs[Reg.MOTOR_COMMAND] - 0x80
+            if self._state is _RESET:
+                self._state = _INIT_IDLE
+            mc = regs[_R_MOTOR_COMMAND] - 0x80
         plant.step(mc, period)
         self._next_sample += period
-        self._note_rest(mc)
+        if plant.holds_at_rest(mc):
+            self._note_rest(mc)
+        elif self._sig_new is not None:
+            self._forget_rest()
         if ended and self.on_profile_end is not None:
             self.on_profile_end()
-
-    def _position_filter(self, actual: int) -> int:
-        regs = self._regs
-        x = _wrap24(self._cmd - actual)
-        raw = (
-            regs[Reg.FILTER_GAIN]
-            * 0.25
-            * (x - regs[Reg.FILTER_ZERO] * (1.0 / 256.0) * self._x_prev)
-            - regs[Reg.FILTER_POLE] * (1.0 / 256.0) * self._mc_prev
-        )
-        mc = int(raw)
-        mc = -128 if mc < -128 else (127 if mc > 127 else mc)
-        self._x_prev = x
-        self._mc_prev = mc
-        return mc
 
     def _integral_velocity(self) -> None:
         regs = self._regs
@@ -709,11 +745,10 @@ class Hctl1000:
         self._cmd = _wrap24(math.floor(self._iv_position + 0.5))
 
     def _note_rest(self, mc: int) -> None:
-        """Remember the state of a still head, to recognise a fixed point or a two-cycle."""
-        if not self.plant.holds_at_rest(mc):
-            if self._sig_new is not None:
-                self._forget_rest()
-            return
+        """Remember the state of a still head, to recognise a fixed point or a two-cycle.
+
+        :meth:`step` calls it only while the plant holds at rest under ``mc``.
+        """
         trap_k = self._trap_k if self._trap is not None else -1
         sig = (
             self._state,
@@ -728,6 +763,8 @@ class Hctl1000:
             self._regs[Reg.MOTOR_COMMAND],
         )
         self._quiescent = sig == self._sig_old
+        self._fixed = self._quiescent and sig == self._sig_new
+        self._rest_stalled = self.plant.stalled
         self._sig_old, self._sig_new = self._sig_new, sig
         self._rest_mcs = (self._rest_mcs[1], mc)
 

@@ -88,7 +88,7 @@ class InterruptGate:
         with self._lock:
             self._raised += 1
             self._by_source[source] += 1
-            if self._drops[source] > 0:
+            if self._drops and self._drops[source] > 0:  # no Counter lookup when none is armed
                 self._drops[source] -= 1
                 self._dropped += 1
                 return

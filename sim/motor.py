@@ -151,6 +151,17 @@ class MotorPlant:
         self._volts_per_unit = params.full_scale_volts / 128.0
         self._disc: _Discrete | None = None
         self._disc_dt = -1.0
+        # constants of the hot paths, looked up once (every value is exactly what the
+        # expressions over ``params`` give, so the arithmetic is unchanged)
+        self._rest_limit = params.coulomb_friction / params.torque_constant
+        self._coef: tuple[float, ...] = ()
+        self._consts = (
+            params.substeps,
+            params.resistance_ohm,
+            params.torque_constant,
+            params.coulomb_friction,
+            params.counts_per_rev,
+        )
 
     # -- state -----------------------------------------------------------------------------------
     @property
@@ -202,10 +213,12 @@ class MotorPlant:
             return True
         if self._omega != 0.0:
             return False
-        p = self.params
-        limit = p.coulomb_friction / p.torque_constant
-        drive = motor_command_signed * self._volts_per_unit / p.resistance_ohm
-        return abs(self._current) <= limit and abs(drive) <= limit
+        limit = self._rest_limit
+        current = self._current
+        if not -limit <= current <= limit:
+            return False
+        drive = motor_command_signed * self._volts_per_unit / self.params.resistance_ohm
+        return -limit <= drive <= limit
 
     # -- integration -----------------------------------------------------------------------------
     def _discretise(self, dt: float) -> _Discrete:
@@ -225,51 +238,63 @@ class MotorPlant:
         aug[2, 1], aug[2, 2], aug[2, 3] = -k / ind, -r / ind, 1.0 / ind
         full = _expm(aug * h)
         scale = (self._counts_per_rad, 1.0, 1.0)
-        phi = tuple((scale[row] * full[row, 1], scale[row] * full[row, 2]) for row in range(3))
-        volt = (scale[0] * full[0, 3], full[1, 3], full[2, 3])
-        fric = (scale[0] * full[0, 4], full[1, 4], full[2, 4])
+        # plain Python floats: the same IEEE doubles as numpy's, at a fraction of the cost of
+        # numpy scalars in the per-sample arithmetic
+        phi = tuple(
+            (float(scale[row] * full[row, 1]), float(scale[row] * full[row, 2])) for row in range(3)
+        )
+        volt = (float(scale[0] * full[0, 3]), float(full[1, 3]), float(full[2, 3]))
+        fric = (float(scale[0] * full[0, 4]), float(full[1, 4]), float(full[2, 4]))
         return _Discrete(h, phi, volt, fric, math.exp(-r * h / ind))
 
     def step(self, motor_command_signed: int, dt: float) -> None:
         """Apply a constant motor command for ``dt`` seconds."""
         if dt != self._disc_dt or self._disc is None:
-            self._disc = self._discretise(dt)
+            d = self._disc = self._discretise(dt)
             self._disc_dt = dt
-        d = self._disc
-        p = self.params
+            (p0w, p0i), (p1w, p1i), (p2w, p2i) = d.phi
+            # friction torque is +-T_c (against the motion), and f * -T_c is exactly -(f * T_c)
+            coulomb = self.params.coulomb_friction
+            friction = tuple(f * coulomb for f in d.fric)
+            self._coef = (p0w, p0i, p1w, p1i, p2w, p2i, *d.volt, *friction, d.stuck_decay)
+        p0w, p0i, p1w, p1i, p2w, p2i, u0, u1, u2, c0, c1, c2, decay = self._coef
+        substeps, resistance, k, coulomb, cpr = self._consts
         volts = motor_command_signed * self._volts_per_unit
-        theta, omega, cur = self._theta, self._omega, self._current
+        target = volts / resistance
+        cur = self._current
         if self._stalled:
             # the shaft is held: only the current settles towards V/R
-            target = volts / p.resistance_ohm
-            for _ in range(p.substeps):
-                cur = target + (cur - target) * d.stuck_decay
+            for _ in range(substeps):
+                cur = target + (cur - target) * decay
             self._current = cur
             return
-        (p0w, p0i), (p1w, p1i), (p2w, p2i) = d.phi
-        v0, v1, v2 = d.volt[0] * volts, d.volt[1] * volts, d.volt[2] * volts
-        f0, f1, f2 = d.fric
-        decay = d.stuck_decay
-        k = p.torque_constant
-        coulomb = p.coulomb_friction
-        target = volts / p.resistance_ohm
-        cpr = p.counts_per_rev
+        theta, omega = self._theta, self._omega
+        v0, v1, v2 = u0 * volts, u1 * volts, u2 * volts
         low = math.floor(theta / cpr) * cpr  # the revolution the head is in: [low, low + cpr)
         high = low + cpr
-        for _ in range(p.substeps):
+        for _ in range(substeps):
             if omega == 0.0:
                 torque = k * cur
                 if -coulomb <= torque <= coulomb:
                     cur = target + (cur - target) * decay  # stiction holds the head
                     continue
-                friction = coulomb if torque > 0.0 else -coulomb
+                forward = torque > 0.0
             else:
-                friction = coulomb if omega > 0.0 else -coulomb
-            theta += p0w * omega + p0i * cur + v0 + f0 * friction
-            new_omega = p1w * omega + p1i * cur + v1 + f1 * friction
-            cur = p2w * omega + p2i * cur + v2 + f2 * friction
-            if (new_omega > 0.0) != (friction > 0.0) and -coulomb <= k * cur <= coulomb:
-                new_omega = 0.0  # friction brought it to a stop; it cannot reverse
+                forward = omega > 0.0
+            # kinetic friction opposes the motion; the head stops (it cannot reverse) when the
+            # velocity would change sign and the torque cannot beat friction
+            if forward:
+                theta += p0w * omega + p0i * cur + v0 + c0
+                new_omega = p1w * omega + p1i * cur + v1 + c1
+                cur = p2w * omega + p2i * cur + v2 + c2
+                if not new_omega > 0.0 and -coulomb <= k * cur <= coulomb:
+                    new_omega = 0.0
+            else:
+                theta += p0w * omega + p0i * cur + v0 - c0
+                new_omega = p1w * omega + p1i * cur + v1 - c1
+                cur = p2w * omega + p2i * cur + v2 - c2
+                if new_omega > 0.0 and -coulomb <= k * cur <= coulomb:
+                    new_omega = 0.0
             omega = new_omega
             if theta < low or theta >= high:  # crossed a multiple of one revolution: index
                 self._index_seen = True

@@ -124,11 +124,13 @@ class BusWindow(ABC):
 
     # -- width-explicit registers (one access each) ----------------------------------------------
     def read8(self, offset: int) -> int:
-        self._check(offset, 1, 1)
+        if self._closed or not 0 <= offset < self._size:
+            self._check(offset, 1, 1)  # raises
         return self._read(offset, 1)[0]
 
     def read16(self, offset: int) -> int:
-        self._check(offset, 2, 2)
+        if self._closed or offset < 0 or offset + 2 > self._size or offset % 2:
+            self._check(offset, 2, 2)  # raises
         return int(_U16.unpack(self._read(offset, 2))[0])
 
     def read32(self, offset: int) -> int:
@@ -136,7 +138,8 @@ class BusWindow(ABC):
         return int(_U32.unpack(self._read(offset, 4))[0])
 
     def write8(self, offset: int, value: int) -> None:
-        self._check(offset, 1, 1)
+        if self._closed or not 0 <= offset < self._size:
+            self._check(offset, 1, 1)  # raises
         self._write(offset, _pack(_U8, value, 8))
 
     def write16(self, offset: int, value: int) -> None:
@@ -212,33 +215,53 @@ class BufferWindow(BusWindow):
     def _write(self, offset: int, data: bytes) -> None:
         self._buf[offset : offset + len(data)] = data
 
-    # Fast paths: same checks, no intermediate bytes objects.
+    # Fast paths: the same checks written out (the common, valid access costs one comparison
+    # chain; anything doubtful goes through _check, which raises the precise BusError), and no
+    # intermediate bytes objects.
+    def read(self, offset: int, n: int) -> bytes:
+        if self._closed or n < 0 or offset < 0 or offset + n > self._size:
+            self._check(offset, n, 1)  # raises
+        return self._read(offset, n)
+
     def read8(self, offset: int) -> int:
-        self._check(offset, 1, 1)
+        if self._closed or not 0 <= offset < self._size:
+            self._check(offset, 1, 1)  # raises
         return int(self._buf[offset])
 
     def read16(self, offset: int) -> int:
-        self._check(offset, 2, 2)
+        if self._closed or offset < 0 or offset + 2 > self._size or offset % 2:
+            self._check(offset, 2, 2)  # raises
         return int(_U16.unpack_from(self._buf, offset)[0])
 
     def read32(self, offset: int) -> int:
-        self._check(offset, 4, 4)
+        if self._closed or offset < 0 or offset + 4 > self._size or offset % 4:
+            self._check(offset, 4, 4)  # raises
         return int(_U32.unpack_from(self._buf, offset)[0])
 
+    def write(self, offset: int, data: bytes | bytearray | memoryview) -> None:
+        raw = bytes(data)
+        n = len(raw)
+        if self._closed or offset < 0 or offset + n > self._size:
+            self._check(offset, n, 1)  # raises
+        self._write(offset, raw)
+
     def write8(self, offset: int, value: int) -> None:
-        self._check(offset, 1, 1)
+        if self._closed or not 0 <= offset < self._size:
+            self._check(offset, 1, 1)  # raises
         if not -0x80 <= value <= 0xFF:
             raise BusError(f"value {value} does not fit in 8 bits")
         self._buf[offset] = value & 0xFF
 
     def write16(self, offset: int, value: int) -> None:
-        self._check(offset, 2, 2)
+        if self._closed or offset < 0 or offset + 2 > self._size or offset % 2:
+            self._check(offset, 2, 2)  # raises
         if not -0x8000 <= value <= 0xFFFF:
             raise BusError(f"value {value} does not fit in 16 bits")
         _U16.pack_into(self._buf, offset, value & 0xFFFF)
 
     def write32(self, offset: int, value: int) -> None:
-        self._check(offset, 4, 4)
+        if self._closed or offset < 0 or offset + 4 > self._size or offset % 4:
+            self._check(offset, 4, 4)  # raises
         if not -0x8000_0000 <= value <= 0xFFFF_FFFF:
             raise BusError(f"value {value} does not fit in 32 bits")
         _U32.pack_into(self._buf, offset, value & 0xFFFF_FFFF)

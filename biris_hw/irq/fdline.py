@@ -29,6 +29,7 @@ class FdLine(InterruptLine):
         self._waiters = 0
         self._closed = False
         self._released = False
+        self._spare_poller: select.poll | None = None  # kept for the next wait (one at a time)
 
     # -- subclass hooks ---------------------------------------------------------------------------
     @abstractmethod
@@ -37,7 +38,10 @@ class FdLine(InterruptLine):
 
     @abstractmethod
     def _consume(self) -> int:
-        """Take the pending interrupts off the line and return how many; 0 if none after all."""
+        """Take the pending interrupts off the line and return how many; 0 if none after all.
+
+        Must not block: ``wait(0)`` calls it without polling first.
+        """
 
     @abstractmethod
     def _release_line(self) -> None:
@@ -59,19 +63,39 @@ class FdLine(InterruptLine):
                 raise LineClosed(f"{self.kind} line is closed")
             self._waiters += 1
             line_fd = self._line_fd()
+            # a notifier waits on its line over and over: its poll set is made once
+            poller, self._spare_poller = self._spare_poller, None
         try:
-            return self._wait(line_fd, timeout)
+            if timeout is not None and timeout <= 0.0:
+                return self._look()
+            if poller is None:
+                poller = select.poll()
+                poller.register(self._stop_fd, select.POLLIN)
+                poller.register(line_fd, select.POLLIN | select.POLLERR)
+            return self._wait(poller, line_fd, timeout)
         finally:
             with self._lock:
                 self._waiters -= 1
                 last_out = self.closed and self._waiters == 0
+                if poller is not None and not self._closed:
+                    self._spare_poller = poller
             if last_out:
                 self._release()
 
-    def _wait(self, line_fd: int, timeout: float | None) -> int:
-        poller = select.poll()
-        poller.register(self._stop_fd, select.POLLIN)
-        poller.register(line_fd, select.POLLIN | select.POLLERR)
+    def _look(self) -> int:
+        """``wait(0)``: a look, not a wait (a demultiplexer that has polled ``fileno()`` itself).
+
+        Every kind's _consume is non-blocking and returns 0 when nothing is pending, so no poll
+        is needed.
+        """
+        if self._closed:
+            raise LineClosed(f"{self.kind} line was closed while waiting")
+        count = self._consume()
+        if count and self._closed:  # the wake-up that close() writes, not an interrupt
+            raise LineClosed(f"{self.kind} line was closed while waiting")
+        return count
+
+    def _wait(self, poller: select.poll, line_fd: int, timeout: float | None) -> int:
         deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
         while True:
             if deadline is None:
@@ -113,5 +137,6 @@ class FdLine(InterruptLine):
             if self._released:
                 return
             self._released = True
+            self._spare_poller = None
         self._release_line()
         os.close(self._stop_fd)

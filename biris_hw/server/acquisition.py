@@ -290,23 +290,40 @@ class AcquisitionReader:
 
     # -- frames -----------------------------------------------------------------------------------
     def _read(self, slot: int, index: int, t: float) -> Acquisition:
-        assert self._addr is not None
+        addr = self._addr
+        assert addr is not None
         count = self._samples + 1
-        raw = self._window.read(self._addr.range_frame(slot), count * 2)
-        rng = np.frombuffer(raw, dtype=FRAME_DTYPE, count=count).astype(np.int16)
-        raw_i = self._window.read(self._addr.intensity_frame(slot), count * 2)
-        inten = np.frombuffer(raw_i, dtype=FRAME_DTYPE, count=count).astype(np.int16)
-        azimuth = int(
-            np.frombuffer(
-                self._window.read(self._addr.azimuth_entry(slot), 4), dtype=AZIMUTH_DTYPE
-            )[0]
+        nbytes = 2 * count
+        start = addr.range_frame(slot)
+        gap = addr.frame_size  # intensity(k) starts one frame after range(k)
+        window = self._window
+        if gap % 2 == 0 and nbytes <= gap <= 2 * nbytes:
+            # the two frames (nearly) abut: one bus read, one conversion
+            words = np.frombuffer(window.read(start, gap + nbytes), dtype=FRAME_DTYPE)
+            both = words.astype(np.int16)
+            rng, inten = both[:count], both[gap // 2 : gap // 2 + count]
+        else:
+            raw = window.read(start, nbytes)
+            rng = np.frombuffer(raw, dtype=FRAME_DTYPE, count=count).astype(np.int16)
+            raw_i = window.read(addr.intensity_frame(slot), nbytes)
+            inten = np.frombuffer(raw_i, dtype=FRAME_DTYPE, count=count).astype(np.int16)
+        # AZIMUTH_DTYPE is a big-endian signed integer
+        azimuth = int.from_bytes(
+            window.read(addr.azimuth_entry(slot), AZIMUTH_DTYPE.itemsize), "big", signed=True
         )
+        max_range = self._max_range
         profile = rng[1:].copy()
-        bad = (profile > self._max_range) | (profile < 0)
-        discarded = int(np.count_nonzero(bad & (profile != 0)))
+        if max_range >= 0:
+            # beyond max_range or negative, in one comparison: seen unsigned, a negative sample
+            # is above 0x7FFF (and a zero is never out of range)
+            bad = profile.view(np.uint16) > min(max_range, 0x7FFF)
+            discarded = int(np.count_nonzero(bad))
+        else:
+            bad = (profile > max_range) | (profile < 0)
+            discarded = int(np.count_nonzero(bad & (profile != 0)))
         profile[bad] = 0
         closest = int(rng[0])
-        if closest > self._max_range or closest < 0:
+        if closest > max_range or closest < 0:
             closest = 0
         profile.setflags(write=False)
         intensity = inten[1:].copy()

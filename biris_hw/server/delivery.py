@@ -12,7 +12,6 @@ connection's :class:`LatencyHistogram`. Only the administrator thread touches th
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import weakref
 from collections import deque
@@ -50,8 +49,38 @@ def check_policy(kind: ConnectionKind, policy: object, depth: object) -> tuple[D
 
 
 def stamp(item: _Data, now: float) -> _Data:
-    """A copy of ``item`` handed over at ``now`` (arrays are shared: they are read-only)."""
-    return dataclasses.replace(item, t_delivered=now)
+    """A copy of ``item`` handed over at ``now`` (arrays are shared: they are read-only).
+
+    What ``dataclasses.replace(item, t_delivered=now)`` gives, without validating again the
+    fields ``item`` already holds validated: every delivery to every connection stamps a copy,
+    so this is on the administrator's hot path.
+    """
+    copy = object.__new__(type(item))
+    fields = copy.__dict__
+    fields.update(item.__dict__)
+    fields["t_delivered"] = float(now)
+    return copy
+
+
+_newest: tuple[object, float] = (None, 0.0)
+"""The last scan time array whose newest time :func:`_age` looked up, and that time."""
+
+
+def _age(item: Scan | Point) -> float | None:
+    """``item.age``; a buffer handed to many connections is searched for its newest time once
+    (its time array is read-only, and shared by every stamped copy)."""
+    global _newest
+    if isinstance(item, Point):
+        return item.age
+    delivered, t = item.t_delivered, item.t
+    if delivered is None or t.size == 0:
+        return None
+    seen = _newest  # one read: another server's administrator may replace it meanwhile
+    if seen[0] is t:
+        return delivered - seen[1]
+    newest = float(t.max())
+    _newest = (t, newest)
+    return delivered - newest
 
 
 @dataclass
@@ -88,7 +117,7 @@ class ClientConn:
     def record(self, item: Scan | Point) -> None:
         """Count a hand-over and its latency (``item`` is already stamped)."""
         self.delivered += 1
-        age = item.age
+        age = _age(item)
         if age is not None:
             self.latency.add(age)
 

@@ -324,6 +324,11 @@ class DeadlineTimer:
     ``_Biris_timeout`` in the report is created per command and destroyed on completion; arming
     and disarming one long-lived task is the same contract without thread churn. Arming or
     disarming never blocks the administrator for longer than a lock hand-over.
+
+    The administrator re-arms the BIRIS timeout on every acquisition, so the task is woken only
+    when it must act sooner than it would anyway: for a deadline earlier than the one it sleeps
+    towards (or when it sleeps without one). A later deadline, or a disarm, is found when the
+    earlier wake comes, and the task goes back to sleep.
     """
 
     def __init__(
@@ -360,15 +365,17 @@ class DeadlineTimer:
         """
         with self._cond:
             self._generation += 1
-            self._deadline = self._clock() + hw_seconds + real_slack_s * self._scale
-            self._cond.notify()
+            deadline = self._clock() + hw_seconds + real_slack_s * self._scale
+            sooner = self._deadline is None or deadline < self._deadline
+            self._deadline = deadline
+            if sooner:
+                self._cond.notify()
             return self._generation
 
     def disarm(self) -> None:
         with self._cond:
             self._generation += 1
-            self._deadline = None
-            self._cond.notify()
+            self._deadline = None  # the task finds it so when its present wait ends
 
     def stop(self) -> None:
         with self._cond:
