@@ -65,10 +65,17 @@ class Connections:
             conn.waiting = None
         log.debug("connection %d released: %s", conn.ident, why)
 
-    def _live(self) -> list[ClientConn]:
-        """Open connections whose owners still run; the others are released on the way."""
+    def _live(self, points: bool = False) -> list[ClientConn]:
+        """Open connections whose owners still run; the others are released on the way.
+
+        ``points`` limits the check to connections that take every acquisition: that path runs
+        per acquisition, so it asks no other connection whether its owner lives (those are
+        released at the next complete scan).
+        """
         live = []
         for conn in list(self._conns.values()):
+            if points and not conn.wants_points:
+                continue
             if not conn.alive:
                 self._drop(conn, "its owning thread has ended")
                 continue
@@ -87,9 +94,7 @@ class Connections:
     def deliver_points(self, points: list[Point], lost: int) -> None:
         """New acquisitions (and how many were lost), to every connection that takes each one."""
         now = self._clock()
-        for conn in self._live():
-            if not conn.wants_points:
-                continue
+        for conn in self._live(points=True):
             if lost:
                 conn.lost(lost)
             before = conn.delivered
