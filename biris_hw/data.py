@@ -109,11 +109,14 @@ class Scan:
     Row k is acquisition k of the sequence: ``azimuth[k]`` (counts), ``range_mm[k]`` (the samples
     along the laser line, top to bottom; 0 = no return or discarded beyond BIRIS_MAX_RANGE),
     ``closest_mm[k]`` (element 0 of the BIRIS frame), ``intensity[k]`` and ``t[k]`` (hardware
-    clock seconds). ``seq`` counts completed scans of this direction; ``dropped`` counts
-    acquisitions lost (a slow DATA client, a coalesced interrupt the data path could not recover).
-    ``elevation`` is the tilt axis position in counts and ``t_delivered`` the hardware time the
-    scan was handed to the client, when known. ``mount`` is the head's place on the vehicle, as
-    the server's init record gives it, so that :meth:`points` needs nothing else.
+    clock seconds, the middle of the exposure: increasing, and re-timed when the scan completes
+    from the promptest wake of the sequence, so a :class:`Point` streamed earlier may carry a
+    slightly later time for the same acquisition). ``seq`` counts completed scans of this
+    direction; ``dropped`` counts acquisitions lost (a slow DATA client, a coalesced interrupt the
+    data path could not recover). ``elevation`` is the tilt axis position in counts and
+    ``t_delivered`` the hardware time the scan was handed to the client, when known. ``mount`` is
+    the head's place on the vehicle, as the server's init record gives it, so that
+    :meth:`points` needs nothing else.
 
     Equality is identity: comparing array contents is the caller's choice (``np.array_equal``).
     """

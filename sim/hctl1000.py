@@ -82,12 +82,18 @@ from sim.audit import Audit, Rule
 from sim.motor import MotorPlant
 
 __all__ = [
+    "HISTORY",
     "JUMP_COUNTS",
     "MOVING_COUNTS_PER_SAMPLE",
     "POWER_UP",
     "Hctl1000",
     "Mode",
 ]
+
+HISTORY = 1024
+"""Samples of encoder readings kept for :meth:`Hctl1000.position_at`: 1.4 s of hardware time at
+the default sample period, far more than a late thread is behind at any time scale tests use."""
+_HIST_MASK = HISTORY - 1
 
 MOVING_COUNTS_PER_SAMPLE = 0.5
 """Above this head speed a switch to position control counts as 'while moving'."""
@@ -256,6 +262,10 @@ class Hctl1000:
         self.on_profile_end: Callable[[], None] | None = None
         self._next_sample = clock() if clock is not None else 0.0
         self._regs = bytearray(HCTL_SPACE)
+        # the encoder reading at each of the last HISTORY samples, for position_at()
+        self._hist_t = [0.0] * HISTORY
+        self._hist_a = [0] * HISTORY
+        self._hist_n = 0
         self.reset()
 
     # -- reset and mode bookkeeping --------------------------------------------------------------
@@ -272,6 +282,7 @@ class Hctl1000:
         self._staged = [0, 0]  # R0CH, R0DH until R0EH commits
         self._act_offset = self.plant.encoder_counts
         self._actual = 0
+        self._hist_n = 0
         self._latch = 0
         self._x_prev = 0
         self._mc_prev = 0
@@ -412,6 +423,7 @@ class Hctl1000:
         elif reg == Reg.ACT_POS_MID:
             self._act_offset = self.plant.encoder_counts
             self._actual = 0
+            self._hist_n = 0  # the counter's earlier readings are on another zero
         elif reg in _STORED:
             self._regs[reg] = value & _MASKS.get(reg, 0xFF)
             if reg == Reg.FILTER_GAIN:
@@ -547,6 +559,7 @@ class Hctl1000:
             wanted = to_signed24(_replace_byte(self._actual, Reg.ACT_POS_LSB - reg, value))
             self._act_offset += self._actual - wanted
             self._actual = wanted
+            self._hist_n = 0
         elif reg in _STORED or reg in (Reg.MOTOR_COMMAND, Reg.ACT_VEL_LSB, Reg.ACT_VEL_MSB):
             self._regs[reg] = value & _MASKS.get(reg, 0xFF)
             self._timer_changed()
@@ -566,6 +579,25 @@ class Hctl1000:
     def actual_position(self) -> int:
         """The actual position counter at the last sample (24-bit signed)."""
         return self._actual
+
+    def position_at(self, t: float) -> int:
+        """The actual position counter as it read at clock time ``t`` (at or before now).
+
+        A reader that samples the encoder "at" a moment (BIRIS tagging mid-exposure) may run
+        late on a busy machine, after a bus access has already carried the chip past that
+        moment; reading the counter then would tag the acquisition with a later position. So
+        each sample's reading is kept for :data:`HISTORY` samples. A moment older than that, or
+        than the last reset or preset of the counter, gets the oldest reading still on the
+        counter's present zero.
+        """
+        self.advance_to(t)
+        n = self._hist_n
+        times, values = self._hist_t, self._hist_a
+        oldest = max(0, n - HISTORY)
+        for j in range(n - 1, oldest - 1, -1):
+            if times[j & _HIST_MASK] <= t:
+                return values[j & _HIST_MASK]
+        return values[oldest & _HIST_MASK] if n else self._actual
 
     @property
     def command_position(self) -> int:
@@ -680,6 +712,10 @@ class Hctl1000:
         prev_actual = self._actual
         actual = ((plant.encoder_counts - self._act_offset + 0x80_0000) & 0xFF_FFFF) - 0x80_0000
         self._actual = actual
+        n = self._hist_n
+        self._hist_t[n & _HIST_MASK] = self._next_sample
+        self._hist_a[n & _HIST_MASK] = actual
+        self._hist_n = n + 1
         ended = False
         if self._state is _POSITION:
             flags = self._flags

@@ -42,7 +42,8 @@ _TWO_PI_PER_COUNT = 2.0 * math.pi / COUNTS_PER_REV
 class _DriverMemoryWindow(MemoryWindow):
     """The driver's view of BIRIS memory: the same bytes as the supervisor's, plus a tap on
     COMMAND writes, so the audit sees every write (field-rate polling alone would miss a
-    rewrite of the same code)."""
+    rewrite of the same code), and a catch-up before every read, so that a starved supervisor
+    thread never shows the driver a BIRIS that lags behind the video fields."""
 
     def __init__(
         self,
@@ -54,6 +55,22 @@ class _DriverMemoryWindow(MemoryWindow):
         super().__init__(size, buffer=buffer)
         self._command_offset = command_offset
         self._on_command = on_command
+
+    def read(self, offset: int, n: int) -> bytes:
+        self._on_command.catch_up()
+        return super().read(offset, n)
+
+    def read8(self, offset: int) -> int:
+        self._on_command.catch_up()
+        return super().read8(offset)
+
+    def read16(self, offset: int) -> int:
+        self._on_command.catch_up()
+        return super().read16(offset)
+
+    def read32(self, offset: int) -> int:
+        self._on_command.catch_up()
+        return super().read32(offset)
 
     def write16(self, offset: int, value: int) -> None:
         super().write16(offset, value)
@@ -75,6 +92,10 @@ class _CommandTap:
     def __call__(self, value: int) -> None:
         if self.target is not None:
             self.target.note_command_write(value)
+
+    def catch_up(self) -> None:
+        if self.target is not None:
+            self.target.catch_up()
 
 
 class SimulatedBiris:
@@ -193,16 +214,13 @@ class SimulatedBiris:
         assert self._motion_window.size == MOTION_WINDOW_SIZE
 
     # -- what BIRIS sees -----------------------------------------------------------------------
-    def _encoder_azimuth(self) -> float:
-        """What BIRIS reads from the motor controller when it tags an acquisition."""
-        with self.board.lock:
-            self.board.catch_up()
-            return float(self.board.azimuth.actual_position)
+    def _encoder_azimuth(self, t: float) -> float:
+        """What BIRIS read from the motor controller at clock time ``t`` to tag an acquisition
+        (its supervisor may get round to it late: the reading is the one of that moment)."""
+        return float(self.board.position_at(0, t))
 
-    def _encoder_elevation(self) -> float:
-        with self.board.lock:
-            self.board.catch_up()
-            return float(self.board.elevation.actual_position)
+    def _encoder_elevation(self, t: float) -> float:
+        return float(self.board.position_at(1, t))
 
     def _tilting(self) -> bool:
         with self.board.lock:

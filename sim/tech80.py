@@ -94,6 +94,12 @@ class Model7600:
         return self._irq_status
 
     # -- time --------------------------------------------------------------------------------------
+    def position_at(self, axis: int, t: float) -> int:
+        """Axis ``axis``'s actual position counter as it read at clock time ``t`` (see
+        :meth:`Hctl1000.position_at`)."""
+        with self.lock:
+            return self.chips[axis].position_at(t)
+
     def catch_up(self) -> None:
         """Bring both chips and plants up to now (backdoor readers call it first)."""
         with self.lock:

@@ -21,7 +21,7 @@ from regs.hctl1000 import (
     sample_period,
 )
 from sim.audit import Audit, Rule
-from sim.hctl1000 import POWER_UP, Hctl1000, Mode
+from sim.hctl1000 import HISTORY, POWER_UP, Hctl1000, Mode
 from sim.motor import MotorPlant
 
 APPENDIX_B = {"sample": 0xAF, "zero": 0x7F, "pole": 0xEF, "gain": 0x3F, "vmax": 2, "accel": 0x3322}
@@ -561,6 +561,35 @@ def test_idle_and_holding_chips_fast_forward_without_changing_the_outcome(
     assert skipped.actual_position == stepped.actual_position
     assert skipped.motor_command == stepped.motor_command
     assert skipped.command_position == stepped.command_position
+
+
+def test_position_at_reads_the_counter_as_it_stood_then() -> None:
+    """A late reader asking for a past moment gets that moment's reading, not the present's."""
+    chip, _, _ = ready()
+    start_trapezoid(chip, chip.command_position + 400)
+    readings: list[tuple[float, int]] = []  # (sample time, the counter after that sample)
+    for _ in range(300):
+        t = chip.next_sample_time
+        chip.step()
+        readings.append((t, chip.actual_position))
+    assert len({a for _, a in readings}) > 100  # the head moved all along
+    for t, actual in readings[-200::7]:
+        assert chip.position_at(t) == actual  # a sample's own moment
+        assert chip.position_at(t + 0.5 * PERIOD_B) == actual  # held until the next sample
+    # ahead of the chip: it runs up to that moment first, then reads
+    ahead = chip.next_sample_time + 10.2 * PERIOD_B
+    assert chip.position_at(ahead) == chip.actual_position
+    assert chip.next_sample_time > ahead
+    # older than kept: the oldest reading kept, not the present one
+    start_trapezoid(chip, chip.command_position - 3000)  # still moving after HISTORY samples
+    kept = []
+    for _ in range(HISTORY):
+        chip.step()
+        kept.append(chip.actual_position)
+    assert chip.position_at(0.0) == kept[0] != chip.actual_position
+    # a cleared counter forgets readings on the old zero
+    chip.bus_write(Reg.ACT_POS_MID, 0)
+    assert chip.position_at(readings[-1][0]) == chip.actual_position == 0
 
 
 # -- audit ---------------------------------------------------------------------------------------

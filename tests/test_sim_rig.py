@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import threading
+import time
+
 import pytest
 
 import sim
@@ -11,6 +14,7 @@ from regs import biexec
 from regs.layout import BirisMemoryMap
 from regs.tech80 import MOTION_WINDOW_SIZE
 from sim import POISON, Scene, SimulatedBiris
+from sim.ramdisk import BOOT_FILE
 
 
 def test_the_design_names_are_there() -> None:
@@ -61,3 +65,73 @@ def test_a_buffer_of_the_callers_holds_biris_memory(no_leaks: None) -> None:
         assert buffer[mm.biexec_offset + biexec.OFF_PARAM] == 0x41
     with pytest.raises(ValueError):
         SimulatedBiris(biris_buffer=bytearray(16))
+
+
+class _StarvingClock:
+    """The supervisor's view of the clock, with a thread that never gets to run: every wait
+    blocks until the test lets go, as on a host too busy to schedule it."""
+
+    def __init__(self, clock: sim.SimClock) -> None:
+        self._clock = clock
+        self.release = threading.Event()
+        self.waiting = threading.Event()
+
+    def now(self) -> float:
+        return self._clock.now()
+
+    def wait_until(self, t_hw: float, stop: threading.Event) -> bool:
+        self.waiting.set()
+        while not self.release.wait(0.05):
+            if stop.is_set():
+                return False
+        return self._clock.wait_until(t_hw, stop)
+
+
+def test_a_starved_supervisor_is_caught_up_by_the_drivers_reads(no_leaks: None) -> None:
+    """BIRIS never lags the video fields: a driver read does what the starved thread has not."""
+    rig = SimulatedBiris(time_scale=20.0)
+    starving = _StarvingClock(rig.clock)
+    rig.supervisor._clock = starving  # type: ignore[assignment]
+    try:
+        rig.start()
+        assert starving.waiting.wait(5.0)  # the thread is stuck from here on
+        hw = rig.hardware
+        command = hw.biexec_offset + biexec.OFF_COMMAND
+        hw.biris.write16(command, 99)  # unknown: refused at the next field, after a jitter
+        deadline = time.monotonic() + 5.0
+        while hw.biris.read16(command) != 0:
+            assert time.monotonic() < deadline, "only the supervisor thread could complete it"
+        assert (
+            hw.biris.read16(hw.biexec_offset + biexec.OFF_STATUS) == biexec.BiStatus.UNKNOWN_COMMAND
+        )
+        assert rig.supervisor.commands_completed == 1
+        assert rig.supervisor.failure is None
+    finally:
+        starving.release.set()
+        rig.close()
+
+
+def test_a_hook_reading_biris_memory_from_inside_an_event_is_not_a_recursion(
+    no_leaks: None,
+) -> None:
+    """An interrupt hook runs inside the supervisor's field; its read must not start it over."""
+    with SimulatedBiris(time_scale=20.0) as rig:
+        hw = rig.hardware
+        base = hw.biexec_offset
+
+        def execute(code: int, param: str) -> None:
+            hw.biris.write(base + biexec.OFF_PARAM, biexec.encode_param(param))
+            hw.biris.write16(base + biexec.OFF_COMMAND, code)
+            done = rig.supervisor.commands_completed + 1
+            assert rig.supervisor.wait_for(lambda s: s.commands_completed == done, 5.0)
+
+        execute(biexec.BiCommand.BI_BOOT, BOOT_FILE)
+        hw.biris.write16(base + biexec.OFF_DATA_INT_ENABLE, 1)
+        lines: list[int] = []
+        rig.level2_gate.on_raise = lambda source, t_ns: lines.append(
+            hw.biris.read16(base + biexec.OFF_ACQ_LINE)
+        )
+        execute(biexec.BiCommand.BI_ACQUIRE, "3")
+        # one data interrupt per acquisition begun, and one after the last: each read once
+        assert rig.level2_gate.raised_by("data") == len(lines) == 4
+        assert rig.supervisor.failure is None and rig.supervisor.acquisitions_made == 3

@@ -107,15 +107,20 @@ class Rig:
         self.wr(axis, Reg.PROGRAM_COUNTER, ProgramCounter.CONTROL)
 
     def start_move(self, axis: Axis, final: int) -> float:
-        """Start a trapezoid; the hardware time at which F0 was written."""
+        """Start a trapezoid; a hardware time at or before the one at which F0 was written.
+
+        Read before the write, not after: on a loaded machine this thread may be preempted between
+        the write and a later clock read, which would make the profile look shorter than it was.
+        """
         for reg, byte in zip(
             (Reg.FINAL_POS_LSB, Reg.FINAL_POS_MID, Reg.FINAL_POS_MSB),
             pos24_lsb_first(final),
             strict=True,
         ):
             self.wr(axis, reg, byte)
+        written = self.clock.now()
         self.wr(axis, Reg.FLAG, flag_write(Flag.F0_TRAPEZOID, True))
-        return self.clock.now()
+        return written
 
 
 @pytest.fixture

@@ -10,9 +10,10 @@ Acquisition times. BIRIS does not time-stamp its frames, but its acquisitions ar
 period apart (2 or 3 video fields) and ACQ_LINE = k tells that acquisition k has begun: so the
 start of acquisition 0 lies at or before ``now - k * period`` at every wake. The reader keeps the
 earliest such bound (the wake that came soonest after its interrupt) and stamps acquisition k
-with the middle of its exposure, ``t0 + (k + 0.5) * period``: times that are exactly periodic,
-increasing, and only as late as the promptest wake of the sequence, whatever a busy machine
-does to the others.
+with the middle of its exposure, ``t0 + (k + 0.5) * period``. An acquisition read early carries the
+bound known then (``t_origin``); the finished scan re-times all of them from the tightest one, so a
+scan's times are exactly periodic, increasing, and only as late as the promptest wake of the
+sequence, whatever a busy machine does to the others.
 
 Both the data notifier and the command notifier drain through one reader, under its lock, and
 send what they drained before releasing the lock: the administrator's inbox is FIFO, so every
@@ -337,4 +338,5 @@ class AcquisitionReader:
             intensity=intensity,
             t=t,
             discarded=discarded,
+            t_origin=self._t0,
         )

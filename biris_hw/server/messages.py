@@ -36,6 +36,11 @@ class Acquisition:
     t: float
     discarded: int
     """Samples beyond BIRIS_MAX_RANGE, set to 0."""
+    t_origin: float = 0.0
+    """The bound on the start of acquisition 0 that ``t`` was computed from. Bounds only tighten
+    as a sequence goes on (a later wake may come sooner after its interrupt), so a finished scan
+    re-times every acquisition from the tightest origin any of them saw: its times are then exactly
+    periodic and increasing however late the first wakes were."""
 
 
 @dataclass(frozen=True, slots=True)

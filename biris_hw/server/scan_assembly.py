@@ -92,6 +92,11 @@ def build_scan(scan: ActiveScan, samples: int, seq: int, mount: Mount | None) ->
     closest = np.fromiter((a.closest_mm for a in acqs), dtype=np.int16, count=n)
     t = np.fromiter((a.t for a in acqs), dtype=np.float64, count=n)
     if n:
+        # re-time from the tightest origin: each acquisition moves earlier by how much looser
+        # the bound it was stamped with was (AcquisitionReader's notes)
+        origin = np.fromiter((a.t_origin for a in acqs), dtype=np.float64, count=n)
+        t -= origin - origin.min()
+    if n:
         rng = np.stack([a.profile for a in acqs]).astype(np.int16)
         inten = np.stack([a.intensity for a in acqs]).astype(np.int16)
     else:

@@ -26,7 +26,7 @@ its matching azimuth entry; CURRENT_FRAME names the last completed slot, ACQ_LIN
 further data interrupt. A stop while not continuous just completes.
 
 **Audit.** At each acquisition start, ``tilting()`` true is ``ACQUIRE_WHILE_TILTING`` and a
-table more than one count away from ``elevation_counts()`` is ``WRONG_CALIBRATION``; each is
+table more than one count away from ``elevation_counts(t)`` is ``WRONG_CALIBRATION``; each is
 recorded when it begins (once per episode within a sequence, not once per acquisition).
 """
 
@@ -178,19 +178,19 @@ class Acquisition(SupervisorState):
         self._set(OFF_CURRENT_FRAME, slot)
         self._set(OFF_CURRENT_PROJ, 0)
         self._set(OFF_ACQ_LINE, slot)
-        self._audit_exposure(seq)
+        self._audit_exposure(seq, t)
         self._data_interrupt()
         mid = (seq.start_field(k) + seq.fpa / 2.0) * FIELD_PERIOD
         self._fields.at(mid, lambda when: self._mid_exposure(seq, k, when))
 
-    def _audit_exposure(self, seq: AcquisitionSequence) -> None:
+    def _audit_exposure(self, seq: AcquisitionSequence, t: float) -> None:
         tilting = self._tilting is not None and self._tilting()
         if tilting and not seq.tilting_noted:
             self._record(Rule.ACQUIRE_WHILE_TILTING, "acquisition while the head tilts")
         seq.tilting_noted = tilting
         wrong = False
         if self._elevation is not None and self._lut is not None:
-            elevation = self._elevation()
+            elevation = self._elevation(t)
             wrong = abs(self._lut - elevation) > 1.0
             if wrong and not seq.wrong_lut_noted:
                 self._record(
@@ -205,8 +205,8 @@ class Acquisition(SupervisorState):
         """Sample the head and let the optics expose: what the frame will hold at its end."""
         if self._seq is not seq or seq.exposing != k:
             return  # abandoned by BI_STOP_CONTINUOUS
-        azimuth = float(self._azimuth())
-        tilt = float(self._elevation()) if self._elevation is not None else 0.0
+        azimuth = float(self._azimuth(t))
+        tilt = float(self._elevation(t)) if self._elevation is not None else 0.0
         lut = _counts_to_rad(self._lut) if self._lut is not None else None
         rng_frame, int_frame = self._acquire(_counts_to_rad(azimuth), _counts_to_rad(tilt), lut)
         seq.frames = (self._checked(rng_frame, "range"), self._checked(int_frame, "intensity"))

@@ -85,13 +85,13 @@ class SupervisorState(abc.ABC):
         clock: SimClock,
         gate: InterruptGate,
         acquire: AcquireFn,
-        azimuth_counts: Callable[[], float],
+        azimuth_counts: Callable[[float], float],
         *,
         audit: Audit | None = None,
         ramdisk: RamDisk | None = None,
         rng: np.random.Generator,
         tilting: Callable[[], bool] | None = None,
-        elevation_counts: Callable[[], float] | None = None,
+        elevation_counts: Callable[[float], float] | None = None,
         require_motor_access: bool = True,
     ) -> None:
         if memory.size < memory_map.size:
@@ -122,6 +122,7 @@ class SupervisorState(abc.ABC):
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._failure: BaseException | None = None
+        self._running_due = False
 
         self._fields = FieldSchedule()
         self._executing = 0

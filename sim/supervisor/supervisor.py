@@ -139,7 +139,35 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
         with self._changed:
             return self._changed.wait_for(lambda: predicate(self), timeout)
 
-    # -- the thread -------------------------------------------------------------------------------
+    def catch_up(self) -> None:
+        """Do now whatever was due by now, on the caller's thread.
+
+        BIRIS is a processor of its own and never falls behind the video fields; this thread
+        can, when the host is busy. A driver reading BIRIS memory calls this first (as a
+        Model 7600 read catches the chips up), so that ACQ_LINE, the frames and the
+        interrupts it sees are those of the present, not of the last time this thread ran.
+        A hung, stopped or failed supervisor does nothing, as its thread would.
+        """
+        with self._changed:
+            thread = self._thread
+            if (
+                thread is None
+                or self._stopping
+                or self._hung_since is not None
+                or self._failure is not None
+            ):
+                return
+            now = self._clock.now()
+            if self._running_due or self._fields.next_wake() > now:
+                return  # already being done: a read from inside an event (an interrupt hook)
+            try:
+                self._run_due(now)
+            except Exception as exc:
+                log.exception("BIRIS supervisor stopped (caught up by a reader)")
+                self._failure = exc
+                self._stopping = True
+                self._kick.set()
+            self._changed.notify_all()
 
     # -- the thread --------------------------------------------------------------------------
     def _run(self) -> None:
@@ -158,13 +186,22 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
                     continue
                 with self._changed:
                     if self._hung_since is None and not self._stopping:
-                        self._fields.run_due(self._clock.now(), self._on_vsync)
+                        self._run_due(self._clock.now())
                     self._changed.notify_all()
         except Exception as exc:
             log.exception("BIRIS supervisor stopped")
             with self._changed:
                 self._failure = exc
                 self._changed.notify_all()
+
+    def _run_due(self, now: float) -> None:
+        """Everything due by ``now``, once: an event may read BIRIS memory through the driver's
+        window (a test's interrupt hook does), and that read must not start it over."""
+        self._running_due = True
+        try:
+            self._fields.run_due(now, self._on_vsync)
+        finally:
+            self._running_due = False
 
     def _on_vsync(self, field: int) -> None:
         """One vertical sync: end the exposure due now, poll COMMAND, start the next exposure."""

@@ -1,0 +1,133 @@
+"""Acquisition times when the machine is busy: a scan's times are periodic and increasing.
+
+BIRIS does not time-stamp its frames; the reader bounds the start of a sequence from each wake
+(``now - ACQ_LINE * period``). A late first wake gives a loose bound that later, prompter wakes
+tighten, so acquisitions read early carry later times than they should. The finished scan must
+re-time them from the tightest bound: CI once saw a continuous sweep whose times went backwards.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from biris_hw.bus.memory import MemoryWindow
+from biris_hw.data import Direction
+from biris_hw.server.acquisition import AcquisitionReader
+from biris_hw.server.messages import Acquisition
+from biris_hw.server.scan_assembly import ActiveScan, build_scan
+from regs.biexec import ACQ_LINE_END
+from regs.layout import FrameAddressing
+
+SAMPLES = 64
+PERIOD = 2 / 59.94
+RING = 8
+
+
+class _Link:
+    """ACQ_LINE as the test sets it; data-interrupt flags recorded."""
+
+    def __init__(self) -> None:
+        self.line = -1
+        self.flags: list[bool] = []
+
+    def acq_line(self) -> int:
+        return self.line
+
+    def set_flags(self, *, data_int: bool) -> None:
+        self.flags.append(data_int)
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _reader() -> tuple[AcquisitionReader, _Link, _Clock]:
+    frame = 2 * (SAMPLES + 1)
+    slots = 16  # room for a sequence of 10 and the ring of 8
+    addr = FrameAddressing(0x40, frame, 0x40 + 2 * slots * frame)
+    link, clock = _Link(), _Clock()
+    reader = AcquisitionReader(
+        MemoryWindow(addr.azimuth_offset + 4 * slots),
+        link,  # type: ignore[arg-type]
+        clock,
+        2000,
+    )
+    reader.configure(addr, SAMPLES, PERIOD)
+    return reader, link, clock
+
+
+def _wake(
+    reader: AcquisitionReader, link: _Link, clock: _Clock, line: int, t: float
+) -> list[Acquisition]:
+    link.line, clock.t = line, t
+    with reader.lock:
+        return list(reader.drain().acquisitions)
+
+
+# wakes as (ACQ_LINE, how late after acquisition ACQ_LINE began): the first ones very late
+LATE_THEN_PROMPT = [(2, 0.21), (3, 0.15), (5, 0.001), (6, 0.0005), (8, 0.0002)]
+
+
+def _scan_of(acqs: list[Acquisition], ring: bool) -> np.ndarray:
+    scan = ActiveScan(Direction.CW, 100, len(acqs), 1, ring=ring)
+    for i, acq in enumerate(acqs):
+        scan.acqs[i] = acq
+    return build_scan(scan, SAMPLES, 1, None).t
+
+
+def test_a_sequences_scan_is_timed_from_its_promptest_wake() -> None:
+    reader, link, clock = _reader()
+    start = 3.0  # acquisition 0 began here
+    reader.begin(1, 10)
+    acqs: list[Acquisition] = []
+    for line, late in LATE_THEN_PROMPT:
+        acqs += _wake(reader, link, clock, line, start + line * PERIOD + late)
+    acqs += _wake(reader, link, clock, ACQ_LINE_END, start + 10 * PERIOD + 0.3)
+    assert [a.index for a in acqs] == list(range(10))
+    raw = np.array([a.t for a in acqs])
+    assert np.any(np.diff(raw) <= 0)  # the stamps as read went backwards: the case in point
+    t = _scan_of(acqs, ring=False)
+    assert np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(np.diff(t), PERIOD, rtol=1e-9)
+    # as late as the promptest wake (0.2 ms), never earlier than the truth
+    truth = start + (np.arange(10) + 0.5) * PERIOD
+    assert np.all(t >= truth - 1e-12)
+    assert np.all(t - truth <= 0.0002 + 1e-12)
+
+
+def test_a_continuous_sweep_is_timed_from_its_promptest_wake() -> None:
+    reader, link, clock = _reader()
+    reader.prime_ring()
+    reader.ring_started(RING)
+    _wake(reader, link, clock, 0, 1.0)  # the ring is live
+    start = 1.0 + 20 * PERIOD  # ring acquisition 20 (slot 4) is in exposure when the sweep opens
+    link.line, clock.t = 20 % RING, start + 0.25  # and the opening wake is very late
+    reader.open_sweep(7)
+    acqs: list[Acquisition] = []
+    for line, late in LATE_THEN_PROMPT:
+        k = 20 + line
+        acqs += _wake(reader, link, clock, k % RING, start + line * PERIOD + late)
+    assert len(acqs) == 8 and all(a.seq_id == 7 for a in acqs)
+    raw = np.array([a.t for a in acqs])
+    assert np.any(np.diff(raw) <= 0)
+    t = _scan_of(acqs, ring=True)
+    np.testing.assert_allclose(np.diff(t), PERIOD, rtol=1e-9)
+    truth = start + (np.arange(8) + 0.5) * PERIOD
+    assert np.all(t >= truth - 1e-9)
+    assert np.all(t - truth <= 0.0002 + 1e-9)
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_short_scans_keep_their_times(n: int) -> None:
+    reader, link, clock = _reader()
+    reader.begin(1, n)
+    acqs = _wake(reader, link, clock, ACQ_LINE_END, 5.0)
+    t = _scan_of(acqs, ring=False)
+    assert len(t) == n
+    if n:
+        assert t[0] == acqs[0].t
