@@ -13,7 +13,7 @@ import pytest
 
 from biris_hw.bus.memory import MemoryWindow
 from biris_hw.data import Direction
-from biris_hw.server.acquisition import AcquisitionReader
+from biris_hw.server.acquisition import AcquisitionReader, RingState
 from biris_hw.server.messages import Acquisition
 from biris_hw.server.scan_assembly import ActiveScan, build_scan
 from regs.biexec import ACQ_LINE_END
@@ -131,3 +131,69 @@ def test_short_scans_keep_their_times(n: int) -> None:
     assert len(t) == n
     if n:
         assert t[0] == acqs[0].t
+
+
+# -- continuous scanning: a sweep that turns straight round carries on ---------------------------
+def _ring_reader() -> tuple[AcquisitionReader, _Link, _Clock, MemoryWindow]:
+    reader, link, clock = _reader()
+    window = reader._window
+    assert isinstance(window, MemoryWindow)
+    reader.prime_ring()
+    reader.ring_started(RING)
+    _wake(reader, link, clock, 0, 1.0)  # live
+    return reader, link, clock, window
+
+
+def _sweep(
+    reader: AcquisitionReader, link: _Link, clock: _Clock, seq: int, k0: int, k1: int, follows: bool
+) -> list[int]:
+    """Open sweep ``seq`` with ring acquisition ``k0`` in exposure, end it (the head at rest)
+    with ``k1`` in exposure; the ring acquisitions (absolute numbers) the sweep was handed.
+    Its last is k1 + 1, the first exposed wholly after the head came to rest."""
+    link.line, clock.t = k0 % RING, 1.0 + k0 * PERIOD
+    reader.open_sweep(seq, follows=follows)
+    got: list[Acquisition] = []
+    for k in range(k0 + 1, k1 + 1):
+        got += _wake(reader, link, clock, k % RING, 1.0 + k * PERIOD)
+    with reader.lock:
+        got += reader.end_sweep().acquisitions
+    got += _wake(reader, link, clock, (k1 + 1) % RING, 1.0 + (k1 + 1) * PERIOD)
+    assert reader.ring_state is RingState.ENDING
+    got += _wake(reader, link, clock, (k1 + 2) % RING, 1.0 + (k1 + 2) * PERIOD)
+    assert reader.ring_state is RingState.IDLE  # closed once the last frame was read
+    assert all(a.seq_id == seq for a in got)
+    # each is stamped at the middle of its exposure: that says which acquisition it is
+    return [round((a.t - 1.0) / PERIOD - 0.5) for a in got]
+
+
+def test_a_following_sweep_reads_on_from_the_last_frame_of_the_previous() -> None:
+    reader, link, clock, _ = _ring_reader()
+    first = _sweep(reader, link, clock, 1, 10, 14, follows=False)
+    assert first == [10, 11, 12, 13, 14, 15]
+    # the turn-around: acquisition 16 made while the administrator turned round
+    second = _sweep(reader, link, clock, 2, 17, 20, follows=True)
+    assert second == [16, 17, 18, 19, 20, 21]
+    # not following: a new sweep starts at the frame in exposure
+    third = _sweep(reader, link, clock, 3, 24, 25, follows=False)
+    assert third == [24, 25, 26]
+
+
+def test_a_sweep_cannot_follow_across_a_lap_of_the_ring() -> None:
+    reader, link, clock, _ = _ring_reader()
+    _sweep(reader, link, clock, 1, 10, 12, follows=False)  # read up to 13, closed at 14
+    # a whole lap later: which frames are new is ambiguous, so it starts afresh
+    assert _sweep(reader, link, clock, 2, 14 + RING, 15 + RING, follows=True) == [
+        14 + RING,
+        15 + RING,
+        16 + RING,
+    ]
+
+
+def test_a_sweep_cut_short_is_not_followed() -> None:
+    reader, link, clock, _ = _ring_reader()
+    link.line, clock.t = 10 % RING, 1.0 + 10 * PERIOD
+    reader.open_sweep(1)
+    _wake(reader, link, clock, 11 % RING, 1.0 + 11 * PERIOD)
+    _wake(reader, link, clock, -128, 1.0 + 12 * PERIOD)  # BIRIS stopped under the sweep
+    assert reader.ring_state is RingState.IDLE
+    assert _sweep(reader, link, clock, 2, 14, 15, follows=True) == [14, 15, 16]

@@ -29,13 +29,19 @@ scans and back on once the next one has started. Its states:
 * ``idle`` -- live, interrupts off: the head stands still, nothing is read;
 * ``sweep`` -- the azimuth worker is starting a motor scan and has opened the sweep: the reader
   resynchronises on ACQ_LINE (whatever was acquired while idle is at a constant azimuth and is
-  skipped) and reads as in a sequence, the ring slot giving the frame;
-* ``ending`` -- the motor has come to rest; the acquisition being exposed at that moment is the
-  sweep's last, and once it has been read the sweep is done (reported) and interrupts go off.
+  skipped) -- or, when continuous scanning turns straight round into it, carries on from the
+  previous sweep's last frame -- and reads as in a sequence, the ring slot giving the frame;
+* ``ending`` -- the motor has come to rest; the acquisition *after* the one being exposed at that
+  moment is the sweep's last (the one in exposure may have sampled the azimuth before the head
+  arrived; the next one starts, and samples, with the head at rest), and once it has been read
+  the sweep is done (reported) and interrupts go off.
 
 Acquisitions are numbered from 0 within a sweep. A few at each end are still made at a constant
 azimuth (the exposure under way when the motor starts, and the one when it stops): the reader
-hands them over, and the administrator keeps only acquisitions at which the head had moved.
+hands them over, and the administrator decides: a sweep ends with its first acquisition at the
+destination; those after it are the start of the next sweep when one follows straight on, and
+are dropped (counted) otherwise, as are those made before the head left a start it had stood
+at.
 """
 
 from __future__ import annotations
@@ -111,6 +117,8 @@ class AcquisitionReader:
         self._exposing = 0
         self._end: int | None = None
         self._index = 0
+        self._followable = False
+        self._seen = -math.inf
 
     def configure(self, addressing: FrameAddressing, samples: int, period_s: float) -> None:
         """Where the frames are, as learned from BIRIS at initialisation."""
@@ -187,6 +195,7 @@ class AcquisitionReader:
     def _observe(self, now: float, begun: float) -> None:
         """Acquisition ``begun`` has started by ``now``: tighten the bound on acquisition 0's."""
         self._t0 = min(self._t0, now - begun * self._period)
+        self._seen = now
 
     def _time_of(self, k: int) -> float:
         """Middle of acquisition k's exposure, on the hardware clock."""
@@ -199,6 +208,7 @@ class AcquisitionReader:
             self._active = False
             self._ring_state = RingState.PRIMING
             self._ring = 0
+            self._followable = False
             self._link.set_flags(data_int=True)
 
     def ring_started(self, ring: int) -> None:
@@ -212,35 +222,54 @@ class AcquisitionReader:
             self._ring_state = RingState.OFF
             self._ring = 0
             self._end = None
+            self._followable = False
             self._link.set_flags(data_int=True)  # single sequences announce every frame
 
-    def open_sweep(self, seq_id: int) -> None:
-        """The motor scan of sweep ``seq_id`` starts now: collect from the frame in exposure,
-        and turn data interrupts back on."""
+    def open_sweep(self, seq_id: int, follows: bool = False) -> None:
+        """The motor scan of sweep ``seq_id`` starts now: turn data interrupts back on and
+        collect from the frame in exposure -- or, when the sweep ``follows`` the one just
+        ended (continuous scanning turns straight round), from the frame after that sweep's
+        last, so that the turn-around loses no acquisition.
+
+        Following needs the previous sweep to have ended cleanly and less than a lap of the
+        ring ago (ACQ_LINE is a ring slot: beyond a lap, how far the ring went is ambiguous);
+        otherwise the sweep resynchronises as a new one does.
+        """
         with self.lock:
             if self._ring_state is not RingState.IDLE:
                 return
             line = self._link.acq_line()
-            self._exposing = max(0, line)
-            self._next = self._exposing
+            now = self._clock()
+            ring = self._ring
+            if (
+                follows
+                and self._followable
+                and 0 <= line < ring
+                and now - self._seen < (ring - 1) * self._period
+            ):
+                self._exposing += (line - self._exposing) % ring
+            else:
+                self._exposing = max(0, line)
+                self._next = self._exposing
+                self._t0 = math.inf
+            self._followable = False
             self._seq_id = seq_id
             self._index = 0
             self._end = None
-            self._t0 = math.inf
-            self._observe(self._clock(), self._exposing)
+            self._observe(now, self._exposing)
             self._ring_state = RingState.SWEEP
             self._link.set_flags(data_int=True)
 
     def end_sweep(self) -> Drained:
-        """The motor has come to rest: what is complete now, and mark the frame in exposure as
-        the sweep's last. Hold ``self.lock``."""
+        """The motor has come to rest: what is complete now, and mark the frame after the one
+        in exposure as the sweep's last (module notes). Hold ``self.lock``."""
         if self._ring_state is not RingState.SWEEP:
             return _NOTHING
         line = self._link.acq_line()
         if line < 0:
             return self._close_sweep([], 0)
         out, lost = self._read_ring_to(line)
-        self._end = self._exposing
+        self._end = self._exposing + 1
         self._ring_state = RingState.ENDING
         return Drained(tuple(out), lost, False)
 
@@ -261,7 +290,7 @@ class AcquisitionReader:
             return self._close_sweep([], 0)
         out, lost = self._read_ring_to(line)
         if state is RingState.ENDING and self._end is not None and self._next > self._end:
-            return self._close_sweep(out, lost)
+            return self._close_sweep(out, lost, clean=True)
         return Drained(tuple(out), lost, False)
 
     def _read_ring_to(self, line: int) -> tuple[list[Acquisition], int]:
@@ -283,8 +312,11 @@ class AcquisitionReader:
         self._next = max(self._next, last + 1)
         return out, lost
 
-    def _close_sweep(self, out: list[Acquisition], lost: int) -> Drained:
+    def _close_sweep(self, out: list[Acquisition], lost: int, clean: bool = False) -> Drained:
+        """Back to idle; ``clean`` when every frame up to the sweep's last was read, so that a
+        following sweep may carry on from the next one."""
         self._ring_state = RingState.IDLE
+        self._followable = clean
         self._end = None
         self._link.set_flags(data_int=False)
         return Drained(tuple(out), lost, True, sweep_done=self._seq_id)

@@ -277,10 +277,13 @@ class MoveOrder:
 
     ``sweep`` (continuous acquisition only) is the scan whose data interrupts the worker turns
     back on once the motor is moving: Appendix D's "re-enabled after the next scan is started".
+    ``follows``: that sweep turns straight round from the one just ended (continuous scanning),
+    so its data carry on from that sweep's last frame rather than from the frame in exposure.
     """
 
     destination: int
     sweep: int = 0
+    follows: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -10,6 +10,7 @@ of a hang. Only the administrator thread touches these objects; they never block
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -101,7 +102,7 @@ class AxisState:
         order = job.order
         if isinstance(order, MoveOrder):
             dest = clamp_counts(order.destination)
-            order = MoveOrder(dest, order.sweep)
+            order = dataclasses.replace(order, destination=dest)
             duration = expected_move_s(dest - self.position, self.motor)
             # the notifier's settling may take up to SETTLE_LIMIT_S more, then threads run late
             self.watchdog_gen = self.watchdog.arm(

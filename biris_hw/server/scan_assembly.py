@@ -42,6 +42,12 @@ class ActiveScan:
     """Continuous acquisition: an acquisition away from the start has been kept."""
     at_end: bool = False
     """Continuous acquisition: an acquisition at the destination has been kept."""
+    follows: bool = False
+    """Continuous scanning turned straight round into this sweep from the previous one: its
+    first acquisitions (head still at the turn-around) are kept, so the stream has no hole."""
+    tail: list[Acquisition] = field(default_factory=list)
+    """Continuous acquisition: acquisitions after the one at the destination -- the start of
+    the next sweep if one follows straight on."""
     acqs: dict[int, Acquisition] = field(default_factory=dict)
     lost: int = 0
     az_done: bool = False
@@ -52,14 +58,15 @@ class ActiveScan:
 
     def head_moving(self, azimuth: int) -> bool:
         """Whether a continuous-mode acquisition belongs to the sweep: not made while the head
-        still stood at the start, nor after one was made with it standing at the end.
+        still stood at the start (unless the sweep follows straight on from another, whose end
+        that start is), nor after one was made with it standing at the end.
 
         Only the ends are judged: those are where the report expects "samples at constant
         azimuth". An acquisition in between is kept whatever its tag, so that a stall or a
         tagging hiccup shows in the data instead of being hidden.
         """
         if not self.left_start:
-            if abs(azimuth - self.start) <= STILL_COUNTS:
+            if not self.follows and abs(azimuth - self.start) <= STILL_COUNTS:
                 return False
             self.left_start = True
         if self.at_end:

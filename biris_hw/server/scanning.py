@@ -15,8 +15,12 @@ The report's rules kept here:
   is accepted and *deferred*; a tilt asked for during a sweep goes between two sweeps.
 
 In continuous acquisition (Appendix D) a sweep needs no BIRIS command: only the motor is ordered,
-the azimuth worker opens the sweep once the motor runs, and acquisitions made with the head
-standing at either end are dropped and counted (``constant_azimuth``).
+the azimuth worker opens the sweep once the motor runs, and a sweep ends with its first
+acquisition at the destination. When continuous scanning turns straight round, the acquisitions
+made at the turn-around after that one begin the next sweep, and its data carry on from there:
+the stream of acquisitions is cut into sweeps without a hole, so the blind time between two
+sweeps is one acquisition period. Otherwise (a single scan, a tilt between sweeps) acquisitions
+made with the head standing at either end are dropped and counted (``constant_azimuth``).
 """
 
 from __future__ import annotations
@@ -101,13 +105,14 @@ class Scanning(AdminState):
             start, self.deferred_scan = self.deferred_scan, None
             start()
 
-    def _start_scan(self, dest: int) -> None:
+    def _start_scan(self, dest: int, after: ActiveScan | None = None) -> None:
+        """Start a scan to ``dest``; ``after`` is the sweep it turns straight round from."""
         if dest == self.position:
             raise RequestError(f"the head is already at {dest} counts; a scan needs a length")
         direction = Direction.CCW if dest > self.position else Direction.CW
         self.seq_counter += 1
         if self.ring_mode:
-            self._start_sweep(dest, direction)
+            self._start_sweep(dest, direction, after)
             return
         n = acquisitions_for(abs(dest - self.position), self._record_with_motor())
         scan = ActiveScan(direction, dest, n, self.seq_counter, elevation=self.elevation)
@@ -123,8 +128,13 @@ class Scanning(AdminState):
         )
         self._move(self.az, m.MoveOrder(dest), lambda: self._scan_part_done(scan, motion=True))
 
-    def _start_sweep(self, dest: int, direction: Direction) -> None:
-        """A continuous-acquisition scan: only the motor is ordered; the ring supplies data."""
+    def _start_sweep(self, dest: int, direction: Direction, after: ActiveScan | None) -> None:
+        """A continuous-acquisition scan: only the motor is ordered; the ring supplies data.
+
+        A sweep that turns straight round from ``after`` starts with ``after``'s tail (made at
+        the turn-around after its last acquisition) and reads on from where it ended.
+        """
+        follows = after is not None and after.ring and after.elevation == self.elevation
         scan = ActiveScan(
             direction,
             dest,
@@ -133,11 +143,20 @@ class Scanning(AdminState):
             elevation=self.elevation,
             ring=True,
             start=self.position,
+            follows=follows,
         )
         self.scan = scan
+        if after is not None:
+            if follows:
+                points = [self._keep(scan, acq) for acq in after.tail]
+                if points:
+                    self.clients.deliver_points(points, 0)
+            else:
+                self.counters["constant_azimuth"] += len(after.tail)
+            after.tail.clear()
         self._move(
             self.az,
-            m.MoveOrder(dest, sweep=scan.seq_id),
+            m.MoveOrder(dest, sweep=scan.seq_id, follows=follows),
             lambda: self._scan_part_done(scan, motion=True),
         )
         self._rearm_timeout()
@@ -158,21 +177,28 @@ class Scanning(AdminState):
             if scan is None or acq.seq_id != scan.seq_id:
                 self.counters["stale_acquisitions"] += 1
                 continue
-            if scan.ring:
-                if not scan.head_moving(acq.azimuth):
+            if scan.ring and not scan.head_moving(acq.azimuth):
+                if scan.at_end:
+                    scan.tail.append(acq)  # the next sweep's start, if one follows
+                else:
                     self.counters["constant_azimuth"] += 1  # the head stood still: dropped
-                    continue
-                acq = dataclasses.replace(acq, index=len(scan.acqs))
-            scan.acqs[acq.index] = acq
-            self.counters["acquisitions"] += 1
-            self.counters["discarded_samples"] += acq.discarded
-            point = point_of(acq, scan, self.seq[scan.direction] + 1, self.mount)
-            self.latest_point = point
-            points.append(point)
+                continue
+            points.append(self._keep(scan, acq))
         if scan is not None:
             scan.lost += msg.lost
         if points or (scan is not None and msg.lost):
             self.clients.deliver_points(points, msg.lost if scan is not None else 0)
+
+    def _keep(self, scan: ActiveScan, acq: m.Acquisition) -> Point:
+        """Make ``acq`` part of ``scan`` (a ring sweep numbers its own) and the latest point."""
+        if scan.ring:
+            acq = dataclasses.replace(acq, seq_id=scan.seq_id, index=len(scan.acqs))
+        scan.acqs[acq.index] = acq
+        self.counters["acquisitions"] += 1
+        self.counters["discarded_samples"] += acq.discarded
+        point = point_of(acq, scan, self.seq[scan.direction] + 1, self.mount)
+        self.latest_point = point
+        return point
 
     def _on_sweep_data_done(self, env: Envelope, msg: m.SweepDataDone) -> None:
         env.reply(None)
@@ -215,6 +241,9 @@ class Scanning(AdminState):
             self.continuous = None
             self.stop_pending = False
         pending = self.elevation_pending
+        if pending is not None or following is None:
+            self.counters["constant_azimuth"] += len(scan.tail)  # no sweep follows straight on
+            scan.tail.clear()
         if pending is not None:  # a tilt asked for during the sweep goes between sweeps
             if following is not None:
                 dest = following
@@ -222,7 +251,7 @@ class Scanning(AdminState):
             self._start_tilt(pending)
             self._after_motion_settles()
         elif following is not None:
-            self._start_scan(following)
+            self._start_scan(following, after=scan)
         else:
             self._after_motion_settles()
         self._check_idle_waiters()

@@ -287,8 +287,9 @@ def _axis_worker(
                 if order.sweep and reader is not None:
                     # just before the motor starts, so that a worker the machine runs late
                     # cannot cost the sweep its beginning; what is read before the head
-                    # moves is at the start azimuth, and the administrator drops it
-                    reader.open_sweep(order.sweep)
+                    # moves is at the start azimuth, and the administrator drops it (or, in
+                    # a sweep that turns straight round, keeps it as the turn-around's)
+                    reader.open_sweep(order.sweep, follows=order.follows)
                 axis.start_trapezoid(order.destination)
             elif isinstance(order, ParamsOrder):
                 axis.configure(order.params)
