@@ -81,6 +81,29 @@ def test_the_plotted_points_lie_on_the_true_walls(demo: tuple[int, str, Path]) -
     assert np.all(np.abs(cloud[:, 2] - 0.5) < RADIUS_M * np.tan(np.radians(11.0)) + 0.3)
 
 
+def test_the_continuous_demo_sweeps_whole_and_loses_nothing(tmp_path: Path) -> None:
+    import contextlib
+    import io
+
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        code = main(
+            [
+                "demo", "--duration", "1.5", "--time-scale", "20", "--scene", f"circle:{RADIUS_M}",
+                "--cw", "-40", "--ccw", "40", "--continuous", "--out", str(tmp_path),
+            ]
+        )  # fmt: skip
+    text = stdout.getvalue()
+    assert code == 0, text
+    assert text.splitlines()[0].endswith(", continuous acquisition")
+    assert ", 0 dropped, 0 faults, 0 audit violations in " in text
+    scans = load_scans(tmp_path / "latest-scans.npz")
+    assert len(scans) == 2
+    for scan in scans:  # a whole sweep: BIRIS did not start 240 ms after the head
+        ends = sorted((int(scan.azimuth[0]), int(scan.azimuth[-1])))
+        assert ends[0] <= -455 + 3 and ends[1] >= 455 - 3, ends
+
+
 def test_the_demo_refuses_limits_the_wrong_way_round(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

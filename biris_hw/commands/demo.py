@@ -71,6 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", default=DEFAULT_OUT, metavar="DIR", help=f"pictures go here ({DEFAULT_OUT})"
     )
+    parser.add_argument(
+        "--continuous",
+        action="store_true",
+        help="Appendix D's continuous acquisition: BIRIS started once, every sweep whole "
+        "(default: the report's BI_ACQUIRE per sweep)",
+    )
     sim = parser.add_argument_group("simulator")
     sim.add_argument(
         "--scene", type=scene_spec, default="room", help="room (default) or circle:R (metres)"
@@ -99,6 +105,7 @@ class DemoConfig:
     samples: int = 64
     time_scale: float = DEFAULT_TIME_SCALE
     seed: int = 0
+    continuous: bool = False
 
 
 @dataclass
@@ -152,6 +159,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         samples=args.samples,
         time_scale=args.time_scale,
         seed=args.seed,
+        continuous=args.continuous,
     )
     stream = out or sys.stdout
     result = run_demo(config, stream)
@@ -178,7 +186,8 @@ def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
             scene=scene, samples=config.samples, time_scale=config.time_scale, seed=config.seed
         ) as rig,
     ):
-        with BirisServer(rig.hardware, BirisInitRecord()) as server:  # homes and boots first
+        record = BirisInitRecord(continuous_acquisition=config.continuous)
+        with BirisServer(rig.hardware, record) as server:  # homes and boots first
             started = time.monotonic()
             _sweep(server, rig, status, latest, view, started)
         _refresh(status, None, rig, started)
@@ -348,7 +357,8 @@ class _PlainView(_View):
         c = self.status.config
         print(
             f"biris demo: simulated {c.scene}, {c.samples} samples, x{c.time_scale:g}, "
-            f"sweeping {c.cw_deg:+g}..{c.ccw_deg:+g} deg for {c.duration_s:g} s",
+            f"sweeping {c.cw_deg:+g}..{c.ccw_deg:+g} deg for {c.duration_s:g} s"
+            + (", continuous acquisition" if c.continuous else ""),
             file=self.out,
             flush=True,
         )
