@@ -120,9 +120,9 @@ def test_a_hook_reading_biris_memory_from_inside_an_event_is_not_a_recursion(
         base = hw.biexec_offset
 
         def execute(code: int, param: str) -> None:
+            done = rig.supervisor.commands_completed + 1  # before the write: it may be quick
             hw.biris.write(base + biexec.OFF_PARAM, biexec.encode_param(param))
             hw.biris.write16(base + biexec.OFF_COMMAND, code)
-            done = rig.supervisor.commands_completed + 1
             assert rig.supervisor.wait_for(lambda s: s.commands_completed == done, 5.0)
 
         execute(biexec.BiCommand.BI_BOOT, BOOT_FILE)

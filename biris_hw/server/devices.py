@@ -8,6 +8,7 @@ on reads and BIRIS acts on the COMMAND write.
 from __future__ import annotations
 
 import logging
+import threading
 
 from biris_hw.angles import clamp_counts
 from biris_hw.bus.base import BusWindow
@@ -69,6 +70,9 @@ class AxisDriver:
         self.window = window
         self.axis = axis
         self._base = AXIS_BASE[axis]
+        self._latch = threading.Lock()
+        """A position is three byte reads that must not interleave with another thread's: the
+        R14H read latches R13H/R12H, and a second latch between them would mix two readings."""
 
     def _wr(self, reg: int, value: int) -> None:
         self.window.write8(self._base + reg, value & 0xFF)
@@ -86,15 +90,17 @@ class AxisDriver:
 
     def actual_position(self) -> int:
         """Counts; R14H is read first because that read latches R13H and R12H."""
-        lsb = self._rd(Reg.ACT_POS_LSB)
-        mid = self._rd(Reg.ACT_POS_MID)
-        msb = self._rd(Reg.ACT_POS_MSB)
+        with self._latch:
+            lsb = self._rd(Reg.ACT_POS_LSB)
+            mid = self._rd(Reg.ACT_POS_MID)
+            msb = self._rd(Reg.ACT_POS_MSB)
         return pos24_from_msb_first(msb, mid, lsb)
 
     def command_position(self) -> int:
-        return pos24_from_msb_first(
-            self._rd(Reg.CMD_POS_MSB), self._rd(Reg.CMD_POS_MID), self._rd(Reg.CMD_POS_LSB)
-        )
+        with self._latch:
+            return pos24_from_msb_first(
+                self._rd(Reg.CMD_POS_MSB), self._rd(Reg.CMD_POS_MID), self._rd(Reg.CMD_POS_LSB)
+            )
 
     # -- configuration -------------------------------------------------------------------------
     def configure(self, params: MotorParams) -> None:
