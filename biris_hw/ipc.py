@@ -15,13 +15,18 @@ report, so the module keeps its semantics exact rather than offering a general q
   request whose client has stopped listening; if it was already received, the late reply is
   dropped and :meth:`Envelope.reply` says so by returning False.
 
-Waiting is on a per-envelope lock (a one-shot signal) and a condition for the receiver: no
-polling, and a reply costs one short critical section.
+Waiting is on a per-envelope lock (a one-shot signal) and, for the receiver, on a doorbell (one
+more lock, released by the send that finds it waiting): no polling, and a reply or a send costs
+one short critical section. The doorbell is a bare lock rather than a ``threading.Condition``
+because the administrator is woken for every message, and a condition's wait and notify run
+several times the Python code, which on a machine whose caches have gone cold between two
+messages is much of the cost of a hop.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 
 from biris_hw.errors import BirisError, ConnectionClosed
@@ -222,10 +227,15 @@ class Mailbox:
     def __init__(self, name: str) -> None:
         self.name = name
         self._lock = threading.Lock()
-        self._arrived = threading.Condition(self._lock)
+        # Released ("rung") when there is news for a blocked receiver; ``_rung`` says so, so a
+        # second sender never releases it twice. A ring nobody took is harmless: the receiver
+        # that next finds it looks at the queue and waits again.
+        self._doorbell = threading.Lock()
+        self._doorbell.acquire()
+        self._rung = False
         self._queue: deque[Envelope] = deque()  # senders SEND-blocked, in order of sending
         self._held: set[Envelope] = set()  # received, not answered: REPLY-blocked senders
-        self._receiving = 0  # receivers blocked in receive(): only they need a notify
+        self._receiving = 0  # receivers blocked in receive(): only they need the doorbell
         self._closed = False
         self._reason: BaseException | None = None
 
@@ -250,8 +260,9 @@ class Mailbox:
             if self._closed:
                 raise self._stopped()
             self._queue.append(envelope)
-            if self._receiving:
-                self._arrived.notify()
+            if self._receiving and not self._rung:
+                self._rung = True
+                self._doorbell.release()
         return envelope
 
     # -- receiver side -------------------------------------------------------------------------
@@ -262,20 +273,40 @@ class Mailbox:
         Raises :class:`TaskStopped` (or the close reason) once the mailbox is closed and
         TimeoutError after ``timeout`` seconds without a message.
         """
-        with self._lock:
-            if not self._queue and not self._closed:
-                self._receiving += 1
-                try:
-                    ready = self._arrived.wait_for(self._has_news, timeout)
-                finally:
+        lock = self._lock
+        with lock:
+            if self._queue or self._closed:
+                return self._take_locked()
+            self._receiving += 1
+        deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+        left = False
+        try:
+            while True:
+                wait = -1.0 if deadline is None else max(0.0, deadline - time.monotonic())
+                rang = self._doorbell.acquire(True, wait)
+                with lock:
+                    if rang:
+                        self._rung = False
+                    news = bool(self._queue) or self._closed
+                    if not news and (rang or deadline is None or time.monotonic() < deadline):
+                        continue  # a ring meant for an earlier wait, or another receiver's
                     self._receiving -= 1
-                if not ready:
-                    raise TimeoutError(f"no message for {self.name!r} in {timeout} s")
-            return self._take_locked()
+                    left = True
+                    if not news:
+                        raise TimeoutError(f"no message for {self.name!r} in {timeout} s")
+                    if self._receiving and (self._closed or len(self._queue) > 1):
+                        self._ring_locked()  # news left for another receiver
+                    return self._take_locked()
+        finally:
+            if not left:  # interrupted while waiting
+                with lock:
+                    self._receiving -= 1
 
-    def _has_news(self) -> bool:
-        """Something for a receiver: a message, or the close. Caller holds the lock."""
-        return bool(self._queue) or self._closed
+    def _ring_locked(self) -> None:
+        """Wake a blocked receiver (caller holds the lock and knows one waits)."""
+        if not self._rung:
+            self._rung = True
+            self._doorbell.release()
 
     def try_receive(self) -> Envelope | None:
         """The oldest message, or None at once if there is none (Harmony's _Try_receive)."""
@@ -311,7 +342,8 @@ class Mailbox:
             self._held.clear()
             for envelope in released:
                 envelope._settle(_RELEASED, None, self._stopped())
-            self._arrived.notify_all()
+            if self._receiving:
+                self._ring_locked()  # each receiver that wakes passes the ring on
 
     @property
     def closed(self) -> bool:

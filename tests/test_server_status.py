@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -83,9 +84,31 @@ def test_initialising_and_fault_states(rig: SimulatedBiris, server: BirisServer)
     assert status["state"] == "fault:parity" and status["counters"]["faults"] == 1
     # a reset queued ahead of a status request: the status sees initialisation under way
     ticket = server.inbox.post(ResetRequest(0))
-    assert server.status()["state"] == "initialising"
+    status = server.status()
+    assert status["state"] == "initialising"
+    assert status["azimuth_live"] is None and status["elevation_live"] is None  # not homed
     ticket.wait(WAIT)
     assert server.status()["state"] == "idle"
+
+
+def test_live_positions_are_the_encoders_not_the_destinations(
+    rig: SimulatedBiris, server: BirisServer
+) -> None:
+    conn = server.open()
+    status = server.status()
+    assert abs(status["azimuth_live"] - status["azimuth"]) <= 2
+    dest = conn.single_scan(60.0)
+    deadline = time.monotonic() + WAIT
+    while True:  # on its way: sent to the destination, seen between
+        status = server.status()
+        if 50 < status["azimuth_live"] < dest - 50:
+            break
+        assert status["state"] == "scanning" and time.monotonic() < deadline
+    assert status["azimuth"] == dest
+    conn.wait_idle(timeout=WAIT)
+    status = server.status()
+    assert abs(status["azimuth_live"] - dest) <= 2 and abs(rig.azimuth_counts - dest) <= 3
+    assert status["elevation_live"] is not None and abs(status["elevation_live"]) <= 2
 
 
 # --- counters and latency --------------------------------------------------------------------

@@ -37,6 +37,15 @@ never writes the next command before it has serviced BIRIS_CMD.
 A BusError while reading the coupler or COMMAND is itself a failed cycle across the coupler, so
 it raises BIT3_BERR and the routine keeps running.
 
+**The data notifier runs here.** Harmony's service routine could only signal a logical interrupt;
+a thread can do the notifier's work itself. Waking a second thread for every acquisition costs a
+thread wake-up and a handover of the interpreter lock, often from one CPU to another, and that
+was the largest single share of the time from the interrupt to a client holding the data. So
+:meth:`Level2Demux.attach_data_notifier` hands BIRIS_DATA_DEV to a callable that this thread runs
+in place of raising the line: the server attaches ``biris_data_notifier`` there, which then *is*
+this thread (it still only waits on an interrupt and sends to the administrator). It is counted
+as before; with no notifier attached the line is raised as for every other logical interrupt.
+
 **Level 3** (the Model 7600 board): IRQ_STATUS names the axes whose trapezoidal profile ended.
 Each set bit is written back (write 1 to acknowledge) *before* its logical interrupt is raised,
 so the acknowledgement can never clear the end of a move the woken notifier has already started:
@@ -56,6 +65,7 @@ import os
 import select
 import threading
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from types import TracebackType
 from typing import ClassVar, TypeVar
 
@@ -278,6 +288,15 @@ class Level2Demux(_Demux):
         self._command_offset = biexec_offset + OFF_COMMAND
         self._seen_errors = 0  # only the service thread touches it
         self._continuous = False
+        self._data_notifier: Callable[[int], bool] | None = None
+
+    def attach_data_notifier(self, notifier: Callable[[int], bool] | None) -> None:
+        """Run ``notifier(count)`` in this thread for BIRIS_DATA_DEV instead of raising its line.
+
+        ``notifier`` returns False once its task has ended (the administrator stopped); the line
+        is raised again from then on. None detaches. A plain store: safe at any time.
+        """
+        self._data_notifier = notifier
 
     @property
     def continuous(self) -> bool:
@@ -300,15 +319,34 @@ class Level2Demux(_Demux):
             return
         biris_interrupts = count - 1 if error_raised else count
         if command:
-            self._raise(Logical.BIRIS_DATA_DEV, biris_interrupts)
+            self._data(biris_interrupts)
             return
         if self._continuous:
-            self._raise(Logical.BIRIS_DATA_DEV, max(1, biris_interrupts))
+            self._data(max(1, biris_interrupts))
             self._raise(Logical.BIRIS_CMD, counted=False)
             return
         if count > 1:
-            self._raise(Logical.BIRIS_DATA_DEV, max(1, biris_interrupts - 1))
+            self._data(max(1, biris_interrupts - 1))
         self._raise(Logical.BIRIS_CMD)
+
+    def _data(self, count: int) -> None:
+        """BIRIS_DATA_DEV: to the attached data notifier, run here, or else raised on its line.
+
+        Counted before the notifier runs, as a raise is counted before its notifier wakes. A
+        notifier's failure is logged and the routine goes on: the other logical interrupts of
+        the level must not die with it.
+        """
+        notifier = self._data_notifier
+        if notifier is None:
+            self._raise(Logical.BIRIS_DATA_DEV, count)
+            return
+        with self._stats:
+            self._counts[Logical.BIRIS_DATA_DEV] += count
+        try:
+            if not notifier(count):
+                self._data_notifier = None
+        except Exception:
+            log.exception("level 2: the data notifier failed; it stays attached")
 
     def _coupler_errors(self) -> bool:
         """Raise the error interrupts newly shown in LOCAL_STATUS; True if any was raised."""

@@ -83,13 +83,17 @@ class Connections:
         return live
 
     def deliver(self, scan: Scan) -> None:
-        """A complete scan, to every DATA connection that takes scans."""
+        """A complete scan, to every DATA connection that takes scans (one stamped copy for
+        all: with a hundred clients, this loop is what the last of them waits for)."""
         now = self._clock()
+        sent = stamp(scan, now)
+        delivered = 0
         for conn in self._live():
             if conn.wants_scans:
                 before = conn.delivered
-                conn.offer(scan, now)
-                self._counters["deliveries"] += conn.delivered - before
+                conn.offer(scan, now, sent)
+                delivered += conn.delivered - before
+        self._counters["deliveries"] += delivered
 
     def deliver_points(self, points: list[Point], lost: int) -> None:
         """New acquisitions (and how many were lost), to every connection that takes each one."""

@@ -121,11 +121,16 @@ class ClientConn:
         if age is not None:
             self.latency.add(age)
 
-    def offer(self, item: Scan | Point, now: float) -> None:
-        """A new buffer (or acquisition): straight to a waiting client, else into the queue."""
+    def offer(self, item: Scan | Point, now: float, sent: Scan | Point | None = None) -> None:
+        """A new buffer (or acquisition): straight to a waiting client, else into the queue.
+
+        ``sent`` is ``item`` already stamped at ``now``: a buffer handed to many connections at
+        once is stamped once and the copy shared (it is immutable, its arrays read-only).
+        """
         if self.waiting is not None:
             env, self.waiting = self.waiting, None
-            sent = stamp(item, now)
+            if sent is None:
+                sent = stamp(item, now)
             if env.reply((sent, self.dropped)) is not False:
                 self.record(sent)
                 return

@@ -2,7 +2,8 @@
 
 The threads, in creation order (Appendix B's task list, plus the demultiplexers that play the
 interrupt service routine and the initialiser that plays _Create_server's start-up):
-level-2 and level-3 demultiplexers; biris_cmd_notifier, biris_cmd_transfer, biris_data_notifier,
+level-2 demultiplexer, which is also biris_data_notifier (it drains the acquisitions itself rather
+than wake a thread for them); level-3 demultiplexer; biris_cmd_notifier, biris_cmd_transfer,
 biris_az_notifier, az_scan_start, biris_timeout, biris_parity_err, biris_bus_err; the report's
 future tilt tasks el_scan_notifier and el_scan_start; the two motor watchdogs; the
 administrator. ``close()`` stops them in reverse and leaves no thread behind.
@@ -18,7 +19,7 @@ from typing import Any, Literal, overload
 
 from biris_hw.client import Connection
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
-from biris_hw.errors import ConnectionClosed, HardwareFault
+from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
 from biris_hw.irq.demux import Level2Demux, Level3Demux, Logical
@@ -107,6 +108,8 @@ class BirisServer:
         wait_settled(axis, self.hardware.clock, self.hardware.time_scale, self._stop)
 
     def _create_tasks(self) -> None:
+        # biris_data_notifier runs in the level-2 demultiplexer's thread (see biris_hw.irq.demux)
+        self.level2.attach_data_notifier(tasks.BirisDataNotifier(self.inbox, self.reader))
         self.level2.start()
         self.level3.start()
         inbox = self.inbox
@@ -128,13 +131,6 @@ class BirisServer:
             self.reader,
             self.ledger,
             self.level2.set_continuous,
-        )
-        self._spawn(
-            "biris_data_notifier",
-            tasks.biris_data_notifier,
-            self.level2.line(Logical.BIRIS_DATA_DEV),
-            inbox,
-            self.reader,
         )
         self._spawn(
             "biris_az_notifier",
@@ -245,7 +241,9 @@ class BirisServer:
 
     def status(self) -> dict[str, Any]:
         """What the server is doing and has done: ``state`` (initialising, idle, scanning,
-        homing, tilting, fault:<kind>), ``azimuth`` and ``elevation`` (counts), ``counters``,
+        homing, tilting, fault:<kind>), ``azimuth`` and ``elevation`` (counts: where the axes
+        were last sent), ``azimuth_live`` and ``elevation_live`` (counts: the encoders now, None
+        while initialising or if the board cannot be read), ``counters``,
         ``interrupts`` by logical kind, and per connection its policy, queue, deliveries, drops
         and delivery-latency histogram with p50 and p99 (see the README)."""
         if self._closed:
@@ -256,7 +254,21 @@ class BirisServer:
             **{k.name: v for k, v in self.level2.counts.items()},
             **{k.name: v for k, v in self.level3.counts.items()},
         }
+        homed = result["state"] != "initialising"
+        result["azimuth_live"] = self._encoder(self.azimuth) if homed else None
+        result["elevation_live"] = self._encoder(self.elevation) if homed else None
         return result
+
+    @staticmethod
+    def _encoder(axis: AxisDriver) -> int | None:
+        """Where the axis is now, by its encoder, not where it was sent: ``azimuth`` is the
+        latter. Read here, in the caller's thread, because the administrator never waits on the
+        bus; None when the board cannot be read (the fault is reported by the tasks that hit it).
+        """
+        try:
+            return axis.actual_position()
+        except BirisError:
+            return None
 
     def reset(self) -> None:
         """Re-run initialisation (the way back after a HardwareFault); raises if it fails."""

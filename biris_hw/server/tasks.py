@@ -23,7 +23,7 @@ import threading
 from collections.abc import Callable
 
 from biris_hw.errors import BirisError, BusError, LineClosed
-from biris_hw.ipc import Mailbox, TaskStopped
+from biris_hw.ipc import Mailbox, TaskStopped, Ticket
 from biris_hw.irq.base import InterruptLine
 from biris_hw.server.acquisition import AcquisitionReader, Drained
 from biris_hw.server.devices import AxisDriver, BirisLink
@@ -46,6 +46,7 @@ from biris_hw.server.messages import (
 from regs.biexec import BiCommand, BiStatus, decode_param
 
 __all__ = [
+    "BirisDataNotifier",
     "CommandLedger",
     "DeadlineTimer",
     "az_scan_start",
@@ -101,14 +102,14 @@ def _ring_length(param: bytes) -> int:
         return 0
 
 
-def _send_drained(admin: Mailbox, drained: Drained) -> None:
+def _send_drained(send: Callable[[object], object], drained: Drained) -> None:
     """What a drain produced, as messages, in order: NEW_POINT, then what it completed."""
     if drained.acquisitions or drained.lost:
-        admin.send(NewPoint(drained.acquisitions, drained.lost))
+        send(NewPoint(drained.acquisitions, drained.lost))
     if drained.live:
-        admin.send(ContinuousLive())
+        send(ContinuousLive())
     if drained.sweep_done:
-        admin.send(SweepDataDone(drained.sweep_done))
+        send(SweepDataDone(drained.sweep_done))
 
 
 def biris_cmd_notifier(
@@ -140,7 +141,7 @@ def biris_cmd_notifier(
                 reader.stop_ring()
                 set_continuous(False)
             with reader.lock:
-                _send_drained(admin, reader.drain_sequence(final=True))
+                _send_drained(admin.send, reader.drain_sequence(final=True))
             admin.send(BirisCmdComplete(status, param, order.token))
         except TaskStopped:
             return
@@ -148,20 +149,60 @@ def biris_cmd_notifier(
             log.exception("biris_cmd_notifier: bus error reading BIEXEC_COM")
 
 
+class BirisDataNotifier:
+    """The report's _Biris_data_notifier as one step per BIRIS_DATA_DEV: drain, NEW_POINT.
+
+    The server has the level-2 demultiplexer run it in place of raising the logical line (see
+    :mod:`biris_hw.irq.demux`): the notifier task is then that thread, which waits on the
+    physical interrupt, and an acquisition reaches the administrator without waking another.
+
+    Each message is *sent*, with the wait for its reply put off until the task next sends:
+    posted under the reader's lock, so the inbox's order is the reader's, and collected before
+    the next post, so this task never has more than one message outstanding, as a Harmony
+    sender. The administrator answers NEW_POINT at once; a reply that finds nobody waiting
+    wakes no thread, so the administrator goes straight on to hand the data to clients.
+    """
+
+    def __init__(self, admin: Mailbox, reader: AcquisitionReader) -> None:
+        self._admin = admin
+        self._reader = reader
+        self._outstanding: Ticket | None = None
+
+    def __call__(self, count: int = 1) -> bool:
+        """One interrupt (``count`` coalesced); False once the administrator has stopped."""
+        try:
+            with self._reader.lock:
+                _send_drained(self._send, self._reader.drain())
+        except TaskStopped:
+            return False
+        except BusError:
+            log.exception("biris_data_notifier: bus error reading a frame")
+        return True
+
+    def _send(self, message: object) -> None:
+        """Collect the reply to the previous message, then post this one."""
+        outstanding, self._outstanding = self._outstanding, None
+        if outstanding is not None:
+            try:
+                outstanding.wait()
+            except TaskStopped:
+                raise
+            except Exception:  # refused by the administrator, whose log says why; go on
+                log.debug("biris_data_notifier: message refused", exc_info=True)
+        self._outstanding = self._admin.post(message)
+
+
 def biris_data_notifier(line: InterruptLine, admin: Mailbox, reader: AcquisitionReader) -> None:
     """BIRIS_DATA_DEV -> NEW_POINT with every acquisition completed since the last one.
 
     In continuous mode also CONTINUOUS_LIVE (the start-up is over) and SWEEP_DATA_DONE (the
-    sweep's last acquisition has been sent).
+    sweep's last acquisition has been sent). This is the task as a thread of its own, blocked on
+    the logical line; the server runs :class:`BirisDataNotifier` in the demultiplexer instead.
     """
-    while _await(line) is not None:
-        try:
-            with reader.lock:
-                _send_drained(admin, reader.drain())
-        except TaskStopped:
+    notify = BirisDataNotifier(admin, reader)
+    while (count := _await(line)) is not None:
+        if not notify(count):
             return
-        except BusError:
-            log.exception("biris_data_notifier: bus error reading a frame")
 
 
 def _axis_notifier(
@@ -178,7 +219,7 @@ def _axis_notifier(
             settle(axis)
             if reader is not None:
                 with reader.lock:
-                    _send_drained(admin, reader.end_sweep())
+                    _send_drained(admin.send, reader.end_sweep())
             admin.send(done)
         except TaskStopped:
             return
