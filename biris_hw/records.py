@@ -168,7 +168,9 @@ class BirisInitRecord:
     Beyond the report (later features, harmless defaults): ``timeout_s`` is the BIRIS timeout in
     hardware seconds; ``home_index_timeout_revs`` how far homing may turn looking for the zero
     index before it gives up; ``continuous_acquisition`` selects Appendix D's continuous mode;
-    ``elevation_limits_counts`` bounds a future tilt axis; ``mount_offset_m`` places the pan axis
+    ``elevation_limits_counts`` bounds the tilt axis and ``elevation_motor`` tunes its HCTL-1000
+    (None: the pan's ``motor``, as the report's single set served both; a tilt carries another
+    load, so it may want its own filter and profile); ``mount_offset_m`` places the pan axis
     in the vehicle frame (x, y, z); ``head_height_m`` is the optical centre's height up the pan
     axis from that point and ``head_offset_m`` its distance out from the pan axis along the
     azimuth (the simulator's head: 0.5 m and 0). :attr:`mount` gathers the three for
@@ -187,6 +189,7 @@ class BirisInitRecord:
     home_index_timeout_revs: float = 1.0
     continuous_acquisition: bool = False
     elevation_limits_counts: tuple[int, int] = (-512, 512)
+    elevation_motor: MotorParams | None = None
     mount_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     head_height_m: float = 0.5
     head_offset_m: float = 0.0
@@ -212,6 +215,11 @@ class BirisInitRecord:
                 "continuous_acquisition: must be true or false, "
                 f"not {type(self.continuous_acquisition).__name__}"
             )
+        if self.elevation_motor is not None and not isinstance(self.elevation_motor, MotorParams):
+            raise RequestError(
+                "elevation_motor: must be MotorParams or None, "
+                f"not {type(self.elevation_motor).__name__}"
+            )
         key = "elevation_limits_counts"
         lo, hi = (
             _int_field(key, v, -MOTION_LIMIT_COUNTS, MOTION_LIMIT_COUNTS)
@@ -225,6 +233,11 @@ class BirisInitRecord:
         put(key, (x, y, z))
         put("head_height_m", _float_field("head_height_m", self.head_height_m))
         put("head_offset_m", _float_field("head_offset_m", self.head_offset_m))
+
+    @property
+    def tilt_motor(self) -> MotorParams:
+        """The tilt axis's parameters: ``elevation_motor``, or the pan's when it is None."""
+        return self.elevation_motor if self.elevation_motor is not None else self.motor
 
     @property
     def mount(self) -> Mount:
@@ -243,13 +256,17 @@ class BirisInitRecord:
             if key not in known:
                 raise RequestError(f"unknown key {key!r} (known: {', '.join(known)})")
         values = dict(data)
-        if "motor" in values and not isinstance(values["motor"], MotorParams):
-            try:
-                values["motor"] = MotorParams.from_dict(values["motor"])
-            except RequestError as exc:
-                message = str(exc)
-                prefix = "" if message.startswith("motor") else "motor."
-                raise RequestError(prefix + message) from None
+        for key in ("motor", "elevation_motor"):
+            if key in values and not isinstance(values[key], (MotorParams, type(None))):
+                try:
+                    values[key] = MotorParams.from_dict(values[key])
+                except RequestError as exc:  # name the table the field is in
+                    message = str(exc)
+                    if message.startswith("motor"):
+                        message = key + message[len("motor") :]
+                    else:
+                        message = f"{key}.{message}"
+                    raise RequestError(message) from None
         return cls(**values)
 
     def to_dict(self) -> dict[str, Any]:
@@ -257,6 +274,8 @@ class BirisInitRecord:
         data: dict[str, Any] = {}
         for f in fields(self):
             value = getattr(self, f.name)
+            if value is None:
+                continue  # TOML has no null: an absent key reads back as the default, None
             if isinstance(value, MotorParams):
                 value = value.to_dict()
             elif isinstance(value, tuple):
@@ -289,6 +308,7 @@ class BirisInitRecord:
             ) from exc
         data = self.to_dict()
         motor = data.pop("motor")
+        tilt = data.pop("elevation_motor", None)
         lines = [
             "# BIRIS server initialisation record (NRC report 1992, Appendices A and B).",
             str(tomli_w.dumps(data)).rstrip("\n"),
@@ -298,9 +318,14 @@ class BirisInitRecord:
             "# 0x2, 0x3322}.",
             "[motor]",
         ]
-        for key, value in motor.items():
-            digits = 4 if key == "max_accel" else 2
-            lines.append(f"{key} = 0x{value:0{digits}X}")
+        lines += _hex_table(motor)
+        if tilt is not None:
+            lines += [
+                "",
+                "# The tilt axis's HCTL-1000, when it is tuned apart.",
+                "[elevation_motor]",
+            ]
+            lines += _hex_table(tilt)
         return "\n".join(lines) + "\n"
 
     @classmethod
@@ -315,6 +340,11 @@ class BirisInitRecord:
     def save(self, path: str | PathLike[str]) -> None:
         """Write :meth:`to_toml` to ``path`` (needs the ``toml`` extra)."""
         Path(path).write_text(self.to_toml(), encoding="utf-8")
+
+
+def _hex_table(motor: Mapping[str, int]) -> list[str]:
+    """A motor table's lines, in hex as the report writes those registers."""
+    return [f"{key} = 0x{value:0{4 if key == 'max_accel' else 2}X}" for key, value in motor.items()]
 
 
 def acq_rate_counts_per_acq(record: BirisInitRecord) -> float:

@@ -189,6 +189,9 @@ def test_from_dict_missing_keys_keep_defaults() -> None:
         ({"motor": {"velocity": 3}}, "velocity"),
         ({"motor": {"max_vel": 300}}, "motor.max_vel"),
         ({"motor": [1, 2]}, "motor"),
+        ({"elevation_motor": {"max_vel": 300}}, "elevation_motor.max_vel"),
+        ({"elevation_motor": {"speed": 1}}, "elevation_motor: unknown key 'speed'"),
+        ({"elevation_motor": 3}, "elevation_motor: must be a table"),
         ({"max_range": "big"}, "max_range"),
     ],
 )
@@ -212,6 +215,19 @@ def test_toml_round_trip(tmp_path: Path) -> None:
     assert "[motor]" in text and "sample = 0x7F" in text and "max_accel = 0x0100" in text
     assert BirisInitRecord.load(path) == record
     assert BirisInitRecord.load(str(path)) == record
+
+
+def test_a_tilt_tuned_apart_round_trips_and_none_is_the_pans(tmp_path: Path) -> None:
+    record = BirisInitRecord(elevation_motor=MotorParams(gain=0x30, max_accel=0x1000))
+    text = record.to_toml()
+    assert "[elevation_motor]" in text and "max_accel = 0x1000" in text
+    assert BirisInitRecord.from_toml(text) == record
+    assert record.tilt_motor == MotorParams(gain=0x30, max_accel=0x1000)
+    plain = BirisInitRecord()
+    assert "elevation_motor" not in plain.to_toml() and "elevation_motor" not in plain.to_dict()
+    assert plain.tilt_motor is plain.motor
+    with pytest.raises(RequestError, match="elevation_motor: must be MotorParams or None"):
+        BirisInitRecord(elevation_motor={"gain": 1})  # type: ignore[arg-type]
 
 
 def test_default_toml_shows_appendix_b_in_hex() -> None:

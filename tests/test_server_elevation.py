@@ -13,8 +13,16 @@ import math
 import numpy as np
 import pytest
 
-from biris_hw import BirisInitRecord, ConnectionKind, DeliveryPolicy, Direction, RequestError
+from biris_hw import (
+    BirisInitRecord,
+    ConnectionKind,
+    DeliveryPolicy,
+    Direction,
+    MotorParams,
+    RequestError,
+)
 from biris_hw.server import BirisServer
+from regs.hctl1000 import Reg
 from sim import Scene, SimulatedBiris
 from sim.audit import Rule
 from tests.conftest import RigFactory
@@ -39,6 +47,26 @@ def test_initialisation_homes_the_tilt_to_its_index(make_rig: RigFactory) -> Non
         assert abs(rig.elevation_counts) <= 3.0  # level, wherever it woke up
         assert rig.supervisor.loaded_lut == 0
         assert status["interrupts"]["ELEVATION_END_OF_SCAN"] > 0  # homed with its interrupt
+
+
+def test_the_tilt_runs_on_its_own_motor_parameters(rig: SimulatedBiris) -> None:
+    tilt = MotorParams(gain=0x30, max_vel=1, max_accel=0x1000)
+    record = BirisInitRecord(elevation_motor=tilt)
+    assert record.tilt_motor == tilt and BirisInitRecord().tilt_motor == BirisInitRecord().motor
+    with BirisServer(rig.hardware, record) as server:
+        conn = server.open()
+        for chip, params in ((rig.board.azimuth, record.motor), (rig.board.elevation, tilt)):
+            assert (chip.peek(Reg.FILTER_GAIN), chip.peek(Reg.MAX_VELOCITY)) == (
+                params.gain,
+                params.max_vel,
+            )
+            assert chip.peek(Reg.ACCEL_LSB) | chip.peek(Reg.ACCEL_MSB) << 8 == params.max_accel
+        assert conn.set_elevation(10.0) == 114
+        conn.wait_idle(timeout=WAIT)
+        assert abs(rig.elevation_counts - 114) <= 3.0
+        conn.single_scan(20.0)  # the pan is untouched: its own set
+        conn.wait_idle(timeout=WAIT)
+        assert conn.request_scan_data(Direction.CCW) is not None
 
 
 @pytest.mark.parametrize(("asked", "used"), [(10.0, 114), (-8.0, -91), (80.0, 512), (-90.0, -512)])

@@ -115,7 +115,7 @@ class AdminState(abc.ABC):
         self.timeout_gen = -1
         # motion: one record per axis (the tilt's watchdog is the pan's if none is given)
         self.az = AxisState(Axis.AZIMUTH, motor_watchdog, record.motor)
-        self.el = AxisState(Axis.ELEVATION, elevation_watchdog or motor_watchdog, record.motor)
+        self.el = AxisState(Axis.ELEVATION, elevation_watchdog or motor_watchdog, record.tilt_motor)
         # scanning
         self.seq_counter = 0
         self.scan: ActiveScan | None = None

@@ -133,9 +133,12 @@ class Initialiser:
         """Reset both chips, load the motor parameters, hold each axis where it stands, and
         enable both end-of-scan interrupts (MOTOR_END_OF_SCAN, ELEVATION_END_OF_SCAN)."""
         self.board.disable_all()
-        for axis in (self.azimuth, self.elevation):
+        for axis, params in (
+            (self.azimuth, self.record.motor),
+            (self.elevation, self.record.tilt_motor),
+        ):
             self.board.reset_chip(axis.axis)
-            axis.configure(self.record.motor)
+            axis.configure(params)
             self._wait_still(axis)
             axis.hold_here()
             self.board.acknowledge(axis.axis)
