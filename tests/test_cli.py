@@ -237,6 +237,18 @@ def test_watch_prints_status_while_sweeping(biris: Run) -> None:
     assert all("state=" in line and "acquisitions=" in line for line in lines)
     last = dict(word.split("=", 1) for word in lines[-1].split() if "=" in word)
     assert last["continuous"] == "yes" and int(last["acquisitions"]) > 0
+    # the encoder's reading, between the limits, and where the head was sent: a limit
+    assert abs(float(last["azimuth"].removesuffix("deg"))) <= 15.1
+    assert abs(float(last["destination"].removesuffix("deg"))) == pytest.approx(15.0, abs=0.1)
+
+
+def test_watch_says_dash_for_positions_the_server_cannot_give() -> None:
+    from biris_hw.commands.watch import status_line
+
+    line = status_line({"state": "initialising", "azimuth": 0, "azimuth_live": None}, 1.0)
+    words = dict(word.split("=", 1) for word in line.split() if "=" in word)
+    assert words["azimuth"] == "-" and words["elevation"] == "-"
+    assert words["destination"] == "+0.00deg"
 
 
 def test_watch_needs_both_limits(biris: Run) -> None:

@@ -117,6 +117,9 @@ class DemoStatus:
     hardware_s: float = 0.0
     state: str = "initialising"
     azimuth_deg: float = 0.0
+    """The server's destination for the pan."""
+    encoder_azimuth_deg: float | None = None
+    """The pan encoder as the server reads it now (None until homed)."""
     true_azimuth_deg: float = 0.0
     sweeps: dict[Direction, int] = field(default_factory=lambda: dict.fromkeys(Direction, 0))
     acquisitions: int = 0
@@ -263,6 +266,8 @@ def _refresh(
     counters = report["counters"]
     status.state = str(report["state"])
     status.azimuth_deg = counts_to_deg(float(report["azimuth"]))
+    live = report.get("azimuth_live")
+    status.encoder_azimuth_deg = None if live is None else counts_to_deg(float(live))
     status.acquisitions = int(counters["acquisitions"])
     status.dropped_acquisitions = int(counters["dropped_acquisitions"])
     status.faults = int(counters["faults"])
@@ -422,10 +427,11 @@ class _RichView(_View):
         grid.add_row(
             "state", f"[{state_style}]{s.state}[/]   sweeping {c.cw_deg:+g}..{c.ccw_deg:+g} deg"
         )
+        encoder = "-" if s.encoder_azimuth_deg is None else f"{s.encoder_azimuth_deg:+.1f} deg"
         grid.add_row(
             "azimuth",
-            f"{s.true_azimuth_deg:+7.1f} deg   (the server's destination: "
-            f"{s.azimuth_deg:+.1f} deg)",
+            f"{s.true_azimuth_deg:+7.1f} deg   (the server's encoder reading: {encoder}, "
+            f"destination: {s.azimuth_deg:+.1f} deg)",
         )
         grid.add_row(
             "sweeps",

@@ -81,6 +81,13 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
 # -- rendering -------------------------------------------------------------------------------------
 
 
+def _deg(counts: int | None) -> str:
+    """Counts as degrees, or "-" when the server could not say (not homed, board unreadable)."""
+    if counts is None:
+        return "-"
+    return f"{counts_to_deg(float(counts)):+.2f}deg"
+
+
 def status_line(status: dict[str, Any], elapsed: float) -> str:
     """One line per refresh: for logs and pipes."""
     counters = status.get("counters", {})
@@ -88,7 +95,9 @@ def status_line(status: dict[str, Any], elapsed: float) -> str:
     parts = [
         f"{elapsed:6.1f} s",
         f"state={status.get('state')}",
-        f"azimuth={counts_to_deg(int(status.get('azimuth', 0))):+.1f}deg",
+        f"azimuth={_deg(status.get('azimuth_live'))}",
+        f"destination={_deg(status.get('azimuth'))}",
+        f"elevation={_deg(status.get('elevation_live'))}",
         f"continuous={'yes' if status.get('continuous') else 'no'}",
         *(f"{k}={v}" for k, v in counters.items()),
         *(f"irq.{k}={v}" for k, v in irq.items()),
@@ -107,8 +116,14 @@ def status_table(status: dict[str, Any], elapsed: float) -> Any:
     state = str(status.get("state"))
     colour = "red" if state.startswith("fault") else "green"
     table.add_row("state", f"[{colour}]{state}[/]")
-    counts = int(status.get("azimuth", 0))
-    table.add_row("azimuth", f"{counts_to_deg(counts):+.2f} deg ({counts} counts)")
+    for label, key in (
+        ("azimuth", "azimuth_live"),
+        ("destination", "azimuth"),
+        ("elevation", "elevation_live"),
+    ):
+        counts = status.get(key)
+        text = "-" if counts is None else f"{_deg(counts)} ({int(counts)} counts)"
+        table.add_row(label, text)
     table.add_row("continuous", "yes" if status.get("continuous") else "no")
     table.add_section()
     for key, value in status.get("counters", {}).items():
