@@ -54,6 +54,10 @@ them the other way round; we follow Appendix B, the record actually used.
 """
 
 
+MAX_CPU = 1023
+"""The highest CPU number ``cpus`` accepts (Linux's default CPU set size is 1024)."""
+
+
 def _int_field(key: str, value: object, lo: int, hi: int) -> int:
     """A whole number in lo..hi; numpy integers pass, bools and floats do not (1.5 is no count)."""
     if isinstance(value, bool):
@@ -174,7 +178,8 @@ class BirisInitRecord:
     in the vehicle frame (x, y, z); ``head_height_m`` is the optical centre's height up the pan
     axis from that point and ``head_offset_m`` its distance out from the pan axis along the
     azimuth (the simulator's head: 0.5 m and 0). :attr:`mount` gathers the three for
-    :mod:`biris_hw.geometry`.
+    :mod:`biris_hw.geometry`. ``cpus`` (Linux) keeps every server thread on those CPUs; empty, the
+    default, leaves them to the scheduler (see :mod:`biris_hw.affinity` for why one might not).
 
     The report's eight task indices are Harmony globals, not configuration: :attr:`tasks` names
     them, read-only, and is not part of the file.
@@ -193,6 +198,7 @@ class BirisInitRecord:
     mount_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     head_height_m: float = 0.5
     head_offset_m: float = 0.0
+    cpus: tuple[int, ...] = ()
 
     tasks: ClassVar[tuple[str, ...]] = INTERNAL_TASKS
     """The internal tasks in creation order (see :data:`INTERNAL_TASKS`)."""
@@ -233,6 +239,13 @@ class BirisInitRecord:
         put(key, (x, y, z))
         put("head_height_m", _float_field("head_height_m", self.head_height_m))
         put("head_offset_m", _float_field("head_offset_m", self.head_offset_m))
+        cpus: object = self.cpus  # whatever the caller passed: checked here
+        if not isinstance(cpus, (tuple, list)):
+            raise RequestError(f"cpus: must be a sequence of CPU numbers, not {cpus!r}")
+        numbers = tuple(_int_field("cpus", cpu, 0, MAX_CPU) for cpu in cpus)
+        if len(set(numbers)) != len(numbers):
+            raise RequestError(f"cpus: names a CPU twice: {list(numbers)}")
+        put("cpus", numbers)
 
     @property
     def tilt_motor(self) -> MotorParams:

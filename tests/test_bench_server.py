@@ -77,6 +77,10 @@ def test_section_runs_in_quick_mode(section: str, tmp_path: Path) -> None:
     if section == "latency_us":
         keys = {fig.name for fig in outcome.figures}
         assert {"request_point", "request_point_p99", "every_acquisition"} <= keys
+        # and again with the server's and the client's threads on one CPU (biris_hw.affinity)
+        assert {"every_acquisition_pinned", "request_point_pinned_p99"} <= keys
+        pinned = next(f for f in outcome.figures if f.name == "every_acquisition_pinned")
+        assert "BirisInitRecord(cpus=(" in pinned.method or pinned.values == {"n": 0.0}
         point = next(f for f in outcome.figures if f.name == "request_point")
         assert point.values["p50"] < 100_000  # microseconds: well under 0.1 s
         assert point.values["polls_p50"] >= 1

@@ -22,9 +22,11 @@ Two ways of holding an acquisition are timed, one after the other during the sam
 from __future__ import annotations
 
 import bisect
+import contextlib
 import queue
 import time
 
+from biris_hw.affinity import available_cpus, pinned
 from biris_hw.bench.common import (
     Bench,
     DataRaise,
@@ -37,6 +39,8 @@ from biris_hw.bench.common import (
     stream_point,
 )
 from biris_hw.bench.harness import BenchContext, Figure, Target, benchmark, percentile, summarise
+from biris_hw.errors import RequestError
+from biris_hw.records import BirisInitRecord
 
 __all__ = ["latency"]
 
@@ -54,24 +58,53 @@ POLL_GIVE_UP_NS = 100_000_000
 
 @benchmark("latency_us")
 def latency(ctx: BenchContext) -> list[Figure]:
-    """Interrupt raise to DATA delivery (EVERY_ACQUISITION) and to request_point, time_scale 1."""
+    """Interrupt raise to DATA delivery (EVERY_ACQUISITION) and to request_point, time_scale 1.
+
+    Then the same again with the opt-in of :mod:`biris_hw.affinity` (``_pinned`` figures): the
+    server's threads, the client's and the simulator's (the interrupt's source) on one CPU.
+    """
     seconds = float(ctx.pick(full=20, quick=2))
+    figures = _measure(ctx, seconds, "", None)
+    try:
+        cpu = min(available_cpus())
+    except RequestError as exc:  # not Linux
+        for key, target in _KEYS:
+            figures.append(not_measured(f"latency_us.{key}_pinned", "us", target, str(exc)))
+        return figures
+    return figures + _measure(ctx, seconds, "_pinned", cpu)
+
+
+_KEYS = (
+    ("every_acquisition", P50_TARGET),
+    ("every_acquisition_p99", P99_TARGET),
+    ("request_point", P50_TARGET),
+    ("request_point_p99", P99_TARGET),
+)
+
+
+def _measure(ctx: BenchContext, seconds: float, suffix: str, cpu: int | None) -> list[Figure]:
+    """Both figures on a fresh server; with ``cpu``, it and the measuring thread kept there."""
+    record = BirisInitRecord() if cpu is None else BirisInitRecord(cpus=(cpu,))
     figures: list[Figure] = []
-    with running_server(samples=SAMPLES, time_scale=1.0) as bench, IrqRecorder(bench.rig) as irq:
+    with (
+        pinned({cpu}) if cpu is not None else contextlib.nullcontext(),
+        running_server(samples=SAMPLES, time_scale=1.0, record=record) as bench,
+        IrqRecorder(bench.rig) as irq,
+    ):
+        note = "" if cpu is None else _pinned_note(cpu)
         conn = bench.server.open()
         conn.continuous_scan(-SWEEP_DEG, SWEEP_DEG)
         try:
-            ctx.log("bench: latency_us.every_acquisition")
+            ctx.log(f"bench: latency_us.every_acquisition{suffix}")
             try:
-                figures += _every_acquisition(bench, irq, seconds)
+                figures += _every_acquisition(bench, irq, seconds, suffix, note)
             except FeatureMissing as exc:
-                for key, target in (
-                    ("every_acquisition", P50_TARGET),
-                    ("every_acquisition_p99", P99_TARGET),
-                ):
-                    figures.append(not_measured(f"latency_us.{key}", "us", target, str(exc)))
-            ctx.log("bench: latency_us.request_point")
-            figures += _request_point(bench, irq, seconds)
+                for key, target in _KEYS[:2]:
+                    figures.append(
+                        not_measured(f"latency_us.{key}{suffix}", "us", target, str(exc))
+                    )
+            ctx.log(f"bench: latency_us.request_point{suffix}")
+            figures += _request_point(bench, irq, seconds, suffix, note)
         finally:
             conn.stop_scan()
             conn.wait_idle(timeout=30.0)
@@ -79,7 +112,18 @@ def latency(ctx: BenchContext) -> list[Figure]:
     return figures
 
 
-def _every_acquisition(bench: Bench, irq: IrqRecorder, seconds: float) -> list[Figure]:
+def _pinned_note(cpu: int) -> str:
+    return (
+        f" Opt-in run: BirisInitRecord(cpus=({cpu},)) keeps every server thread on CPU {cpu}, "
+        "and the measuring client thread and the simulator are kept there too "
+        "(biris_hw.affinity.pinned), as the interrupt would be steered to that CPU on a target: "
+        "the whole process on one CPU, so no hand-over crosses CPUs."
+    )
+
+
+def _every_acquisition(
+    bench: Bench, irq: IrqRecorder, seconds: float, suffix: str = "", note: str = ""
+) -> list[Figure]:
     irq.clear()
     data = open_every_acquisition(bench.server)
     returns: list[tuple[int, int, int]] = []  # (entered ready_for_data, returned, acq)
@@ -118,10 +162,12 @@ def _every_acquisition(bench: Bench, irq: IrqRecorder, seconds: float) -> list[F
         "ready_for_data, left out as the client's delay)."
     )
     extra = {"unmatched": float(unmatched), "not_waiting": float(not_waiting)}
-    return _pair("every_acquisition", samples, method, extra)
+    return _pair(f"every_acquisition{suffix}", samples, method + note, extra)
 
 
-def _request_point(bench: Bench, irq: IrqRecorder, seconds: float) -> list[Figure]:
+def _request_point(
+    bench: Bench, irq: IrqRecorder, seconds: float, suffix: str = "", note: str = ""
+) -> list[Figure]:
     conn = bench.server.open()
     period = acquisition_period_s(SAMPLES)
     samples: list[float] = []
@@ -178,7 +224,7 @@ def _request_point(bench: Bench, irq: IrqRecorder, seconds: float) -> list[Figur
         "polls_max": max(polls),
         "missed": float(missed + overtaken),
     }
-    return _pair("request_point", samples, method, extra)
+    return _pair(f"request_point{suffix}", samples, method + note, extra)
 
 
 def _pair(name: str, samples: list[float], method: str, extra: dict[str, float]) -> list[Figure]:

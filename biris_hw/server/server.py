@@ -11,12 +11,14 @@ administrator. ``close()`` stops them in reverse and leaves no thread behind.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 from collections.abc import Callable
 from types import TracebackType
 from typing import Any, Literal, overload
 
+from biris_hw.affinity import check_cpus, pinned
 from biris_hw.client import Connection
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
@@ -55,6 +57,8 @@ class BirisServer:
     def __init__(self, hardware: BirisHardware, record: BirisInitRecord | None = None) -> None:
         self.hardware = hardware
         self.record = record if record is not None else BirisInitRecord()
+        if self.record.cpus:
+            check_cpus(self.record.cpus)  # before anything starts: a bad set changes nothing
         hw = hardware
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -92,7 +96,8 @@ class BirisServer:
             self.elevation_watchdog,
         )
         try:
-            self._create_tasks()
+            with pinned(self.record.cpus) if self.record.cpus else contextlib.nullcontext():
+                self._create_tasks()  # every task inherits the CPUs (biris_hw.affinity)
             self._initialise()
         except BaseException:
             self.close()
