@@ -122,7 +122,7 @@ class Commands(SupervisorState):
         self._accepted_unnoted = False
         self._commands_completed += 1
         if self._get(OFF_CMD_INT_ENABLE):
-            self._interrupt("cmd")
+            self._gate.raise_irq("cmd")
 
     def _param_bytes(self, answer: str, query: bool) -> bytes:
         """PARAM's bytes for ``answer``; malformed when a garbage_param fault is armed."""

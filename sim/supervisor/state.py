@@ -123,7 +123,6 @@ class SupervisorState(abc.ABC):
         self._thread: threading.Thread | None = None
         self._failure: BaseException | None = None
         self._running_due = False
-        self._irqs: list[str] = []  # raised by events under way, sent when they are all done
 
         self._fields = FieldSchedule()
         self._executing = 0
@@ -195,19 +194,7 @@ class SupervisorState(abc.ABC):
 
     def _data_interrupt(self) -> None:
         if self._get(OFF_DATA_INT_ENABLE):
-            self._interrupt("data")
-
-    def _interrupt(self, source: str) -> None:
-        """Raise ``source`` -- once the events due now have all run, if they are running.
-
-        A woken driver thread needs the interpreter lock, which this thread holds until it
-        blocks; raising last leaves it the least to wait for (on the real target BIRIS is a
-        processor of its own and the driver wakes at once). Memory is written before either way.
-        """
-        if self._running_due:
-            self._irqs.append(source)
-        else:
-            self._gate.raise_irq(source)
+            self._gate.raise_irq("data")
 
     def _record(self, rule: Rule, detail: str, **registers: int) -> None:
         if self._audit is not None:

@@ -202,9 +202,6 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
             self._fields.run_due(now, self._on_vsync)
         finally:
             self._running_due = False
-            irqs, self._irqs = self._irqs, []
-            for source in irqs:
-                self._gate.raise_irq(source)
 
     def _on_vsync(self, field: int) -> None:
         """One vertical sync: end the exposure due now, poll COMMAND, start the next exposure."""
