@@ -238,7 +238,7 @@ def test_watch_prints_status_while_sweeping(biris: Run) -> None:
     last = dict(word.split("=", 1) for word in lines[-1].split() if "=" in word)
     assert last["continuous"] == "yes" and int(last["acquisitions"]) > 0
     # the encoder's reading, between the limits, and where the head was sent: a limit
-    assert abs(float(last["azimuth"].removesuffix("deg"))) <= 15.1
+    assert abs(float(last["azimuth"].removesuffix("deg"))) <= 15.5  # a count or two of settling
     assert abs(float(last["destination"].removesuffix("deg"))) == pytest.approx(15.0, abs=0.1)
 
 
