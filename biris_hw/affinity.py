@@ -61,7 +61,10 @@ def pin_current_thread(cpus: Collection[int]) -> frozenset[int]:
     wanted = check_cpus(cpus)
     get, put = _calls()
     before = frozenset(get(0))
-    put(0, wanted)
+    try:
+        put(0, wanted)
+    except OSError as exc:  # a sandbox may forbid it even where the CPUs exist
+        raise RequestError(f"cpus: cannot keep this thread on {sorted(wanted)}: {exc}") from None
     return before
 
 

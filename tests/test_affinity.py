@@ -99,3 +99,20 @@ def test_a_server_asked_for_cpus_it_cannot_have_starts_nothing(no_leaks: None) -
             BirisServer(rig.hardware, BirisInitRecord(cpus=(outside,)))
         assert set(threading.enumerate()) == before
         assert not rig.supervisor.booted  # BIRIS was not touched either
+
+
+def test_a_platform_that_forbids_affinity_is_a_request_error(
+    monkeypatch: pytest.MonkeyPatch, no_leaks: None
+) -> None:
+    def forbidden(pid: int, cpus: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setaffinity", forbidden)
+    one = min(available_cpus())
+    with pytest.raises(RequestError, match="cannot keep this thread on"):
+        pin_current_thread({one})
+    with SimulatedBiris(time_scale=20.0) as rig:
+        before = set(threading.enumerate())
+        with pytest.raises(RequestError, match="cannot keep this thread on"):
+            BirisServer(rig.hardware, BirisInitRecord(cpus=(one,)))
+        assert set(threading.enumerate()) == before

@@ -66,12 +66,12 @@ def latency(ctx: BenchContext) -> list[Figure]:
     seconds = float(ctx.pick(full=20, quick=2))
     figures = _measure(ctx, seconds, "", None)
     try:
-        cpu = min(available_cpus())
-    except RequestError as exc:  # not Linux
+        return figures + _measure(ctx, seconds, "_pinned", min(available_cpus()))
+    except RequestError as exc:  # not Linux, or affinity refused here
+        reason = f"needs CPU affinity: {exc}"
         for key, target in _KEYS:
-            figures.append(not_measured(f"latency_us.{key}_pinned", "us", target, str(exc)))
+            figures.append(not_measured(f"latency_us.{key}_pinned", "us", target, reason))
         return figures
-    return figures + _measure(ctx, seconds, "_pinned", cpu)
 
 
 _KEYS = (
