@@ -14,6 +14,21 @@ from sim.rig import SimulatedBiris
 from sim.scene import Scene
 
 
+def affinity_allowed() -> bool:
+    """Whether a thread may choose its CPUs here (Linux, and not forbidden by a sandbox): setting
+    the affinity it already has is the harmless probe."""
+    from biris_hw.affinity import pin_current_thread
+    from biris_hw.errors import RequestError
+
+    if not hasattr(os, "sched_getaffinity"):
+        return False
+    try:
+        pin_current_thread(os.sched_getaffinity(0))
+    except RequestError:
+        return False
+    return True
+
+
 def _fds() -> set[str]:
     return set(os.listdir("/proc/self/fd"))
 

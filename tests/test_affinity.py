@@ -11,9 +11,10 @@ from biris_hw import BirisInitRecord, Direction, RequestError
 from biris_hw.affinity import available_cpus, check_cpus, pin_current_thread, pinned
 from biris_hw.server import BirisServer
 from sim import SimulatedBiris
+from tests.conftest import affinity_allowed
 
 pytestmark = pytest.mark.skipif(
-    not hasattr(os, "sched_setaffinity"), reason="CPU affinity is a Linux feature"
+    not affinity_allowed(), reason="this platform does not let a thread choose its CPUs"
 )
 
 WAIT = 30.0

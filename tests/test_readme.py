@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import affinity_allowed
+
 README = Path(__file__).resolve().parent.parent / "README.md"
 
 
@@ -35,6 +37,8 @@ def test_the_readme_has_its_examples() -> None:
 def test_readme_example_runs_as_written(
     block: str, no_leaks: None, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    if "biris_hw.affinity" in block and not affinity_allowed():
+        pytest.skip("this platform does not let a thread choose its CPUs")
     exec(compile(block, str(README), "exec"), {"__name__": "__readme__"})
     out = capsys.readouterr().out
     assert out.strip(), "the example printed nothing"
