@@ -39,12 +39,11 @@ class ActiveScan:
     """Continuous acquisition: the sweep's data come from the ring, not from a BI_ACQUIRE."""
     start: int = 0
     left_start: bool = False
-    """Continuous acquisition: an acquisition away from the start has been kept."""
+    """Continuous acquisition: an acquisition away from the start has been kept -- or the sweep
+    turns straight round from the previous one, so its first acquisitions (head still at the
+    turn-around) are kept and the stream has no hole."""
     at_end: bool = False
     """Continuous acquisition: an acquisition at the destination has been kept."""
-    follows: bool = False
-    """Continuous scanning turned straight round into this sweep from the previous one: its
-    first acquisitions (head still at the turn-around) are kept, so the stream has no hole."""
     tail: list[Acquisition] = field(default_factory=list)
     """Continuous acquisition: acquisitions after the one at the destination -- the start of
     the next sweep if one follows straight on."""
@@ -66,7 +65,7 @@ class ActiveScan:
         tagging hiccup shows in the data instead of being hidden.
         """
         if not self.left_start:
-            if not self.follows and abs(azimuth - self.start) <= STILL_COUNTS:
+            if abs(azimuth - self.start) <= STILL_COUNTS:
                 return False
             self.left_start = True
         if self.at_end:

@@ -143,7 +143,7 @@ class Scanning(AdminState):
             elevation=self.elevation,
             ring=True,
             start=self.position,
-            follows=follows,
+            left_start=follows,  # the turn-around's acquisitions begin it
         )
         self.scan = scan
         if after is not None:
