@@ -3,9 +3,9 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-LINT_DIRS := biris_hw regs sim tests $(wildcard tools)
+LINT_DIRS := biris_hw regs sim benchmarks tests $(wildcard tools)
 
-.PHONY: test demo lint bench clean
+.PHONY: test test-slow demo lint bench clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -16,6 +16,9 @@ $(STAMP): pyproject.toml
 test: $(STAMP)
 	$(PY) -m pytest -m "not slow" -q
 
+test-slow: $(STAMP)
+	$(PY) -m pytest -m slow -q
+
 demo: $(STAMP)
 	$(VENV)/bin/biris demo
 
@@ -23,10 +26,11 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check $(LINT_DIRS)
 	$(VENV)/bin/ruff format --check $(LINT_DIRS)
 	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports --no-cache
 
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
-	$(PY) tools/bench.py
+	$(PY) -m benchmarks
 
 clean:
 	rm -rf $(VENV) build .pytest_cache .mypy_cache .ruff_cache

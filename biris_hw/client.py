@@ -1,4 +1,4 @@
-"""``Connection``: one method per client message of the report (DESIGN.md section 3).
+"""``Connection``: one method per client message of the report (README.md, "Python API").
 
 A connection is a handle on the server's administrator; every call is a Send that blocks until
 the administrator replies. Angles are degrees in and counts out: each motion request returns the
@@ -13,16 +13,15 @@ policy, so a type checker knows what ``ready_for_data`` returns.
 from __future__ import annotations
 
 import math
-import threading
 from types import TracebackType
 from typing import TYPE_CHECKING, Generic, cast
 
+from biris_hw import protocol as m
 from biris_hw.angles import deg_to_counts
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import ConnectionClosed, RequestError
 from biris_hw.ipc import Mailbox
 from biris_hw.records import MotorParams
-from biris_hw.server import messages as m
 
 if TYPE_CHECKING:  # the default needs PEP 696; at run time a plain TypeVar does the same job
     from typing_extensions import TypeVar
@@ -69,7 +68,6 @@ class Connection(Generic[D]):
         """What READY_FOR_DATA delivers and what a slow client loses (DATA connections)."""
         self.depth = depth
         """How many buffers (or points) wait for the client at most."""
-        self.owner = threading.current_thread()
         self.dropped = 0
         """Buffers (points) this DATA connection missed, as of its last READY_FOR_DATA: replaced
         or pushed out of a full queue because the client was not ready in time, or (points)
@@ -88,13 +86,25 @@ class Connection(Generic[D]):
 
     # -- data --------------------------------------------------------------------------------
     def request_point(self) -> Point | None:
-        """REQUEST_POINT: the latest acquisition (full profile), or None before the first."""
+        """REQUEST_POINT: the latest acquisition (full profile), or None before the first.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: the server is initialising.
+        """
         result = self._call(m.RequestPoint(self.ident))
         assert result is None or isinstance(result, Point)
         return result
 
     def request_scan_data(self, direction: Direction | int) -> Scan | None:
-        """REQUEST_SCAN_DATA: the latest complete scan in that direction, or None."""
+        """REQUEST_SCAN_DATA: the latest complete scan in that direction, or None.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: no such direction, or the server is initialising.
+        """
         try:
             d = Direction(direction)
         except ValueError:
@@ -109,6 +119,13 @@ class Connection(Generic[D]):
         A complete Scan under LATEST and EVERY_BUFFER; under EVERY_ACQUISITION the next Point,
         as soon as its acquisition has been read. Either carries ``t_delivered``. Updates
         :attr:`dropped`. Raises TimeoutError when nothing comes within ``timeout`` seconds.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: not a DATA connection, a bad timeout, or a newer READY_FOR_DATA
+                superseded this one.
+            TimeoutError: nothing came within ``timeout`` seconds.
         """
         result = self._call(m.ReadyForData(self.ident), _timeout(timeout))
         assert isinstance(result, tuple)
@@ -119,7 +136,14 @@ class Connection(Generic[D]):
 
     # -- control -----------------------------------------------------------------------------
     def single_scan(self, to_deg: float) -> int:
-        """BIRIS_SINGLE_SCAN_RQST: scan to ``to_deg``; returns the destination used (counts)."""
+        """BIRIS_SINGLE_SCAN_RQST: scan to ``to_deg``; returns the destination used (counts).
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: a destination that is not a finite number, the head is already
+                there, or a scan or motion is under way.
+        """
         dest = _counts(to_deg, "scan destination")
         result = self._call(m.SingleScanRqst(self.ident, dest))
         assert isinstance(result, int)
@@ -127,7 +151,14 @@ class Connection(Generic[D]):
 
     def continuous_scan(self, cw_deg: float, ccw_deg: float) -> tuple[int, int]:
         """BIRIS_CONT_SCAN_RQST: sweep between the limits until stop_scan(); returns them in
-        counts after clamping. CW is the lower (clockwise) limit."""
+        counts after clamping. CW is the lower (clockwise) limit.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: limits that are not finite numbers or the wrong way round, or a
+                scan or motion is under way.
+        """
         cw = _counts(cw_deg, "CW limit")
         ccw = _counts(ccw_deg, "CCW limit")
         result = self._call(m.ContScanRqst(self.ident, cw, ccw))
@@ -141,6 +172,11 @@ class Connection(Generic[D]):
         tilt, and the loading of that elevation's calibration table into BIRIS, follow (at the
         end of the sweep under way, if a scan runs), and no acquisition happens meanwhile: a
         scan asked for during a tilt starts when it is over. ``wait_idle`` waits for the tilt.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: an elevation that is not a finite number.
         """
         dest = _counts(deg, "elevation")
         result = self._call(m.SetElevation(self.ident, dest))
@@ -148,36 +184,76 @@ class Connection(Generic[D]):
         return result
 
     def stop_scan(self) -> None:
-        """BIRIS_STOP_SCAN_RQST: continuous scanning ends when the current sweep completes."""
+        """BIRIS_STOP_SCAN_RQST: continuous scanning ends when the current sweep completes.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: the server is initialising.
+        """
         self._call(m.StopScanRqst(self.ident))
 
     def home(self) -> None:
-        """BIRIS_HOME: drive to 0 degrees (pending while a scan or motion runs)."""
+        """BIRIS_HOME: drive to 0 degrees (pending while a scan or motion runs).
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: the server is initialising.
+        """
         self._call(m.BirisHome(self.ident))
 
     def set_motor_params(self, params: MotorParams) -> None:
-        """BIRIS_MOTOR_PARAMS: new sample timer, filter and profile limits for the pan motor."""
+        """BIRIS_MOTOR_PARAMS: new sample timer, filter and profile limits for the pan motor.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: not a MotorParams, or the server is initialising.
+        """
         if not isinstance(params, MotorParams):
             raise RequestError("set_motor_params takes a MotorParams")
         self._call(m.BirisMotorParams(self.ident, params))
 
     def timeout_enable(self) -> None:
-        """BIRIS_TIMEOUT_ENABLE: report BIRIS silence as HardwareFault('timeout')."""
+        """BIRIS_TIMEOUT_ENABLE: report BIRIS silence as HardwareFault('timeout').
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: the server is initialising.
+        """
         self._call(m.TimeoutEnable(self.ident))
 
     def timeout_disable(self) -> None:
-        """BIRIS_TIMEOUT_DISABLE."""
+        """BIRIS_TIMEOUT_DISABLE.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: the server is initialising.
+        """
         self._call(m.TimeoutDisable(self.ident))
 
     def wait_idle(self, timeout: float | None = None) -> None:
         """Block until the motor is stationary, no motion is pending and no acquisition runs.
 
-        Raises TimeoutError when that does not happen within ``timeout`` seconds.
+            Raises:
+        ConnectionClosed: this connection or the server is closed.
+        HardwareFault: the server is in a fault state (until a reset).
+        RequestError: a bad timeout.
+        TimeoutError: not idle within ``timeout`` seconds.
         """
         self._call(m.WaitIdle(self.ident), _timeout(timeout))
 
     def reset(self) -> None:
-        """Re-run the server's initialisation: the way back after a HardwareFault."""
+        """Re-run the server's initialisation: the way back after a HardwareFault.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: initialisation failed (the server stays in that fault).
+            RequestError: an initialisation is already running.
+        """
         self._call(m.ResetRequest(self.ident))
 
     # -- lifecycle ---------------------------------------------------------------------------

@@ -8,7 +8,7 @@ without talking to a server (reference notes, section 4.1).
 **The fan.** BIRIS projects a vertical laser sheet with a 22 degree dispersion (the report's
 introduction); each of the N samples of a profile is one CCD row, row k (top first) looking at
 ``e_k = (FAN_DEG/2) (1 - (2k+1)/N)`` above the optical axis, the centre of its row. BIRIS ranges
-are *depth along the optical axis*, not slant distance (DESIGN.md section 3), so sample k at
+are *depth along the optical axis*, not slant distance (README.md, "Python API"), so sample k at
 range r lies at ``(r, 0, r tan e_k)`` in the head's own frame: x along the optical axis, z up.
 
 **The head.** The tilt axis (elevation) is horizontal and passes through the optical centre;

@@ -1,11 +1,13 @@
-"""The hardware bundle a server drives: windows, interrupt lines and a clock (DESIGN.md 2.4)."""
+"""The hardware bundle a server drives: windows, interrupt lines, a clock (docs/design.md), and the
+one driver object of each device on them (:class:`~biris_hw.devices.Devices`)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from biris_hw.bus.base import BusWindow
+from biris_hw.devices import Devices
 from biris_hw.irq.base import InterruptLine
 
 __all__ = ["BirisHardware"]
@@ -21,6 +23,9 @@ class BirisHardware:
     BIRIS-side VME address at which ``biris`` starts, so that addresses BIRIS reports (such as
     Biris_range_ptr) become window offsets. ``clock`` returns hardware time in seconds.
     The bundle does not own what it holds: whoever built it closes it (:meth:`close`).
+
+    ``devices`` is made with the bundle and is the only set of drivers over its windows: the
+    server, its initialiser, ``status()`` and the CLI all use it (see :mod:`biris_hw.devices`).
     """
 
     biris: BusWindow
@@ -34,6 +39,18 @@ class BirisHardware:
     time_scale: float = 1.0
     """Hardware seconds per real second: 1.0 on the target, the simulator's ``time_scale``
     otherwise. Timers (the 4 s BIRIS timeout, the motor watchdog) use it to wait in real time."""
+    devices: Devices = field(init=False, repr=False, compare=False)
+    """One driver per device over these windows, built here once (no register is touched)."""
+
+    def __post_init__(self) -> None:
+        self.devices = Devices.over(
+            biris=self.biris,
+            biexec_offset=self.biexec_offset,
+            motion=self.motion,
+            coupler=self.coupler,
+            clock=self.clock,
+            time_scale=self.time_scale,
+        )
 
     def to_offset(self, biris_address: int) -> int:
         """Window offset of a BIRIS-side VME address; ValueError when it is outside ``biris``."""

@@ -1,4 +1,4 @@
-"""Harmony's Send/Receive/Reply between threads (DESIGN.md 2.5; reference section 2.3-2.6).
+"""Harmony's Send/Receive/Reply between threads (docs/design.md).
 
 The server is an *administrator*: it blocks only on its one inbox, never sends and never sleeps.
 Everything that wants its attention (clients, notifiers, workers) sends to that inbox and stays
@@ -14,6 +14,10 @@ report, so the module keeps its semantics exact rather than offering a general q
 * A sender that gives up (timeout) takes its message back, so the administrator never acts on a
   request whose client has stopped listening; if it was already received, the late reply is
   dropped and :meth:`Envelope.reply` says so by returning False.
+* One exception to the rendezvous, for an interrupt service routine, which must never wait on
+  the administrator: :meth:`Mailbox.post_oneway` queues a report nobody waits to have answered.
+  It is still queued in order with every send, and still answered by the receiver (whose reply
+  is then dropped, and a failure logged), so the administrator's side is unchanged.
 
 Waiting is on a per-envelope lock (a one-shot signal) and, for the receiver, on a doorbell (one
 more lock, released by the send that finds it waiting): no polling, and a reply or a send costs
@@ -25,13 +29,16 @@ messages is much of the cost of a hop.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
 
 from biris_hw.errors import BirisError, ConnectionClosed
 
-__all__ = ["Envelope", "Mailbox", "Message", "ReplyError", "TaskStopped", "Ticket"]
+__all__ = ["Envelope", "Mailbox", "ReplyError", "TaskStopped", "Ticket"]
+
+log = logging.getLogger(__name__)
 
 # Envelope states. Only the mailbox lock moves an envelope between them, which is what makes a
 # reply racing a timeout or a close come out one way or the other, never both.
@@ -52,21 +59,6 @@ class ReplyError(BirisError, RuntimeError):
     """An envelope was answered twice, or before it was received: a bug in the receiving task."""
 
 
-class Message:
-    """Optional base for message types (frozen dataclasses defined by the server).
-
-    It adds no fields, only a common ancestor for ``isinstance`` checks and a name for logs, so a
-    subclass stays a plain frozen dataclass.
-    """
-
-    __slots__ = ()
-
-    @property
-    def kind(self) -> str:
-        """The message type's name, as the report spells message types in its case statements."""
-        return type(self).__name__
-
-
 class Envelope:
     """One sent message, as the receiver holds it until it answers.
 
@@ -85,7 +77,7 @@ class Envelope:
         "sender",
     )
 
-    def __init__(self, message: object, mailbox: Mailbox) -> None:
+    def __init__(self, message: object, mailbox: Mailbox, oneway: bool = False) -> None:
         self.message = message
         """What was sent."""
         self.sender = threading.current_thread().name
@@ -97,23 +89,33 @@ class Envelope:
         self._error: BaseException | None = None
         # A plain lock used as a one-shot signal: held from birth, released once when the
         # envelope settles. Cheaper than an Event, and a timed acquire is the sender's wait.
-        self._signal = threading.Lock()
-        self._signal.acquire()
+        # A one-way envelope has nobody to signal.
+        self._signal: threading.Lock | None = None
+        if not oneway:
+            self._signal = threading.Lock()
+            self._signal.acquire()
 
     @property
     def waiting(self) -> bool:
         """True while the sender is REPLY-blocked on this envelope.
 
         False once answered, once the sender timed out, and once the mailbox closed: an
-        administrator can drop parked envelopes whose sender has gone.
+        administrator can drop parked envelopes whose sender has gone. Always False for a
+        one-way post (:meth:`Mailbox.post_oneway`), whose sender never waits.
         """
-        return self._state == _RECEIVED
+        return self._state == _RECEIVED and self._signal is not None
+
+    @property
+    def oneway(self) -> bool:
+        """True for a message posted with :meth:`Mailbox.post_oneway`: the reply goes nowhere."""
+        return self._signal is None
 
     def reply(self, value: object = None) -> bool:
         """Release the sender, whose ``send`` returns ``value``; never blocks.
 
-        Returns False when nobody is listening any more (the sender timed out, or the mailbox was
-        closed); the value is then discarded. Answering twice raises :class:`ReplyError`.
+        Returns False when nobody is listening (the sender timed out, the mailbox was closed, or
+        the message was posted one-way); the value is then discarded. Answering twice raises
+        :class:`ReplyError`.
         """
         return self._answer(value, None)
 
@@ -125,7 +127,10 @@ class Envelope:
         """
         if not isinstance(exc, BaseException):
             raise TypeError(f"fail() needs an exception instance, not {type(exc).__name__}")
-        return self._answer(None, exc)
+        answered = self._answer(None, exc)
+        if self._signal is None:
+            log.debug("%r refused, and nobody waits for the answer: %r", self, exc)
+        return answered
 
     def _answer(self, value: object, error: BaseException | None) -> bool:
         mailbox = self._mailbox
@@ -139,14 +144,15 @@ class Envelope:
                 return False
             mailbox._held.discard(self)
             self._settle(_ANSWERED, value, error)
-            return True
+            return self._signal is not None
 
     def _settle(self, state: int, value: object, error: BaseException | None) -> None:
         """Final state and result, then wake the sender. Caller holds the mailbox lock."""
         self._state = state
         self._value = value
         self._error = error
-        self._signal.release()
+        if self._signal is not None:
+            self._signal.release()
 
     def _withdraw_locked(self) -> None:
         """The sender gives up: take the message back. Caller holds the mailbox lock."""
@@ -163,6 +169,7 @@ class Envelope:
     def _await(self, timeout: float | None) -> object:
         """The sender's half of send(): block until settled, withdrawing on timeout."""
         signal = self._signal
+        assert signal is not None, "a one-way post has no answer to wait for"
         try:
             settled = signal.acquire(True, -1 if timeout is None else max(timeout, 0.0))
         except BaseException:
@@ -254,8 +261,19 @@ class Mailbox:
         """Queue ``message`` without blocking; :meth:`Ticket.wait` is the rest of :meth:`send`."""
         return Ticket(self._post(message))
 
-    def _post(self, message: object) -> Envelope:
-        envelope = Envelope(message, self)
+    def post_oneway(self, message: object) -> None:
+        """Queue ``message`` and never wait for its answer: for an interrupt service routine.
+
+        Ordered with every other message exactly as :meth:`post` is (so a task that posts under
+        a lock of its own puts its messages in the inbox in that lock's order). The receiver
+        answers it as any other; the reply is dropped, a failure is logged (debug), and
+        :meth:`Envelope.reply` returns False. Raises :class:`TaskStopped` (or the close reason)
+        if the mailbox is closed.
+        """
+        self._post(message, oneway=True)
+
+    def _post(self, message: object, oneway: bool = False) -> Envelope:
+        envelope = Envelope(message, self, oneway)
         with self._lock:
             if self._closed:
                 raise self._stopped()
@@ -359,6 +377,11 @@ class Mailbox:
     def held(self) -> int:
         """Messages received but not yet answered (senders REPLY-blocked, parked included)."""
         return len(self._held)
+
+    @property
+    def receivers(self) -> int:
+        """Threads blocked in :meth:`receive` right now, for logs and tests."""
+        return self._receiving
 
     def _stopped(self) -> BaseException:
         """What a sender or receiver raises on a closed mailbox. Caller holds the lock."""

@@ -4,6 +4,10 @@ A target description names its windows (``kind = "mmap"``) and its lines (``kind
 are resolved here, in the manner of python-can's interface registry. Built-in kinds are imported
 lazily, so a kind whose optional dependency is missing costs nothing until it is asked for, and
 third parties add kinds through an entry-point group.
+
+Each registry module (:mod:`biris_hw.bus.registry`, :mod:`biris_hw.irq.registry`) is one
+:class:`KindRegistry` and its bound methods under the names users call (``open_window``,
+``register_line``, ...).
 """
 
 from __future__ import annotations
@@ -41,6 +45,11 @@ class KindRegistry(Generic[T]):
         self.kinds.pop(kind, None)
 
     def resolve(self, kind: str) -> type[T]:
+        """The class of a kind: registered, built in, or from the entry-point group.
+
+        Raises :class:`~biris_hw.errors.UnknownKind` (a ``LookupError``) for a name nobody
+        provides, or one whose target does not derive from ``base``.
+        """
         if kind in self._loaded:
             return self._loaded[kind]
         target = self.kinds.get(kind)
@@ -60,4 +69,5 @@ class KindRegistry(Generic[T]):
         return cls
 
     def open(self, kind: str, **options: Any) -> T:
+        """Build the named kind with its keyword options, e.g. ``open("memory", size=0x1000)``."""
         return self.resolve(kind)(**options)

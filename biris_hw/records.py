@@ -30,29 +30,11 @@ else:  # tomli is a declared dependency below 3.11
     import tomli as tomllib  # type: ignore[import-not-found, unused-ignore]
 
 __all__ = [
-    "INTERNAL_TASKS",
     "BirisInitRecord",
     "MotorParams",
     "acq_rate_counts_per_acq",
     "acquisitions_for",
 ]
-
-INTERNAL_TASKS: tuple[str, ...] = (
-    "BIRIS_CMD_NOTIFIER",
-    "BIRIS_CMD_TRANSFER",
-    "BIRIS_DATA_NOTIFIER",
-    "BIRIS_AZ_NOTIFIER",
-    "AZ_SCAN_START",
-    "BIRIS_TIMEOUT",
-    "BIRIS_PAR_ERROR",
-    "BIRIS_BUS_ERROR",
-)
-"""The server's eight internal tasks, in creation order (Appendix B's global indices).
-
-Appendix A declares the bus-error index before the parity-error one while Appendix B initialises
-them the other way round; we follow Appendix B, the record actually used.
-"""
-
 
 MAX_CPU = 1023
 """The highest CPU number ``cpus`` accepts (Linux's default CPU set size is 1024)."""
@@ -181,8 +163,8 @@ class BirisInitRecord:
     :mod:`biris_hw.geometry`. ``cpus`` (Linux) keeps every server thread on those CPUs; empty, the
     default, leaves them to the scheduler (see :mod:`biris_hw.affinity` for why one might not).
 
-    The report's eight task indices are Harmony globals, not configuration: :attr:`tasks` names
-    them, read-only, and is not part of the file.
+    The report's eight task indices are Harmony globals, not configuration: the record does not
+    carry them.
     """
 
     name: str = "BIRISSERV:"
@@ -199,9 +181,6 @@ class BirisInitRecord:
     head_height_m: float = 0.5
     head_offset_m: float = 0.0
     cpus: tuple[int, ...] = ()
-
-    tasks: ClassVar[tuple[str, ...]] = INTERNAL_TASKS
-    """The internal tasks in creation order (see :data:`INTERNAL_TASKS`)."""
 
     def __post_init__(self) -> None:
         def put(key: str, value: object) -> None:
@@ -366,7 +345,7 @@ def acq_rate_counts_per_acq(record: BirisInitRecord) -> float:
     Maximum velocity (counts per sample) over the sample period, times BIRIS_DATA_RATE. About
     42.6 counts (3.7 degrees) for Appendix B's record. The report says this constant is below 1
     and uses its reciprocal to avoid floats; that holds for acquisitions per count, the reciprocal
-    of what its text (and DESIGN.md) defines, so we return counts per acquisition as defined.
+    of what its text (and docs/design.md) defines, so we return counts per acquisition as defined.
     """
     return record.motor.max_velocity_counts_per_s * record.data_rate_ms / 1000.0
 

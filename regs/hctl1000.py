@@ -1,7 +1,7 @@
 """The HP HCTL-1000 motion-control IC, as the host sees it: 64 byte-wide registers.
 
 Facts are from the HCTL-1100/1101 datasheets (register compatible as far as is known; see
-``reference/hardware.md``). Multi-byte quantities are spread over byte registers and some reads
+``docs/design.md``). Multi-byte quantities are spread over byte registers and some reads
 and writes have side effects: reading R14H latches the actual position for R13H/R12H, writing R0EH
 commits the command position. Always access them one byte at a time, in the documented order.
 """

@@ -1,4 +1,4 @@
-"""The BIRIS memory map as seen through the coupler (report Fig. 3, DESIGN.md section 4).
+"""The BIRIS memory map as seen through the coupler (report Fig. 3, docs/design.md).
 
 BIEXEC_COM sits at ``biexec_offset``. Range and intensity frames alternate from the range base:
 range(k) at ``base + 2 k frame_size``, intensity(k) at ``base + (2k+1) frame_size``. A frame is

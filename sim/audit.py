@@ -1,7 +1,8 @@
 """The simulator's audit: every hardware rule a driver can break, recorded when it is broken.
 
 A violation is a driver bug. Each record carries the hardware time, the rule's name and the
-register values involved, so a failing test says exactly what the driver did (DESIGN.md sec. 5).
+register values involved, so a failing test says exactly what the driver did (the rules:
+README.md, "Faults and the audit").
 """
 
 from __future__ import annotations

@@ -47,10 +47,6 @@ class SimClock:
         """Real seconds that ``hw_seconds`` of hardware time take."""
         return hw_seconds / self._scale
 
-    def to_hw(self, real_seconds: float) -> float:
-        """Hardware seconds that pass in ``real_seconds`` of real time."""
-        return real_seconds * self._scale
-
     def wait_until(self, t_hw: float, stop: threading.Event) -> bool:
         """Block until hardware time ``t_hw``; False at once if ``stop`` is set meanwhile."""
         while True:
@@ -59,8 +55,3 @@ class SimClock:
                 return not stop.is_set()
             if stop.wait(remaining / self._scale):
                 return False
-
-    def next_field(self, after: float | None = None) -> float:
-        """Hardware time of the first vertical sync strictly after ``after`` (default: now)."""
-        t = self.now() if after is None else after
-        return (int(t / FIELD_PERIOD) + 1) * FIELD_PERIOD

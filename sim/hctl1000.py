@@ -1,6 +1,6 @@
 """The HP HCTL-1000 motion-control IC, as a model that closes a loop around :class:`MotorPlant`.
 
-Two ways in, kept apart on purpose (DESIGN.md sec. 6): the *bus* (``bus_read``/``bus_write``), one
+Two ways in, kept apart on purpose (docs/design.md): the *bus* (``bus_read``/``bus_write``), one
 byte per access with the chip's side effects (R14H latches, R0EH commits, R13H clears, R00H sets
 one flag, R05H changes mode) and the audit; and the *backdoor* (``peek``/``poke`` and typed
 properties) for the simulator, register dumps and tests, with no side effects at all.
@@ -15,7 +15,7 @@ part. :meth:`advance_to` steps up to a hardware time and skips sample periods in
 observable can change (head held by friction or stalled, filter in a fixed point or two-cycle;
 only the winding current of the held motor is left where it was).
 
-Interpretations where the datasheets found say nothing (reference/hardware.md sec. 1):
+Interpretations where the datasheets found say nothing (docs/design.md):
 
 * A sample timer below 07H (the datasheet's minimum) runs as 07H: the chip could not finish its
   computation, and the model must not drown in 8 us ticks.

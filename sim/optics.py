@@ -1,6 +1,6 @@
 """The BIRIS head's optics: one vertical laser profile per acquisition, as BIRIS frames it.
 
-Model (after reference/biris-optics-and-harmony.md section 1; its numbers are inferred examples,
+Model (after docs/simulator.md; its numbers are inferred examples,
 not history). The laser fan (22 degrees) lies in the vertical plane of the head's azimuth; each
 of the N samples is one CCD row, i.e. one ray at a fixed elevation relative to the optical axis.
 The bi-iris mask images the lit point twice; with the lens focused at infinity the separation of

@@ -43,8 +43,9 @@ from biris_hw.bus.remote import (
     refusal,
     serve_request,
 )
+from biris_hw.commands.argtypes import add_simulator_arguments, seconds
 from biris_hw.errors import BirisError
-from regs.layout import SAMPLES_CHOICES, BirisMemoryMap, ImageRegion, TargetImage
+from regs.layout import BirisMemoryMap, ImageRegion, TargetImage
 from sim.rig import SimulatedBiris
 from sim.scene import Scene
 
@@ -64,36 +65,6 @@ class SimProcessError(BirisError):
 # -- options ---------------------------------------------------------------------------------------
 
 
-def _scene_spec(text: str) -> str:
-    """``room`` or ``circle:R`` (metres), checked at parse time so a typo fails at once."""
-    if text == "room":
-        return text
-    kind, _, radius = text.partition(":")
-    if kind == "circle":
-        try:
-            if float(radius) > 0.0:
-                return text
-        except ValueError:
-            pass
-    raise argparse.ArgumentTypeError(f"expected room or circle:R with R > 0 metres, not {text!r}")
-
-
-def _build_scene(spec: str) -> Scene:
-    if spec == "room":
-        return Scene.room()
-    return Scene.circle(float(spec.partition(":")[2]))
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not value > 0.0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number, not {text}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``sim`` options (the caller owns the parser)."""
     parser.add_argument(
@@ -102,20 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--socket", metavar="PATH", default=None, help="Unix socket (default /tmp/biris-NAME.sock)"
     )
+    add_simulator_arguments(parser, default_time_scale=1.0)
     parser.add_argument(
-        "--scene", type=_scene_spec, default="room", metavar="room|circle:R",
-        help="what the sensor looks at (default room)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--samples", type=int, choices=SAMPLES_CHOICES, default=64, help="samples per acquisition"
-    )
-    parser.add_argument(
-        "--time-scale", type=_positive, default=1.0, metavar="X",
-        help="hardware seconds per real second (default 1.0)",
-    )  # fmt: skip
-    parser.add_argument("--seed", type=int, default=0, metavar="N", help="random seed")
-    parser.add_argument(
-        "--duration", type=_positive, default=None, metavar="S",
+        "--duration", type=seconds, default=None, metavar="S",
         help="exit after S real seconds (default: until Ctrl-C)",
     )  # fmt: skip
 
@@ -421,7 +381,7 @@ def _serve(args: argparse.Namespace, stop_fd: int) -> int:
         segment = _Segment(args.shm, image.size)
         stack.callback(segment.close)
         rig = SimulatedBiris(
-            _build_scene(args.scene),
+            Scene.from_spec(args.scene),
             samples=args.samples,
             time_scale=args.time_scale,
             seed=args.seed,

@@ -83,7 +83,7 @@ def test_a_server_keeps_every_thread_on_its_cpus(no_leaks: None) -> None:
         with BirisServer(rig.hardware, BirisInitRecord(cpus=(one,))) as server:
             assert _affinity(me) == mine  # the caller's thread is given back as it was
             ours = set(threading.enumerate()) - existing - simulator
-            assert {"biris-level2-isr", "biris_server"} <= {t.name for t in ours}
+            assert {"level2_isr", "biris_server"} <= {t.name for t in ours}
             assert all(_affinity(t) == {one} for t in ours), {t.name: _affinity(t) for t in ours}
             assert all(_affinity(t) == mine for t in simulator)  # not the server's to move
             conn = server.open()

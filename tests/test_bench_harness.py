@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from biris_hw.bench import SECTIONS, BenchContext, BenchSkipped, Figure, Registry, Target, main
-from biris_hw.bench.harness import interleaved_rounds, percentile, registry, run_one, summarise
+from benchmarks import SECTIONS, BenchContext, BenchSkipped, Figure, Registry, Target, main
+from benchmarks.harness import interleaved_rounds, percentile, registry, run_one, summarise
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -176,6 +176,7 @@ def test_interleaved_rounds_rotate_who_goes_first() -> None:
 # -- the registers benchmark ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_registers_quick_run_gives_positive_figures(tmp_path: Path) -> None:
     pytest.importorskip("periphery")
     started = time.perf_counter()
@@ -224,7 +225,7 @@ def test_an_unwritable_report_exits_1(reg: Registry, tmp_path: Path) -> None:
 
 def test_the_module_and_the_tools_script_run_from_a_checkout(tmp_path: Path) -> None:
     bad = subprocess.run(
-        [sys.executable, "-m", "biris_hw.bench", "--only", "nosuch"],
+        [sys.executable, "-m", "benchmarks", "--only", "nosuch"],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -2,26 +2,23 @@
 
 Benchmarks never fail the build, so these tests do not judge targets: they check that every
 section runs through the harness, that each figure has samples and a plausible unit and value,
-and that a figure whose server feature is missing says what it needs instead. The streaming
-figures are also run once against an *emulated* EVERY_ACQUISITION connection (REQUEST_POINT
-polled behind the planned API), so their code is exercised before the real feature exists.
+and that a figure this machine cannot measure (the pinned latencies without CPU affinity) says
+what it needs instead. Each section is run once per module and its outcome shared.
 """
 
 from __future__ import annotations
 
-import enum
+import json
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-import biris_hw
-from biris_hw.bench.harness import BenchContext, Figure, Outcome, registry, run_one
-from biris_hw.client import Connection
-from biris_hw.data import ConnectionKind, Point
-from biris_hw.server import BirisServer
+from benchmarks.floor import hand_over_floor
+from benchmarks.harness import BenchContext, Figure, Outcome, registry, run_one
+from benchmarks.report import collect_meta, write_reports
 from sim.clock import SimClock
 from sim.irqgate import InterruptGate
 
@@ -32,19 +29,32 @@ UNITS = {
     "fanout": "ms",
     "sweep_gap_ms": "ms",
 }
+"""Unit of each section's figures..."""
+KEY_UNITS = {"latency_us.server_over_floor": "x"}
+"""... but for these, a ratio in a section of times."""
 
 
-def _run(section: str, tmp_path: Path) -> Outcome:
-    bench = registry.benchmarks()[section]
-    outcome = run_one(bench, BenchContext(quick=True, work_dir=tmp_path))
-    assert outcome.status in ("ok", "skipped"), outcome.traceback or outcome.error
-    if outcome.status == "skipped":
-        assert outcome.reason
-    return outcome
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Outcome]:
+    """Each section run once in quick mode, however many tests look at it."""
+    outcomes: dict[str, Outcome] = {}
+
+    def run(section: str) -> Outcome:
+        if section not in outcomes:
+            bench = registry.benchmarks()[section]
+            work = tmp_path_factory.mktemp(section)
+            outcomes[section] = run_one(bench, BenchContext(quick=True, work_dir=work))
+        outcome = outcomes[section]
+        assert outcome.status in ("ok", "skipped"), outcome.traceback or outcome.error
+        if outcome.status == "skipped":
+            assert outcome.reason
+        return outcome
+
+    return run
 
 
 def _measured(fig: Figure) -> bool:
-    """A figure either carries samples or says, with n = 0, which feature it needs."""
+    """A figure either carries samples or says, with n = 0, what it needs to be measured."""
     if fig.method.startswith("NOT MEASURED"):
         assert "needs" in fig.method
         assert fig.values == {"n": 0.0}
@@ -54,19 +64,22 @@ def _measured(fig: Figure) -> bool:
     return True
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("section", sorted(UNITS))
-def test_section_runs_in_quick_mode(section: str, tmp_path: Path) -> None:
-    outcome = _run(section, tmp_path)
+def test_section_runs_in_quick_mode(section: str, quick_run: Callable[[str], Outcome]) -> None:
+    outcome = quick_run(section)
     if outcome.status == "skipped":
         return
     assert outcome.figures
     measured = [fig for fig in outcome.figures if _measured(fig)]
-    assert measured, "every figure of the section is missing its feature"
+    assert measured, "no figure of the section was measured"
     for fig in outcome.figures:
-        assert fig.unit == UNITS[section]
+        assert fig.unit == KEY_UNITS.get(fig.key, UNITS[section])
         assert fig.target is not None or "No target" in fig.method or section == "fanout"
     for fig in measured:
-        if section == "throughput":
+        if fig.key == "latency_us.server_over_floor":
+            assert fig.values["ratio"] > 0
+        elif section == "throughput":
             assert fig.values["acq_per_s"] > 0
             assert fig.values["samples"] == 128
             assert 0 < fig.values["cpu_percent"] < 400
@@ -77,6 +90,7 @@ def test_section_runs_in_quick_mode(section: str, tmp_path: Path) -> None:
     if section == "latency_us":
         keys = {fig.name for fig in outcome.figures}
         assert {"request_point", "request_point_p99", "every_acquisition"} <= keys
+        assert {"every_acquisition_p99", "floor", "server_over_floor"} <= keys
         # and again with the server's and the client's threads on one CPU (biris_hw.affinity)
         assert {"every_acquisition_pinned", "request_point_pinned_p99"} <= keys
         pinned = next(f for f in outcome.figures if f.name == "every_acquisition_pinned")
@@ -92,72 +106,42 @@ def test_section_runs_in_quick_mode(section: str, tmp_path: Path) -> None:
         assert report.values["p50"] > 240
 
 
-# -- emulated streaming --------------------------------------------------------------------------
+# -- the hand-over floor -------------------------------------------------------------------------
 
 
-class _Policy(enum.Enum):
-    LATEST = "latest"
-    EVERY_ACQUISITION = "every_acquisition"
+def test_floor_chain_delivers_every_item_it_was_waiting_for() -> None:
+    run = hand_over_floor(5, period_s=0.005)
+    assert len(run.latencies_us) == 5
+    assert run.timeouts == 0
+    assert run.written >= 5
+    assert all(0 < us < 1_000_000 for us in run.latencies_us)
 
 
-class _Streaming:
-    """Stands in for an EVERY_ACQUISITION DATA connection: polls REQUEST_POINT for new points."""
-
-    def __init__(self, conn: Connection) -> None:
-        self._conn = conn
-        self._last_t = -math.inf
-
-    def ready_for_data(self, timeout: float | None = None) -> Point:
-        deadline = time.monotonic() + (timeout if timeout is not None else 60.0)
-        while time.monotonic() < deadline:
-            point = self._conn.request_point()
-            if point is not None and point.t > self._last_t:
-                self._last_t = point.t
-                return point
-            time.sleep(0.0002)
-        raise TimeoutError("no new point")
-
-    def close(self) -> None:
-        self._conn.close()
+def test_floor_refuses_zero_samples() -> None:
+    with pytest.raises(ValueError, match="at least 1"):
+        hand_over_floor(0, period_s=0.005)
 
 
-@pytest.fixture
-def emulated_streaming(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    real_open = BirisServer.open
-
-    def open_(
-        self: BirisServer, kind: ConnectionKind = ConnectionKind.NORMAL, policy: object = None
-    ) -> object:
-        if policy is _Policy.EVERY_ACQUISITION:
-            return _Streaming(real_open(self))
-        return real_open(self, kind)
-
-    monkeypatch.setattr(biris_hw, "DeliveryPolicy", _Policy, raising=False)
-    monkeypatch.setattr(BirisServer, "open", open_)
-    yield
-
-
-@pytest.mark.parametrize(
-    ("section", "names"),
-    [
-        ("latency_us", {"every_acquisition", "every_acquisition_p99"}),
-        ("presentation_ms", {"streaming"}),
-    ],
-)
-@pytest.mark.usefixtures("emulated_streaming")
-def test_streaming_figures_are_measured_once_the_feature_exists(
-    section: str, names: set[str], tmp_path: Path
+@pytest.mark.slow
+def test_floor_and_ratio_appear_in_a_quick_report(
+    quick_run: Callable[[str], Outcome], tmp_path: Path
 ) -> None:
-    outcome = _run(section, tmp_path)
+    outcome = quick_run("latency_us")
     assert outcome.status == "ok"
-    figures = {fig.name: fig for fig in outcome.figures if fig.name in names}
-    assert set(figures) == names
-    for fig in figures.values():
-        assert _measured(fig), fig.method
-        assert fig.values["n"] > 0
-    if section == "presentation_ms":
-        # a polled stream is at most a period or so old, far below a report-mode sweep
-        assert figures["streaming"].values["p50"] < 200
+    meta = collect_meta(seconds=outcome.seconds, quick=True, only=["latency_us"], load_errors={})
+    write_reports(tmp_path, meta, [outcome])
+    figures = json.loads((tmp_path / "report.json").read_text())["latency_us"]["figures"]
+    floor, ratio = figures["floor"], figures["server_over_floor"]
+    every = figures["every_acquisition"]["values"]
+    assert floor["unit"] == "us" and floor["key"] == "latency_us.floor"
+    assert floor["values"]["n"] == every["n"]  # as many samples as every_acquisition
+    assert 0 < floor["values"]["p50"] <= floor["values"]["p99"]
+    assert ratio["values"]["ratio"] == pytest.approx(every["p50"] / floor["values"]["p50"])
+    assert ratio["values"]["floor_p50"] == floor["values"]["p50"]
+    md = (tmp_path / "report.md").read_text()
+    assert "- Server's own cost: every_acquisition p50" in md
+    assert f"is {ratio['values']['ratio']:.1f}x the bare hand-over floor" in md
+    assert "| floor (us) |" in md and "| server_over_floor (x) |" in md
 
 
 # -- the simulator's measurement hook ------------------------------------------------------------

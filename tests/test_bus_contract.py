@@ -1,4 +1,4 @@
-"""One contract for every bus-window kind (DESIGN.md section 2.2).
+"""One contract for every bus-window kind (docs/registers.md).
 
 Each kind is opened the way a user would open it, through ``open_window``:
 
@@ -14,15 +14,24 @@ Each kind is opened the way a user would open it, through ``open_window``:
   it is for ``/dev/mem`` (by ``stat``). Its offset stays inside the first page because Linux
   faults on ``/dev/zero`` mappings at a non-zero file offset.
 
+* ``remote``: a board in another process, here a memory window served over a socket pair on a
+  thread (the wire protocol of :mod:`biris_hw.bus.remote`); not memory-mapped, so no views;
+* ``slice``: part of a larger memory window, at a base that is not zero.
+
+The kinds come from the registry (``WINDOW_KINDS``): every registered kind is held to this
+contract, and a kind registered without a factory in ``FACTORIES`` fails
+``test_every_registered_kind_has_a_factory``.
+
 Where the kind has a second way in (the bytearray, the shm file, the stand-in file) the tests
 read it too, so a window that maps the wrong place fails even when its own reads agree.
 """
 
 from __future__ import annotations
 
-import copy
 import mmap
 import os
+import socket
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,8 +41,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from biris_hw.bus import BusError, BusWindow, open_window, register_window, registry
+from biris_hw.bus import WINDOW_KINDS, BusError, BusWindow, open_window, register_window, registry
 from biris_hw.bus.memory import MemoryWindow
+from biris_hw.bus.remote import MAX_PACKET, Region, RemoteLink, serve_request
 from biris_hw.bus.shm import SharedMemoryWindow
 from biris_hw.errors import UnknownKind
 from regs.biexec import OFF_COMMAND, OFF_PARAM, OFF_STATUS, BiexecCom
@@ -43,6 +53,7 @@ VIEW_AT = 0x40
 UIO_MAP_OFFSET = 0x120
 PHYS_ADDR = 0x1234
 CHARDEV_ADDR = 0x234
+SLICE_BASE = 0x84
 
 
 @dataclass
@@ -55,6 +66,10 @@ class Rig:
     """Reads the target's bytes at a window offset without going through the window."""
     mapped_path: Callable[[BusWindow], str] | None
     """The name ``/proc/self/maps`` shows for a window's mapping, for kinds that map a file."""
+    views: bool = True
+    """Whether the kind is memory-mapped and so offers ctypes views."""
+    cleanup: Callable[[], None] | None = None
+    """Releases what the kind needed besides the window (a serving thread and its socket)."""
 
 
 def _file_peek(path: Path, base: int) -> Callable[[int, int], bytes]:
@@ -146,21 +161,93 @@ def _mmap_chardev(tmp_path: Path) -> Rig:
     return Rig(make(), make, None, lambda _: "/dev/zero")
 
 
-KINDS: dict[str, Callable[[Path], Rig]] = {
-    "memory": _memory,
-    "shm": _shm,
-    "mmap-file": _mmap_file,
-    "mmap-uio": _mmap_uio,
-    "mmap-physaddr": _mmap_physaddr,
-    "mmap-chardev": _mmap_chardev,
+class _Served:
+    """The serving half of the remote protocol for one memory window, on a thread."""
+
+    def __init__(self, backing: bytearray) -> None:
+        self.board = MemoryWindow(len(backing), buffer=backing)
+        self.client, self._end = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self.link = RemoteLink(self.client, timeout=10.0, label="contract")
+        self._thread = threading.Thread(target=self._run, name="contract-remote", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            try:
+                packet = self._end.recv(MAX_PACKET)
+            except OSError:
+                return
+            if not packet:
+                return
+            self._end.send(serve_request(packet, {Region.MOTION: self.board}))
+
+    def close(self) -> None:
+        self.link.close()  # the peer sees end of file and the thread returns
+        self._thread.join(timeout=10.0)
+        self._end.close()
+        self.board.close()
+
+
+def _remote(tmp_path: Path) -> Rig:
+    backing = bytearray(SIZE)
+    served = _Served(backing)
+
+    def make() -> BusWindow:
+        return open_window("remote", link=served.link, region="motion", size=SIZE)
+
+    peek = lambda off, n: bytes(backing[off : off + n])  # noqa: E731
+    return Rig(make(), make, peek, None, views=False, cleanup=served.close)
+
+
+def _slice(tmp_path: Path) -> Rig:
+    backing = bytearray(SLICE_BASE + SIZE + 0x40)
+
+    def make() -> BusWindow:
+        parent = open_window("memory", size=len(backing), buffer=backing)
+        return open_window("slice", parent=parent, base=SLICE_BASE, size=SIZE)
+
+    peek = lambda off, n: bytes(backing[SLICE_BASE + off : SLICE_BASE + off + n])  # noqa: E731
+    return Rig(make(), make, peek, None)
+
+
+FACTORIES: dict[str, dict[str, Callable[[Path], Rig]]] = {
+    "memory": {"memory": _memory},
+    "shm": {"shm": _shm},
+    "mmap": {
+        "mmap-file": _mmap_file,
+        "mmap-uio": _mmap_uio,
+        "mmap-physaddr": _mmap_physaddr,
+        "mmap-chardev": _mmap_chardev,
+    },
+    "remote": {"remote": _remote},
+    "slice": {"slice": _slice},
 }
+"""Registered kind -> the ways of opening one the suite runs (test id -> factory)."""
+
+CASES = [
+    pytest.param((kind, make), id=variant)
+    for kind in sorted(WINDOW_KINDS)
+    for variant, make in FACTORIES.get(kind, {}).items()
+]
 
 
-@pytest.fixture(params=list(KINDS))
+def test_every_registered_kind_has_a_factory() -> None:
+    missing = sorted(set(WINDOW_KINDS) - set(FACTORIES))
+    assert not missing, f"window kinds registered but not held to the contract: {missing}"
+    assert set(FACTORIES) <= set(WINDOW_KINDS), "a factory for a kind nobody registers"
+
+
+@pytest.fixture(params=CASES)
 def rig(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Rig]:
-    made = KINDS[request.param](tmp_path)
-    yield made
-    made.window.close()
+    kind, make = request.param
+    made = make(tmp_path)
+    assert made.window.kind == kind
+    try:
+        yield made
+    finally:
+        made.window.close()
+        if made.cleanup is not None:
+            made.cleanup()
 
 
 @pytest.fixture
@@ -184,7 +271,7 @@ def mapped_names() -> str:
 
 def test_window_has_its_size_and_kind(rig: Rig) -> None:
     assert rig.window.size == SIZE
-    assert rig.window.kind in {"memory", "shm", "mmap"}
+    assert WINDOW_KINDS[rig.window.kind].endswith(f":{type(rig.window).__qualname__}")
     assert not rig.window.closed
 
 
@@ -320,7 +407,17 @@ def test_bulk_round_trip(window: BusWindow) -> None:
 # -- structure views -----------------------------------------------------------------------------
 
 
-def test_view_shares_memory_with_width_accesses(window: BusWindow) -> None:
+def _views_only(rig: Rig) -> None:
+    """Skip for a kind that is not memory-mapped, after checking it refuses views properly."""
+    if not rig.views:
+        with pytest.raises(BusError, match="not memory-mapped"):
+            rig.window.view(BiexecCom, VIEW_AT)
+        pytest.skip("this kind is not memory-mapped")
+
+
+def test_view_shares_memory_with_width_accesses(rig: Rig) -> None:
+    _views_only(rig)
+    window = rig.window
     com = window.view(BiexecCom, VIEW_AT)
     window.write16(VIEW_AT + OFF_COMMAND, 5)
     assert com.COMMAND == 5
@@ -349,10 +446,11 @@ AFTER_CLOSE: dict[str, Callable[[BusWindow], Any]] = {
 }
 
 
-@pytest.mark.parametrize("access", AFTER_CLOSE.values(), ids=AFTER_CLOSE.keys())
-def test_every_access_after_close_raises(
-    window: BusWindow, access: Callable[[BusWindow], Any]
-) -> None:
+@pytest.mark.parametrize("name", AFTER_CLOSE)
+def test_every_access_after_close_raises(rig: Rig, name: str) -> None:
+    window, access = rig.window, AFTER_CLOSE[name]
+    if name == "view":
+        _views_only(rig)
     access(window)  # fine while open
     window.close()
     assert window.closed
@@ -360,7 +458,9 @@ def test_every_access_after_close_raises(
         access(window)
 
 
-def test_views_die_with_their_window(window: BusWindow) -> None:
+def test_views_die_with_their_window(rig: Rig) -> None:
+    _views_only(rig)
+    window = rig.window
     com = window.view(BiexecCom, VIEW_AT)
     com.COMMAND = 3
     window.close()
@@ -375,13 +475,14 @@ def test_views_die_with_their_window(window: BusWindow) -> None:
 def test_context_manager_closes(rig: Rig) -> None:
     with rig.open_again() as window:
         window.write16(0, 7)
-        com = window.view(BiexecCom, 0)
-        assert com.COMMAND == 7
+        com = window.view(BiexecCom, 0) if rig.views else None
+        assert com is None or com.COMMAND == 7
     assert window.closed
     with pytest.raises(BusError):
         window.read16(0)
-    with pytest.raises(BusError):
-        _ = com.COMMAND
+    if com is not None:
+        with pytest.raises(BusError):
+            _ = com.COMMAND
 
 
 def test_close_unmaps(rig: Rig) -> None:
@@ -471,18 +572,19 @@ def test_unknown_kind_is_refused() -> None:
     assert "mmap" in str(caught.value)  # the message lists what is known
 
 
-def test_register_window_adds_a_kind(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_register_window_adds_a_kind() -> None:
     class ScratchWindow(MemoryWindow):
         kind = "scratch"
 
-    # The registry is process-wide: the kind must be gone after this test.
-    monkeypatch.setattr(registry, "_REGISTRY", copy.deepcopy(registry._REGISTRY))
-    monkeypatch.setattr(registry, "WINDOW_KINDS", registry._REGISTRY.kinds)
     with pytest.raises(UnknownKind):
         open_window("scratch", size=16)
     register_window("scratch", ScratchWindow)
-    assert registry.WINDOW_KINDS["scratch"].endswith("ScratchWindow")
-    with open_window("scratch", size=16) as window:
-        assert isinstance(window, ScratchWindow)
-        window.write16(0, 0x4242)
-        assert window.read(0, 2) == b"BB"
+    try:
+        assert WINDOW_KINDS["scratch"].endswith("ScratchWindow")
+        with open_window("scratch", size=16) as window:
+            assert isinstance(window, ScratchWindow)
+            window.write16(0, 0x4242)
+            assert window.read(0, 2) == b"BB"
+    finally:
+        registry._REGISTRY.unregister("scratch")  # the registry is process-wide
+    assert "scratch" not in WINDOW_KINDS

@@ -3,7 +3,9 @@ back, and errors that are one line with the right exit status."""
 
 from __future__ import annotations
 
+import argparse
 import csv
+import json
 import os
 import select
 import signal
@@ -19,10 +21,10 @@ import pytest
 from biris_hw import cli
 from biris_hw.cli import COMMANDS, Command, main
 from biris_hw.client import Connection
-from biris_hw.commands import common
-from biris_hw.commands.scan import load_scans
+from biris_hw.commands import argtypes, common
 from biris_hw.plots import closest_points_xy
 from biris_hw.records import BirisInitRecord
+from biris_hw.scanfile import load_scans
 from sim import Scene, SimulatedBiris
 from sim.audit import Rule
 
@@ -101,6 +103,145 @@ def test_a_missing_command_module_is_one_line(biris: Run, monkeypatch: pytest.Mo
     assert "not available" in line
 
 
+# -- argument types --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("kind", "text", "value"),
+    [
+        (argtypes.degrees, "-45.5", -45.5),
+        (argtypes.positive_float, "1e-3", 1e-3),
+        (argtypes.seconds, "2", 2.0),
+        (argtypes.time_scale, "30", 30.0),
+        (argtypes.positive_int, "3", 3),
+        (argtypes.positive_int, "0x10", 16),
+        (argtypes.positive_int, "010", 10),
+        (argtypes.offset, "0", 0),
+        (argtypes.offset, "0x85000", 0x85000),
+        (argtypes.integer, "-7", -7),
+        (argtypes.integer, "0xFF", 255),
+        (argtypes.seed, "0", 0),
+        (argtypes.samples, "128", 128),
+        (argtypes.scene_spec, "room", "room"),
+        (argtypes.scene_spec, "circle:100", "circle:100"),  # beyond BIRIS's reach: no returns
+        (argtypes.path, "out/run", Path("out/run")),
+    ],
+)
+def test_argument_types_accept(kind: Callable[[str], object], text: str, value: object) -> None:
+    assert kind(text) == value
+
+
+@pytest.mark.parametrize(
+    ("kind", "text", "words"),
+    [
+        (argtypes.degrees, "ten", "not an angle in degrees: 'ten'"),
+        (argtypes.degrees, "inf", "an angle must be finite, not inf"),
+        (argtypes.positive_float, "0", "must be a positive number, not 0"),
+        (argtypes.positive_float, "nan", "must be a positive number, not nan"),
+        (argtypes.positive_float, "inf", "must be a positive number, not inf"),
+        (argtypes.positive_float, "x", "not a number: 'x'"),
+        (argtypes.positive_int, "0", "must be at least 1, not 0"),
+        (argtypes.positive_int, "1.5", "not a whole number: '1.5'"),
+        (argtypes.offset, "-4", "an offset must not be negative, not -4"),
+        (argtypes.offset, "zz", "not an offset: 'zz'"),
+        (argtypes.integer, "0xZZ", "not an integer (decimal or 0x hex): '0xZZ'"),
+        (argtypes.seed, "-1", "a seed must not be negative, not -1"),
+        (argtypes.samples, "96", "invalid choice: '96' (choose from 64, 128)"),
+        (argtypes.samples, "x", "invalid choice: 'x'"),
+        (argtypes.scene_spec, "cube", "a scene is 'room' or 'circle:R'"),
+        (argtypes.scene_spec, "circle:0", "circle:R needs a radius in metres, a finite R > 0"),
+        (argtypes.path, "", "not a file name: ''"),
+    ],
+)
+def test_argument_types_refuse_with_a_reason(
+    kind: Callable[[str], object], text: str, words: str
+) -> None:
+    with pytest.raises(argparse.ArgumentTypeError) as caught:
+        kind(text)
+    assert words in str(caught.value) and "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("argv", "line"),
+    [
+        (
+            ["sim", "--shm", "x", "--time-scale", "0"],
+            "biris sim: argument --time-scale: must be a positive number, not 0",
+        ),
+        (
+            ["sim", "--shm", "x", "--scene", "circle:-2"],
+            "biris sim: argument --scene: circle:R needs a radius in metres, a finite R > 0, "
+            "not '-2'",
+        ),
+        (
+            ["sim", "--shm", "x", "--seed", "-3"],
+            "biris sim: argument --seed: a seed must not be negative, not -3",
+        ),
+        (
+            ["regdump", "--file", "f", "--watch", "0"],
+            "biris regdump: argument --watch: must be at least 1, not 0",
+        ),
+        (
+            ["regdump", "--file", "f", "--samples", "96"],
+            "biris regdump: argument --samples: invalid choice: '96' (choose from 64, 128)",
+        ),
+        (
+            ["demo", "--duration", "-1"],
+            "biris demo: argument --duration: must be a positive number, not -1",
+        ),
+        (
+            ["watch", "--sim", "--interval", "0"],
+            "biris watch: argument --interval: must be a positive number, not 0",
+        ),
+        (
+            ["motor-params", "--sim", "--gain", "0xZZ"],
+            "biris motor-params: argument --gain: not an integer (decimal or 0x hex): '0xZZ'",
+        ),
+        (
+            ["point", "--sim", "--timeout", "0"],
+            "biris point: argument --timeout: must be a positive number, not 0",
+        ),
+    ],
+)
+def test_a_bad_value_is_one_line_and_exit_2_in_every_command(
+    biris: Run, argv: list[str], line: str
+) -> None:
+    assert _error(biris(*argv), 2, line) == line
+
+
+def _flag_types(name: str) -> dict[str, object]:
+    parser = cli.build_parser(name)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {
+        flag: action.type for action in sub.choices[name]._actions for flag in action.option_strings
+    }
+
+
+def test_the_simulator_flags_are_the_same_in_every_command() -> None:
+    """``biris sim``, ``biris demo`` and every command with --sim check them the same way."""
+    expected = {
+        "--scene": argtypes.scene_spec,
+        "--samples": argtypes.samples,
+        "--time-scale": argtypes.time_scale,
+        "--seed": argtypes.seed,
+    }
+    for name in ("sim", "demo", "scan", "point", "watch", "home", "motor-params"):
+        types = _flag_types(name)
+        assert {flag: types[flag] for flag in expected} == expected, name
+
+
+def test_the_argument_types_do_not_load_the_simulator_or_the_server() -> None:
+    probe = (
+        "import sys, biris_hw.commands.argtypes\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'sim'"
+        " or m.startswith('biris_hw.server')))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert done.stdout.strip() == "[]"
+
+
 # -- scan ------------------------------------------------------------------------------------------
 
 
@@ -167,8 +308,6 @@ def test_room_scans_lie_on_the_walls(biris: Run, tmp_path: Path) -> None:
 
 
 def test_scan_json(biris: Run) -> None:
-    import json
-
     code, out, err = biris("scan", "--to", "-30", "--json", *SIM, "--samples", "128")
     assert code == 0, err
     data = json.loads(out)
@@ -191,6 +330,9 @@ def test_scan_json(biris: Run) -> None:
         (["--to", "10", "--scene", "circle:-1"], "circle:R needs a radius"),
         (["--to", "10", "--samples", "96"], "invalid choice"),
         (["--to", "10", "--time-scale", "0"], "must be a positive number"),
+        (["--to", "10", "--seed", "-1"], "a seed must not be negative"),
+        (["--to", "10", "--save", ""], "not a file name"),
+        (["--cw", "-1", "--ccw", "1", "--sweeps", "0"], "argument --sweeps: must be at least 1"),
     ],
 )
 def test_scan_usage_errors(biris: Run, args: list[str], words: str) -> None:
@@ -218,8 +360,6 @@ def test_point_makes_an_acquisition(biris: Run) -> None:
 
 
 def test_point_json(biris: Run) -> None:
-    import json
-
     code, out, err = biris("point", "--to", "-8", "--json", *SIM)
     assert code == 0, err
     data = json.loads(out)
@@ -401,6 +541,7 @@ def test_a_hardware_fault_is_exit_1(biris: Run, faulty_rig: list[Callable[..., N
     assert "did not reach its destination" in line
 
 
+@pytest.mark.audit_violations_expected
 def test_an_audit_violation_is_exit_1(biris: Run, faulty_rig: list[Callable[..., None]]) -> None:
     faulty_rig.append(lambda rig: rig.audit.record(Rule.CMD_WHILE_BUSY, "injected by the test"))
     line = _error(biris("home", *SIM), 1, "biris home: the simulator's audit recorded 1 ")

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from biris_hw.cli import main
-from biris_hw.commands.scan import load_scans
 from biris_hw.data import Direction
 from biris_hw.plots import closest_points_xy, profile_points
+from biris_hw.scanfile import load_scans
 from sim import Scene
 
 RADIUS_M = 2.0

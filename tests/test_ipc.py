@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from biris_hw.errors import ConnectionClosed, HardwareFault, RequestError
-from biris_hw.ipc import Envelope, Mailbox, Message, ReplyError, TaskStopped
+from biris_hw.ipc import Envelope, Mailbox, ReplyError, TaskStopped
 
 WAIT = 5.0  # generous bound on every blocking call, so a bug fails instead of hanging
 
@@ -357,17 +357,70 @@ def test_many_senders_one_receiver_thread() -> None:
     assert results == {i: 2 * i for i in range(n)}
 
 
-def test_message_base_and_repr() -> None:
+def test_envelope_and_mailbox_repr() -> None:
     @dataclass(frozen=True)
-    class NewPoint(Message):
+    class NewPoint:
         acq: int
 
     mailbox = Mailbox("BIRISSERV:")
     mailbox.post(NewPoint(3))
     envelope = mailbox.receive(timeout=WAIT)
     assert isinstance(envelope, Envelope)
-    assert isinstance(envelope.message, NewPoint) and envelope.message.kind == "NewPoint"
+    assert isinstance(envelope.message, NewPoint)
     assert envelope.sender == threading.current_thread().name
     assert "NewPoint(acq=3)" in repr(envelope) and "received" in repr(envelope)
     assert "1 held" in repr(mailbox)
     envelope.reply()
+
+
+# -- one-way posts (an interrupt service routine's NEW_POINT) ------------------------------------
+
+
+def test_a_oneway_post_is_queued_in_order_and_nobody_waits_for_its_answer() -> None:
+    mailbox = Mailbox("server")
+    first = mailbox.post("CMD_TRANSFER_RDY")
+    mailbox.post_oneway("NEW_POINT")  # returns at once: there is nothing to wait on
+    last = mailbox.post("BIRIS_CMD_COMPLETE")
+    envelopes = [mailbox.receive(timeout=0) for _ in range(3)]
+    assert [e.message for e in envelopes] == ["CMD_TRANSFER_RDY", "NEW_POINT", "BIRIS_CMD_COMPLETE"]
+    oneway = envelopes[1]
+    assert oneway.oneway and not envelopes[0].oneway
+    assert not oneway.waiting and envelopes[0].waiting  # received, but nobody is REPLY-blocked
+    assert mailbox.held == 3
+    assert oneway.reply(None) is False  # answered as any other; the answer goes nowhere
+    with pytest.raises(ReplyError):
+        oneway.reply(None)
+    assert mailbox.held == 2
+    for envelope in (envelopes[0], envelopes[2]):
+        envelope.reply("ok")
+    assert first.wait(0) == last.wait(0) == "ok"
+
+
+def test_a_refused_oneway_post_is_logged_not_raised(caplog: pytest.LogCaptureFixture) -> None:
+    mailbox = Mailbox("server")
+    mailbox.post_oneway("NEW_POINT")
+    with caplog.at_level("DEBUG", logger="biris_hw.ipc"):
+        assert mailbox.receive(timeout=0).fail(RequestError("stale")) is False
+    assert "stale" in caplog.text and mailbox.held == 0
+
+
+def test_a_oneway_post_to_a_stopped_task_raises_and_close_releases_queued_ones() -> None:
+    mailbox = Mailbox("server")
+    mailbox.post_oneway("NEW_POINT")
+    received = mailbox.receive(timeout=0)
+    mailbox.post_oneway("NEW_POINT 2")
+    mailbox.close()
+    assert mailbox.queued == 0 and mailbox.held == 0
+    assert received.reply(None) is False
+    with pytest.raises(TaskStopped):
+        mailbox.post_oneway("NEW_POINT 3")
+
+
+def test_a_oneway_post_rings_a_blocked_receiver() -> None:
+    mailbox = Mailbox("server")
+    got: list[object] = []
+    receiver = threading.Thread(target=lambda: got.append(mailbox.receive(WAIT).message))
+    receiver.start()
+    mailbox.post_oneway("NEW_POINT")  # whether or not the receiver blocked yet, it gets it
+    receiver.join(WAIT)
+    assert got == ["NEW_POINT"]

@@ -1,4 +1,5 @@
-"""The level-2 and level-3 demultiplexers against memory windows and an eventfd physical line."""
+"""The generic demultiplexer (biris_hw.irq), and the server's level-2 and level-3 service
+routines (biris_hw.server.isr) against memory windows and an eventfd physical line."""
 
 from __future__ import annotations
 
@@ -6,17 +7,19 @@ import os
 import select
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import pytest
 
 from biris_hw.bus.memory import MemoryWindow
 from biris_hw.errors import LineClosed
-from biris_hw.irq import EventFdLine, InterruptLine, Level2Demux, Level3Demux, Logical
+from biris_hw.irq import Demultiplexer, EventFdLine, InterruptLine
+from biris_hw.server.isr import Level2Demux, Level3Demux, Logical
 from regs.biexec import OFF_COMMAND, BiCommand
 from regs.bit3 import BIT3_SPACE, Bit3Reg, LocalStatus
 from regs.tech80 import MOTION_WINDOW_SIZE, AxisBit, BoardReg
+from tests.conftest import until
 
 WAIT = 5.0
 """Timeout for things that should happen almost at once; only reached when a test fails."""
@@ -30,17 +33,6 @@ MOTOR, ELEVATION = Logical.MOTOR_END_OF_SCAN, Logical.ELEVATION_END_OF_SCAN
 
 def open_fds() -> int:
     return len(os.listdir("/proc/self/fd"))
-
-
-def until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
-    """Wait for a condition another thread makes true, on an Event with a deadline."""
-    tick = threading.Event()
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        tick.wait(0.001)
-    return True
 
 
 @dataclass
@@ -369,4 +361,61 @@ def test_demultiplexers_leak_no_descriptor_or_thread() -> None:
     for closable in (physical2, physical3, coupler, biris, motion):
         closable.close()
     assert threading.active_count() == threads
+    assert open_fds() == before
+
+
+# -- the generic base ------------------------------------------------------------------------------
+
+
+class Doorbell(Demultiplexer[str]):
+    """A device-free routine: every physical interrupt rings "bell"; a count of 0 is impossible,
+    so a count above 3 is called spurious, to exercise the counters."""
+
+    def __init__(self, line: InterruptLine) -> None:
+        super().__init__(line, ("bell", "spare"), "doorbell_isr")
+
+    def _service(self, count: int) -> None:
+        if count > 3:
+            self._count_spurious(count)
+            return
+        self._raise("bell", count)
+
+
+def test_the_base_knows_nothing_of_biris() -> None:
+    with EventFdLine() as physical, Doorbell(physical) as bell:
+        assert bell.carries == ("bell", "spare")
+        physical.trigger(2)
+        assert bell.line("bell").wait(WAIT) == 2
+        physical.trigger(5)
+        assert until(lambda: bell.spurious == 5)
+        assert bell.counts == {"bell": 2, "spare": 0}
+        with pytest.raises(ValueError, match="doorbell_isr does not carry 'nothing'"):
+            bell.line("nothing")
+        assert [t.name for t in threading.enumerate()].count("doorbell_isr") == 1
+
+
+def test_an_owner_may_run_the_routine_in_its_own_thread() -> None:
+    with EventFdLine() as physical:
+        bell = Doorbell(physical)
+        owner = threading.Thread(target=bell.run, name="owners_thread")
+        owner.start()
+        physical.trigger()
+        assert bell.line("bell").wait(WAIT) == 1
+        assert bell.running
+        with pytest.raises(RuntimeError, match="already running"):
+            bell.start()
+        bell.close()  # stops and joins the owner's thread
+        assert not owner.is_alive()
+        assert bell.line("bell").closed
+
+
+def test_a_routine_closed_before_its_thread_runs_returns_at_once() -> None:
+    before = open_fds()
+    with EventFdLine() as physical:
+        bell = Doorbell(physical)
+        bell.close()
+        owner = threading.Thread(target=bell.run)
+        owner.start()
+        owner.join(WAIT)
+        assert not owner.is_alive() and not bell.running
     assert open_fds() == before

@@ -9,7 +9,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import pytest
@@ -26,6 +26,7 @@ from biris_hw.irq import (
     register_line,
     registry,
 )
+from tests.conftest import until
 
 RELEASE_BOUND = 0.5
 """Seconds within which close() must free a blocked waiter (generous: 2 shared cores)."""
@@ -38,17 +39,6 @@ TOTAL = struct.Struct("=i")
 
 def open_fds() -> int:
     return len(os.listdir("/proc/self/fd"))
-
-
-def until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
-    """Wait for a condition another thread makes true, on an Event with a deadline."""
-    tick = threading.Event()
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        tick.wait(0.001)
-    return True
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Every complete Python example in the README runs exactly as written."""
+"""Every complete Python example in the README and in docs/*.md runs exactly as written."""
 
 from __future__ import annotations
 
@@ -9,44 +9,55 @@ import pytest
 
 from tests.conftest import affinity_allowed
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+DOCS = sorted((ROOT / "docs").glob("*.md"))
 
 
-def _python_blocks() -> list[str]:
-    text = README.read_text(encoding="utf-8")
+def _python_blocks(page: Path) -> list[str]:
+    text = page.read_text(encoding="utf-8")
     return re.findall(r"```python\n(.*?)```", text, flags=re.DOTALL)
 
 
-def _complete_examples() -> list[str]:
+def _complete_examples(page: Path) -> list[str]:
     """Blocks that stand alone (they import what they use and build a rig); fragments that
     continue an earlier example are left out."""
     return [
         block
-        for block in _python_blocks()
+        for block in _python_blocks(page)
         if block.startswith(("from ", "import ")) and "with SimulatedBiris(" in block
     ]
 
 
+def _all_examples() -> list[tuple[Path, str]]:
+    return [(page, block) for page in [README, *DOCS] for block in _complete_examples(page)]
+
+
+def _example_id(example: tuple[Path, str]) -> str:
+    page, block = example
+    return f"{page.relative_to(ROOT)}:{block.splitlines()[-1].strip()[:40]}"
+
+
 def test_the_readme_has_its_examples() -> None:
-    assert len(_complete_examples()) >= 7, "README.md lost runnable Python examples"
+    assert _complete_examples(README), "README.md lost its runnable Python session"
+    assert len(_all_examples()) >= 8, "README.md and docs/*.md lost runnable Python examples"
 
 
-@pytest.mark.parametrize(
-    "block", _complete_examples(), ids=lambda b: b.splitlines()[-1].strip()[:40]
-)
-def test_readme_example_runs_as_written(
-    block: str, no_leaks: None, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize("example", _all_examples(), ids=_example_id)
+def test_example_runs_as_written(
+    example: tuple[Path, str], no_leaks: None, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    page, block = example
     if "biris_hw.affinity" in block and not affinity_allowed():
         pytest.skip("this platform does not let a thread choose its CPUs")
-    exec(compile(block, str(README), "exec"), {"__name__": "__readme__"})
+    exec(compile(block, str(page), "exec"), {"__name__": "__readme__"})
     out = capsys.readouterr().out
     assert out.strip(), "the example printed nothing"
     assert "Traceback" not in out
 
 
 def test_the_first_example_shows_the_whole_session(capsys: pytest.CaptureFixture[str]) -> None:
-    exec(compile(_complete_examples()[0], str(README), "exec"), {"__name__": "__readme__"})
+    exec(compile(_complete_examples(README)[0], str(README), "exec"), {"__name__": "__readme__"})
     out = capsys.readouterr().out
     assert "acquisitions of 64 samples" in out
     assert "fault: parity" in out

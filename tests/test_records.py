@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from biris_hw import BirisInitRecord, MotorParams
 from biris_hw.errors import RequestError
-from biris_hw.records import INTERNAL_TASKS, acq_rate_counts_per_acq, acquisitions_for
+from biris_hw.records import acq_rate_counts_per_acq, acquisitions_for
 
 
 def test_defaults_are_appendix_b() -> None:
@@ -43,24 +43,6 @@ def test_later_fields_have_safe_defaults() -> None:
     assert record.continuous_acquisition is False
     assert record.elevation_limits_counts == (-512, 512)
     assert record.mount_offset_m == (0.0, 0.0, 0.0)
-
-
-def test_tasks_in_creation_order_and_read_only() -> None:
-    expected = (
-        "BIRIS_CMD_NOTIFIER",
-        "BIRIS_CMD_TRANSFER",
-        "BIRIS_DATA_NOTIFIER",
-        "BIRIS_AZ_NOTIFIER",
-        "AZ_SCAN_START",
-        "BIRIS_TIMEOUT",
-        "BIRIS_PAR_ERROR",
-        "BIRIS_BUS_ERROR",
-    )
-    record = BirisInitRecord()
-    assert record.tasks == expected == INTERNAL_TASKS == BirisInitRecord.tasks
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        record.tasks = ()  # type: ignore[misc]
-    assert "tasks" not in record.to_dict()  # Harmony globals, not configuration
 
 
 def test_records_are_frozen() -> None:

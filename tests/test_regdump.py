@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import struct
 from pathlib import Path
@@ -12,6 +11,7 @@ import pytest
 from biris_hw import regdump
 from biris_hw.bus import open_window
 from biris_hw.bus.memory import MemoryWindow
+from biris_hw.bus.shm import SharedMemoryWindow
 from biris_hw.cli import main
 from biris_hw.errors import BusError
 from biris_hw.hardware import BirisHardware
@@ -517,11 +517,6 @@ def test_snapshot_hardware_reads_three_windows() -> None:
     assert data["coupler"]["registers"]["LEVEL2_VECTOR"]["raw"] == 0x40
 
 
-_HAVE_MMAP = importlib.util.find_spec("biris_hw.bus.mmapwin") is not None
-_HAVE_SHM = importlib.util.find_spec("biris_hw.bus.shm") is not None
-
-
-@pytest.mark.skipif(not _HAVE_MMAP, reason="biris_hw.bus.mmapwin (MmapWindow) not written yet")
 def test_mmap_source_at_an_offset(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     offset = 0x3000 + 0x24  # not page aligned: the window handles alignment
     path = tmp_path / "big.img"
@@ -533,19 +528,15 @@ def test_mmap_source_at_an_offset(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert data["hctl_azimuth"]["actual_position"] == {"counts": 1024, "deg": 90.0}
 
 
-@pytest.mark.skipif(not _HAVE_MMAP, reason="biris_hw.bus.mmapwin (MmapWindow) not written yet")
 def test_mmap_short_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "img"
     path.write_bytes(build_image())
     assert "too short" in _error(capsys, "regdump", "--mmap", str(path), "--offset", "0x1000")
 
 
-@pytest.mark.skipif(not _HAVE_SHM, reason="biris_hw.bus.shm (SharedMemoryWindow) not written yet")
 def test_shm_source(capsys: pytest.CaptureFixture[str]) -> None:
     img = build_image()
     # The owner is a window too, as in the simulator: the shm window keeps the tracker straight.
-    from biris_hw.bus.shm import SharedMemoryWindow
-
     with SharedMemoryWindow(size=len(img), create=True) as owner:
         owner.write(0, img)
         name = owner.name
@@ -560,7 +551,6 @@ def test_shm_source(capsys: pytest.CaptureFixture[str]) -> None:
         assert data["hctl_azimuth"]["actual_position"]["counts"] == 1040
 
 
-@pytest.mark.skipif(not _HAVE_SHM, reason="biris_hw.bus.shm (SharedMemoryWindow) not written yet")
 def test_missing_shm_segment(capsys: pytest.CaptureFixture[str]) -> None:
     line = _error(capsys, "regdump", "--shm", "biris-regdump-test-no-such-segment")
     assert line == "biris regdump: no shared memory segment 'biris-regdump-test-no-such-segment'"

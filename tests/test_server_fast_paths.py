@@ -19,13 +19,16 @@ import pytest
 from biris_hw.bus.memory import MemoryWindow
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.ipc import Mailbox, TaskStopped
-from biris_hw.irq import EventFdLine, Level2Demux, Logical
+from biris_hw.irq import EventFdLine
 from biris_hw.server.acquisition import Drained
 from biris_hw.server.connections import Connections
+from biris_hw.server.counters import Counters
+from biris_hw.server.isr import Level2Demux, Logical
 from biris_hw.server.messages import Acquisition, ContinuousLive, NewPoint, SweepDataDone
-from biris_hw.server.tasks import BirisDataNotifier, biris_data_notifier
+from biris_hw.server.tasks import BirisDataNotifier
 from regs.biexec import OFF_COMMAND, BiCommand
 from regs.bit3 import BIT3_SPACE
+from tests.conftest import until
 
 WAIT = 5.0
 """Timeout for things that should happen almost at once; only reached when a test fails."""
@@ -86,7 +89,7 @@ def test_data_runs_the_attached_notifier_in_the_demultiplexer_thread(l2: Level2)
     l2.demux.start()
     l2.interrupt(BiCommand.BI_ACQUIRE)
     assert notifier.called.acquire(timeout=WAIT)
-    assert notifier.calls == [(1, "biris-level2-isr")]
+    assert notifier.calls == [(1, "level2_isr")]
     assert l2.demux.counts[DATA] == 1
     assert l2.demux.line(DATA).wait(0) == 0  # the line was not raised as well
 
@@ -155,33 +158,22 @@ def _notifier(inbox: Mailbox, reader: FakeReader) -> BirisDataNotifier:
     return BirisDataNotifier(inbox, reader)  # type: ignore[arg-type]
 
 
-def test_new_point_is_posted_without_waiting_and_one_message_at_most_is_outstanding() -> None:
+def test_new_point_is_posted_one_way_and_the_routine_never_waits() -> None:
+    """The data notifier runs in the level-2 routine's thread: it must never block on the
+    administrator, or BIRIS_CMD, PERR and BERR would be demultiplexed late."""
     inbox = Mailbox("admin")
     reader = FakeReader(
         Drained((_acq(0),), 0, False), Drained((_acq(1),), 2, False), Drained((), 0, False)
     )
     notify = _notifier(inbox, reader)
-    assert notify(1) is True  # returns with NEW_POINT queued and unanswered
-    first = inbox.receive(timeout=0)
+    assert notify(1) is True  # NEW_POINT queued, unanswered
+    assert notify(1) is True  # and the next one too: no wait for the first's reply
+    assert inbox.queued == 2
+    first, second = inbox.receive(timeout=0), inbox.receive(timeout=0)
     assert isinstance(first.message, NewPoint) and first.message.acquisitions[0].index == 0
-
-    done = threading.Event()
-
-    def second() -> None:
-        notify(1)
-        done.set()
-
-    thread = threading.Thread(target=second)
-    thread.start()
-    # the next send waits for the first one's reply before it posts
-    assert not done.wait(0.2)
-    assert inbox.queued == 0
-    first.reply(None)
-    assert done.wait(WAIT)
-    thread.join(WAIT)
-    got = inbox.receive(timeout=0)
-    assert isinstance(got.message, NewPoint) and got.message.lost == 2
-    got.reply(None)
+    assert (
+        isinstance(second.message, NewPoint) and second.message.lost == 2
+    )  # in the reader's order
     assert notify(1) is True  # nothing drained: nothing sent
     assert inbox.queued == 0
 
@@ -221,21 +213,6 @@ def test_the_notifier_ends_when_the_administrator_stops() -> None:
     assert _notifier(inbox, reader)(1) is False
 
 
-def test_the_thread_form_ends_when_its_line_closes() -> None:
-    inbox = Mailbox("admin")
-    line = EventFdLine()
-    reader = FakeReader(Drained((_acq(0),), 0, False))
-    thread = threading.Thread(target=biris_data_notifier, args=(line, inbox, reader))
-    thread.start()
-    line.trigger()
-    env = inbox.receive(timeout=WAIT)
-    assert isinstance(env.message, NewPoint)
-    env.reply(None)
-    line.close()
-    thread.join(WAIT)
-    assert not thread.is_alive()
-
-
 # -- the mailbox's doorbell -----------------------------------------------------------------------
 
 
@@ -250,13 +227,7 @@ def _blocked_receiver(inbox: Mailbox, got: list[object], timeout: float | None =
 
 
 def _wait_receiving(inbox: Mailbox, n: int) -> None:
-    tick = threading.Event()
-    for _ in range(5000):
-        with inbox._lock:
-            if inbox._receiving == n:
-                return
-        tick.wait(0.001)
-    raise AssertionError(f"{n} receiver(s) never blocked")
+    until(lambda: inbox.receivers == n, what=f"{n} receiver(s) blocked in receive()")
 
 
 def test_a_ring_nobody_took_does_not_make_the_next_receive_return_empty() -> None:
@@ -293,7 +264,7 @@ def test_two_blocked_receivers_each_get_one_of_two_messages() -> None:
     for thread in threads:
         thread.join(WAIT)
     assert sorted(got) == ["a", "b"]  # type: ignore[type-var]
-    assert inbox._receiving == 0
+    assert inbox.receivers == 0
 
 
 def test_close_wakes_every_blocked_receiver() -> None:
@@ -325,7 +296,7 @@ def _scan() -> Scan:
 
 
 def test_a_scan_for_many_waiting_connections_is_stamped_once_and_counted_for_each() -> None:
-    counters = {"deliveries": 0}
+    counters = Counters()
     clients = Connections(lambda: 5.0, counters)
     inbox = Mailbox("admin")
     owner = threading.current_thread()
@@ -343,7 +314,7 @@ def test_a_scan_for_many_waiting_connections_is_stamped_once_and_counted_for_eac
     assert items[0] is items[1] and items[0] is not scan
     assert items[0].t_delivered == 5.0 and scan.t_delivered is None
     np.testing.assert_array_equal(items[0].t, scan.t)
-    assert counters["deliveries"] == 2
+    assert counters.deliveries == 2
     assert [c.delivered for c in conns] == [1, 1]
     assert list(queued.queue) == [scan]  # not ready: queued unstamped, stamped when asked for
 

@@ -12,11 +12,12 @@ import os
 import threading
 import time
 import weakref
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
-from biris_hw.bench.throughput import KEEP_UP, Trial
+from benchmarks.throughput import KEEP_UP, Trial
 from biris_hw.bus.memory import MemoryWindow
 from biris_hw.data import ConnectionKind, Direction, Point, Scan
 from biris_hw.errors import LineClosed
@@ -25,9 +26,21 @@ from biris_hw.irq.eventfd import EventFdLine
 from biris_hw.server.acquisition import AcquisitionReader
 from biris_hw.server.delivery import ClientConn, stamp
 from biris_hw.server.tasks import DeadlineTimer
+from regs.biexec import ACQ_LINE_END
 from regs.layout import AZIMUTH_DTYPE, FRAME_DTYPE, FrameAddressing
 
 WAIT = 5.0
+
+
+def until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
+    """Wait for a state another thread reaches (not for a time): True once ``condition`` holds,
+    False if it still does not after ``timeout``, which only a failing test reaches."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.0005)
+    return True
 
 
 def _point(t: float = 1.0) -> Point:
@@ -73,8 +86,8 @@ def test_recorded_ages_are_the_items_ages() -> None:
     me = weakref.ref(threading.current_thread())
     conn = ClientConn(1, ConnectionKind.DATA, me)
     first, second, empty = _scan(), _scan(5), _scan(0)
-    items = [stamp(first, 3.0), stamp(second, 3.5), stamp(first, 4.0), stamp(empty, 5.0)]
-    items += [stamp(_point(2.0), 2.25), stamp(second, 6.0)]
+    items: list[Scan | Point] = [stamp(first, 3.0), stamp(second, 3.5), stamp(first, 4.0)]
+    items += [stamp(empty, 5.0), stamp(_point(2.0), 2.25), stamp(second, 6.0)]
     for item in items:
         conn.record(item)
     ages = [item.age for item in items if item.age is not None]
@@ -86,8 +99,10 @@ def test_recorded_ages_are_the_items_ages() -> None:
 
 # -- frames --------------------------------------------------------------------------------------
 class _Link:
-    def acq_line(self) -> int:  # pragma: no cover - _read does not ask
-        raise AssertionError
+    """BIEXEC_COM at the end of a sequence: every acquisition is complete."""
+
+    def acq_line(self) -> int:
+        return ACQ_LINE_END
 
 
 def _reference_read(
@@ -122,8 +137,12 @@ def test_frame_read_matches_two_reads(samples: int, gap_words: int, max_range: i
     window.write(addr.azimuth_offset, azimuths.tobytes())
     reader = AcquisitionReader(window, _Link(), lambda: 0.0, max_range)  # type: ignore[arg-type]
     reader.configure(addr, samples, 0.05)
-    for slot in range(12):
-        got = reader._read(slot, slot, 1.5)
+    reader.begin(seq_id=1, n=12)
+    with reader.lock:
+        drained = reader.drain()
+    assert drained.finished and drained.lost == 0
+    assert [got.index for got in drained.acquisitions] == list(range(12))
+    for slot, got in enumerate(drained.acquisitions):
         azimuth, closest, discarded, profile, intensity = _reference_read(
             window, addr, slot, samples, max_range
         )
@@ -153,11 +172,15 @@ def test_repeated_and_concurrent_waits_each_see_their_interrupts() -> None:
     line = EventFdLine()
     got: list[int] = []
     errors: list[BaseException] = []
+    progress = threading.Condition()
 
     def waiter() -> None:
         try:
             while True:
-                got.append(line.wait(WAIT))
+                count = line.wait(WAIT)
+                with progress:
+                    got.append(count)
+                    progress.notify_all()
         except LineClosed:
             pass
         except BaseException as exc:  # pragma: no cover - reported below
@@ -166,12 +189,10 @@ def test_repeated_and_concurrent_waits_each_see_their_interrupts() -> None:
     threads = [threading.Thread(target=waiter) for _ in range(3)]
     for thread in threads:
         thread.start()
-    for _ in range(200):
-        line.trigger()
-        time.sleep(0.0005)
-    deadline = time.monotonic() + WAIT
-    while sum(got) < 200 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    with progress:
+        for sent in range(1, 201):
+            line.trigger()  # one at a time: three waiters race for each, two find nothing
+            assert progress.wait_for(lambda sent=sent: sum(got) >= sent, WAIT)  # type: ignore[misc]
     line.close()
     for thread in threads:
         thread.join(WAIT)
@@ -196,9 +217,7 @@ def test_a_receiver_that_blocks_is_woken_by_a_later_send() -> None:
     got: list[object] = []
     receiver = threading.Thread(target=lambda: got.append(mailbox.receive(WAIT).message))
     receiver.start()
-    deadline = time.monotonic() + WAIT
-    while not mailbox._receiving and time.monotonic() < deadline:
-        time.sleep(0.001)
+    assert until(lambda: mailbox.receivers == 1)  # blocked in receive, with the queue empty
     mailbox.post("late")
     receiver.join(WAIT)
     assert got == ["late"]
@@ -208,11 +227,13 @@ def test_a_receiver_that_blocks_is_woken_by_a_later_send() -> None:
 
 # -- timers --------------------------------------------------------------------------------------
 class _Clock:
+    """A hardware clock the test moves: the timer's deadlines pass when the test says so."""
+
     def __init__(self) -> None:
-        self.t0 = time.monotonic()
+        self.now = 100.0
 
     def __call__(self) -> float:
-        return time.monotonic() - self.t0
+        return self.now
 
 
 def test_rearming_later_moves_the_expiry_and_sooner_is_noticed() -> None:
@@ -222,22 +243,25 @@ def test_rearming_later_moves_the_expiry_and_sooner_is_noticed() -> None:
     timer.start()
     try:
         gen = timer.arm(0.05)
-        for _ in range(5):  # re-armed later and later: it must not fire at the first deadline
-            time.sleep(0.02)
+        for _ in range(5):  # re-armed later and later, each time before the deadline passed
+            clock.now += 0.02
             gen = timer.arm(0.05)
-        started = clock()
+        assert admin.queued == 0  # no deadline has passed yet
+        clock.now += 0.05  # the last one passes: it fires, with the last generation
         env = admin.receive(WAIT)
-        assert env.message == gen and clock() - started >= 0.02
+        assert env.message == gen
         env.reply(None)
-        timer.arm(30.0)
-        gen = timer.arm(0.02)  # sooner: the task sleeping towards 30 s must be told
-        env = admin.receive(2.0)
+        timer.arm(30.0)  # the task now sleeps towards 30 s (30 real seconds at scale 1)
+        gen = timer.arm(0.02)  # sooner: it must be told, or it sleeps on
+        clock.now += 0.02
+        env = admin.receive(2.0)  # far less than 30 s
         assert env.message == gen
         env.reply(None)
         timer.arm(0.05)
         timer.disarm()  # a disarmed deadline never fires, even if the task wakes for it
+        clock.now += 1.0
         with pytest.raises(TimeoutError):
-            admin.receive(0.2)
+            admin.receive(0.2)  # the task wakes within 0.05 s for the deadline it slept towards
     finally:
         admin.close()
         timer.stop()
@@ -248,8 +272,8 @@ def test_a_trial_that_made_acquisitions_too_slowly_did_not_keep_time() -> None:
     trial = Trial(time_scale=200.0, window=3.0, nominal_per_s=4000.0, max_lag_s=0.01)
     trial.made = trial.received = 100
     trial.acq_per_s = (1.0 - KEEP_UP) * 4000.0
-    assert trial.kept_up and trial.passed
+    assert (trial.kept_up, trial.passed) == (True, True)
     trial.acq_per_s = 2500.0  # a saturated rig that caught up between sequences: small lag
-    assert trial.lag_ok and not trial.rate_ok and not trial.passed
+    assert (trial.lag_ok, trial.rate_ok, trial.passed) == (True, False, False)
     trial.acq_per_s, trial.max_lag_s = 4100.0, 0.5
-    assert not trial.lag_ok and not trial.passed
+    assert (trial.lag_ok, trial.passed) == (False, False)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from biris_hw import ConnectionKind, DeliveryPolicy, Direction, HardwareFault
+from biris_hw.protocol import ResetRequest
 from biris_hw.server import BirisServer
 from biris_hw.server.latency import LatencyHistogram
-from biris_hw.server.messages import ResetRequest
 from sim import SimulatedBiris
 from tests.conftest import RigFactory
 

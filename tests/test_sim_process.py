@@ -46,6 +46,7 @@ from biris_hw.server import BirisServer
 from regs.biexec import OFF_STATUS, BiexecCom
 from regs.layout import TargetImage, frame_size_for
 from sim import process
+from tests.conftest import until
 
 WAIT = 30.0
 """Generous real-time bound for anything that takes well under a second."""
@@ -136,13 +137,14 @@ def _dump(name: str) -> dict[str, Any]:
 
 def _azimuth_mirrored_near(name: str, dest: int, timeout: float) -> dict[str, Any]:
     """Poll the register mirror (refreshed every 20 ms) until it shows the head at ``dest``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        dump = _dump(name)
-        if abs(dump["hctl_azimuth"]["actual_position"]["counts"] - dest) <= 3:
-            return dump
-        if time.monotonic() > deadline:
-            pytest.fail(f"the mirror never showed the azimuth near {dest}: {dump['hctl_azimuth']}")
+    last: list[dict[str, Any]] = []
+
+    def near() -> bool:
+        last[:] = [_dump(name)]
+        return abs(last[0]["hctl_azimuth"]["actual_position"]["counts"] - dest) <= 3
+
+    until(near, timeout, f"the mirror to show the azimuth near {dest}")
+    return last[0]
 
 
 def test_a_driver_in_another_process_scans_and_regdump_watches(sim_process: SimProcess) -> None:

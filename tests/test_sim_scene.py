@@ -195,6 +195,49 @@ def test_bad_shapes_and_rooms_are_refused(make: object) -> None:
         make()  # type: ignore[operator]
 
 
+# --- scenes named on a command line ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("spec", "radius"),
+    [("circle:2", 2.0), ("circle:0.25", 0.25), ("circle:1e2", 100.0), ("circle:2.50", 2.5)],
+)
+def test_a_circle_spec_is_that_circle(spec: str, radius: float) -> None:
+    """One rule for R: any finite R > 0, beyond BIRIS's 32.767 m reach too (no returns then)."""
+    scene = Scene.from_spec(spec)
+    (cylinder,) = scene.shapes
+    assert isinstance(cylinder, Cylinder) and cylinder.radius == radius
+    dist, _ = scene.cast(HEAD, level(0.7))
+    assert dist[0] == pytest.approx(radius, rel=1e-12)
+
+
+def test_the_room_spec_is_the_furnished_room() -> None:
+    assert Scene.from_spec("room").shapes == Scene.room().shapes
+
+
+@pytest.mark.parametrize(
+    ("spec", "words"),
+    [
+        ("cube", "a scene is 'room' or 'circle:R'"),
+        ("", "a scene is 'room' or 'circle:R'"),
+        ("Room", "a scene is 'room' or 'circle:R'"),
+        ("room:3", "a scene is 'room' or 'circle:R'"),
+        ("circle", "a scene is 'room' or 'circle:R'"),
+        ("circle:", "circle:R needs a radius in metres, a finite R > 0, not ''"),
+        ("circle:two", "not 'two'"),
+        ("circle:0", "not '0'"),
+        ("circle:-1", "not '-1'"),
+        ("circle:nan", "not 'nan'"),
+        ("circle:inf", "not 'inf'"),
+    ],
+)
+def test_a_bad_spec_is_one_line_saying_why(spec: str, words: str) -> None:
+    with pytest.raises(ValueError) as caught:
+        Scene.from_spec(spec)
+    message = str(caught.value)
+    assert words in message and "\n" not in message
+
+
 # --- plan views -----------------------------------------------------------------------------------
 
 

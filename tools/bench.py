@@ -1,12 +1,16 @@
-"""``make bench``: the benchmark suite from a checkout; the code lives in ``biris_hw.bench``."""
+"""``make bench``: the benchmark suite from a checkout; the code lives in ``benchmarks/``.
+
+The same as ``python -m benchmarks`` run from the checkout's root, from any directory. The
+``benchmarks`` folder is not part of the installed distribution (it imports ``sim`` freely), so
+this script puts the checkout's root on the import path first.
+"""
 
 import sys
 from pathlib import Path
 
-# Run the checkout's code even where the project is not installed into the interpreter.
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from biris_hw.bench import main
+from benchmarks import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,4 +1,4 @@
-"""Bus windows: how the host reaches BIRIS memory and the VME boards (DESIGN.md section 2.2)."""
+"""Bus windows: how the host reaches BIRIS memory and the VME boards (docs/registers.md)."""
 
 from biris_hw.bus.base import BufferWindow, BusWindow, StructView
 from biris_hw.bus.registry import WINDOW_KINDS, open_window, register_window

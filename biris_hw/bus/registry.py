@@ -1,8 +1,11 @@
-"""Window kinds by name (see :mod:`biris_hw.kinds`); ``biris_hw.windows`` entry points add more."""
+"""Window kinds by name (see :mod:`biris_hw.kinds`); ``biris_hw.windows`` entry points add more.
+
+``open_window("memory", size=0x1000)`` opens a window of the named kind; ``register_window(kind,
+cls)`` adds or replaces a kind; ``WINDOW_KINDS`` maps every built-in or registered kind to its
+``module:Class``.
+"""
 
 from __future__ import annotations
-
-from typing import Any
 
 from biris_hw.bus.base import BusWindow
 from biris_hw.kinds import KindRegistry
@@ -17,19 +20,11 @@ _REGISTRY: KindRegistry[BusWindow] = KindRegistry(
         "shm": "biris_hw.bus.shm:SharedMemoryWindow",
         "mmap": "biris_hw.bus.mmapwin:MmapWindow",
         "remote": "biris_hw.bus.remote:RemoteWindow",
+        "slice": "biris_hw.bus.remote:SliceWindow",
     },
     "biris_hw.windows",
 )
 
 WINDOW_KINDS = _REGISTRY.kinds
-"""Kind name -> ``module:Class``."""
-
-
-def register_window(kind: str, cls: type[BusWindow]) -> None:
-    """Make ``open_window(kind, ...)`` build ``cls``; replaces an earlier entry of that name."""
-    _REGISTRY.register(kind, cls)
-
-
-def open_window(kind: str, **options: Any) -> BusWindow:
-    """Open a window of the named kind: ``open_window("memory", size=0x1000)``."""
-    return _REGISTRY.open(kind, **options)
+open_window = _REGISTRY.open
+register_window = _REGISTRY.register

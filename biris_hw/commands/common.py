@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import math
 import os
 import sys
 import traceback
@@ -26,6 +25,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, TextIO
 
+from biris_hw.commands.argtypes import SIM_DEFAULTS, add_simulator_arguments, path, seconds
 from biris_hw.errors import (
     BirisError,
     BusError,
@@ -55,16 +55,13 @@ __all__ = [
     "add_target_arguments",
     "add_timeout_argument",
     "check_target_arguments",
-    "degrees",
     "error_line",
     "exit_status",
     "is_terminal",
     "log_to_stderr",
     "make_scene",
     "open_session",
-    "positive_float",
     "report_error",
-    "scene_spec",
 ]
 
 EXIT_FAULT = 1
@@ -94,61 +91,11 @@ class AuditFailure(BirisError):
     """The simulator recorded a hardware rule the driver broke (exit 1: a driver bug)."""
 
 
-# -- argument types --------------------------------------------------------------------------------
-
-
-def degrees(text: str) -> float:
-    """An angle in degrees; NaN and infinities are refused here, before anything moves."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an angle in degrees: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"an angle must be finite, not {text}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, not {text}")
-    return value
-
-
-def scene_spec(text: str) -> str:
-    """``room`` or ``circle:R`` (R in metres), checked now and built later, so that a bad
-    scene is a usage error and ``--help`` never imports the simulator."""
-    _scene_radius(text)
-    return text
-
-
-def _scene_radius(spec: str) -> float | None:
-    """None for the room, the radius for ``circle:R``; ArgumentTypeError for anything else."""
-    if spec == "room":
-        return None
-    kind, _, radius_text = spec.partition(":")
-    if kind != "circle":
-        raise argparse.ArgumentTypeError(f"a scene is 'room' or 'circle:R' (metres), not {spec!r}")
-    try:
-        radius = float(radius_text)
-    except ValueError:
-        radius = math.nan
-    if not (math.isfinite(radius) and 0 < radius <= 30):
-        raise argparse.ArgumentTypeError(
-            f"circle:R needs a radius in metres (0 < R <= 30), not {radius_text!r}"
-        )
-    return radius
-
-
 def make_scene(spec: str) -> Scene:
-    """The simulator's scene for a ``--scene`` value."""
+    """The simulator's scene for a ``--scene`` value (:meth:`sim.Scene.from_spec`)."""
     from sim import Scene
 
-    radius = _scene_radius(spec)
-    return Scene.room() if radius is None else Scene.circle(radius)
+    return Scene.from_spec(spec)
 
 
 # -- flags -----------------------------------------------------------------------------------------
@@ -171,6 +118,7 @@ def add_target_arguments(parser: argparse.ArgumentParser) -> None:
     choice.add_argument("--sim", action="store_true", help="use the simulator")
     choice.add_argument(
         "--target",
+        type=path,
         metavar="FILE",
         help=f"a real VME target described in TOML (default: ${TARGET_ENV})",
     )
@@ -180,30 +128,20 @@ def add_target_arguments(parser: argparse.ArgumentParser) -> None:
         help="a simulator process started with `biris sim --shm NAME`",
     )
     where.add_argument(
-        "--init", metavar="FILE", help="server init record (TOML; default: the report's)"
+        "--init",
+        type=path,
+        metavar="FILE",
+        help="server init record (TOML; default: the report's)",
     )
     sim = parser.add_argument_group("simulator (with --sim)")
-    sim.add_argument(
-        "--scene", type=scene_spec, default=None, help="room (default) or circle:R (metres)"
-    )
-    sim.add_argument(
-        "--samples", type=int, choices=(64, 128), default=None, help="samples per acquisition"
-    )
-    sim.add_argument(
-        "--time-scale",
-        type=positive_float,
-        default=None,
-        metavar="X",
-        help=f"hardware seconds per real second (default {DEFAULT_TIME_SCALE:g})",
-    )
-    sim.add_argument("--seed", type=int, default=None, metavar="N", help="noise seed (default 0)")
+    add_simulator_arguments(sim, default_time_scale=DEFAULT_TIME_SCALE, deferred=True)
     add_debug_argument(parser)
 
 
 def add_timeout_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--timeout",
-        type=positive_float,
+        type=seconds,
         default=DEFAULT_WAIT_S,
         metavar="S",
         help=f"give up after S real seconds without an answer (default {DEFAULT_WAIT_S:g})",
@@ -224,7 +162,7 @@ def check_target_arguments(args: argparse.Namespace) -> None:
                 f"(or set {TARGET_ENV})"
             )
     if args.sim:
-        defaults = {"scene": "room", "samples": 64, "time_scale": DEFAULT_TIME_SCALE, "seed": 0}
+        defaults = {**SIM_DEFAULTS, "time_scale": DEFAULT_TIME_SCALE}
         for key, value in defaults.items():
             if getattr(args, key) is None:
                 setattr(args, key, value)
@@ -249,26 +187,26 @@ class Session:
     """The simulator, with --sim: its scene, true azimuth and audit."""
 
 
-def _load_record(path: str | None) -> BirisInitRecord:
-    if path is None:
+def _load_record(file: str | os.PathLike[str] | None) -> BirisInitRecord:
+    if file is None:
         return BirisInitRecord()
     try:
-        return BirisInitRecord.load(path)
+        return BirisInitRecord.load(file)
     except OSError as exc:
-        raise SetupError(f"cannot read init record {path}: {exc.strerror or exc}") from exc
+        raise SetupError(f"cannot read init record {file}: {exc.strerror or exc}") from exc
     except RequestError as exc:
         raise SetupError(str(exc)) from exc
 
 
-def _open_target(path: str) -> BirisHardware:
+def _open_target(file: str | os.PathLike[str]) -> BirisHardware:
     from biris_hw.target import load_target
 
     try:
-        return load_target(path)
+        return load_target(file)
     except BusError as exc:
         raise SetupError(f"cannot open the target: {exc}") from exc
     except OSError as exc:
-        raise SetupError(f"cannot read target file {path}: {exc.strerror or exc}") from exc
+        raise SetupError(f"cannot read target file {file}: {exc.strerror or exc}") from exc
     except RequestError as exc:
         raise SetupError(str(exc)) from exc
 

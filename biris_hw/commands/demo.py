@@ -22,24 +22,25 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from biris_hw import scanfile
 from biris_hw.angles import counts_to_deg
+from biris_hw.commands.argtypes import add_simulator_arguments, degrees, path, seconds
 from biris_hw.commands.common import (
     DEFAULT_TIME_SCALE,
     SetupError,
     add_debug_argument,
-    degrees,
     is_terminal,
     make_scene,
-    positive_float,
-    scene_spec,
 )
-from biris_hw.data import ConnectionKind, Direction, Scan
+from biris_hw.data import Direction, Scan
 from biris_hw.records import BirisInitRecord
 from biris_hw.server import BirisServer
+from biris_hw.sweeps import sweeping
 
 if TYPE_CHECKING:
     from sim import SimulatedBiris
@@ -57,7 +58,7 @@ _PLAIN_EVERY_S = 2.5
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration",
-        type=positive_float,
+        type=seconds,
         default=DEFAULT_DURATION_S,
         metavar="S",
         help=f"real seconds of sweeping (default {DEFAULT_DURATION_S:g})",
@@ -69,7 +70,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--ccw", type=degrees, default=90.0, metavar="DEG", help="counter-clockwise limit (90)"
     )
     parser.add_argument(
-        "--out", default=DEFAULT_OUT, metavar="DIR", help=f"pictures go here ({DEFAULT_OUT})"
+        "--out",
+        type=path,
+        default=Path(DEFAULT_OUT),
+        metavar="DIR",
+        help=f"pictures go here ({DEFAULT_OUT})",
     )
     parser.add_argument(
         "--continuous",
@@ -78,20 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: the report's BI_ACQUIRE per sweep)",
     )
     sim = parser.add_argument_group("simulator")
-    sim.add_argument(
-        "--scene", type=scene_spec, default="room", help="room (default) or circle:R (metres)"
-    )
-    sim.add_argument(
-        "--samples", type=int, choices=(64, 128), default=64, help="samples per acquisition"
-    )
-    sim.add_argument(
-        "--time-scale",
-        type=positive_float,
-        default=DEFAULT_TIME_SCALE,
-        metavar="X",
-        help=f"hardware seconds per real second (default {DEFAULT_TIME_SCALE:g})",
-    )
-    sim.add_argument("--seed", type=int, default=0, metavar="N", help="noise seed (default 0)")
+    add_simulator_arguments(sim, default_time_scale=DEFAULT_TIME_SCALE)
     add_debug_argument(parser)
 
 
@@ -199,10 +191,11 @@ def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
     data_files = None
     if latest:
         pictures = _draw(config, latest, scene.outline_2d())
-        from biris_hw.commands.scan import save_scans
-
         ordered = [latest[d] for d in Direction if d in latest]
-        data_files = save_scans(ordered, config.out / "latest-scans")
+        data_files = (
+            scanfile.save_scans(config.out / "latest-scans.npz", ordered),
+            scanfile.export_csv(config.out / "latest-scans.csv", ordered),
+        )
     return DemoResult(status, latest, pictures, data_files)
 
 
@@ -222,30 +215,27 @@ def _sweep(
     started: float,
 ) -> None:
     config = status.config
-    conn = server.open()
-    data = server.open(ConnectionKind.DATA)
-    conn.continuous_scan(config.cw_deg, config.ccw_deg)
     deadline = started + config.duration_s
     wait_s = max(30.0, 60.0 / config.time_scale)
 
-    def take(scan: Scan) -> None:
-        latest[scan.direction] = scan
-        status.latest = scan
-        status.sweeps[scan.direction] += 1
-        status.dropped_buffers = data.dropped
+    with sweeping(server, config.cw_deg, config.ccw_deg, timeout=wait_s) as sweeps:
 
-    while (remaining := deadline - time.monotonic()) > 0:
-        try:
-            take(data.ready_for_data(timeout=min(_POLL_S, remaining)))
-        except TimeoutError:
-            pass
-        _refresh(status, server, rig, started)
-        view.update()
-    conn.stop_scan()  # the sweep under way completes; wait for it so the head stands still
-    conn.wait_idle(timeout=wait_s)
-    # Collect the sweep that completed after STOP, so the pictures show the newest data.
-    while status.total_sweeps + data.dropped < server.status()["counters"]["scans"]:
-        take(data.ready_for_data(timeout=wait_s))
+        def take(scan: Scan) -> None:
+            latest[scan.direction] = scan
+            status.latest = scan
+            status.sweeps[scan.direction] += 1
+            status.dropped_buffers = sweeps.dropped
+
+        while (remaining := deadline - time.monotonic()) > 0:
+            scan = sweeps.next(timeout=min(_POLL_S, remaining))
+            if scan is not None:
+                take(scan)
+            _refresh(status, server, rig, started)
+            view.update()
+        # STOP: the sweep under way completes; the head comes to rest. Keep the sweeps that
+        # completed meanwhile, so the pictures show the newest data.
+        for scan in sweeps.stop():
+            take(scan)
     _refresh(status, server, rig, started)
 
 
@@ -262,7 +252,7 @@ def _refresh(
         if not status.state.startswith("fault"):
             status.state = "stopped"
         return
-    report: dict[str, Any] = server.status()
+    report: Mapping[str, Any] = server.status()
     counters = report["counters"]
     status.state = str(report["state"])
     status.azimuth_deg = counts_to_deg(float(report["azimuth"]))
@@ -311,8 +301,8 @@ def _draw(
 def _print_summary(result: DemoResult, out: TextIO) -> None:
     s = result.status
     print(f"biris demo: {summary_line(s)}", file=out)
-    for path in result.pictures:
-        print(f"  picture: {path}", file=out)
+    for picture in result.pictures:
+        print(f"  picture: {picture}", file=out)
     if result.data_files is not None:
         print(f"  data:    {result.data_files[0]} (and .csv)", file=out)
     if not result.latest:

@@ -25,11 +25,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     stream = out or sys.stdout
     with open_session(args) as session:
-        conn = session.server.open()
-        conn.home()
-        conn.wait_idle(timeout=args.timeout)
+        with session.server.open() as conn:
+            conn.home()
+            conn.wait_idle(timeout=args.timeout)
         counts = int(session.server.status()["azimuth"])
-        conn.close()
         line = f"homed: azimuth {counts_to_deg(counts):+.2f} deg ({counts} counts)"
         if session.rig is not None:
             line += f"; simulated head at {counts_to_deg(session.rig.azimuth_counts):+.2f} deg"

@@ -19,7 +19,7 @@ import sys
 from typing import TextIO
 
 from biris_hw.angles import counts_to_deg
-from biris_hw.bus.base import BusWindow
+from biris_hw.commands.argtypes import integer, path
 from biris_hw.commands.common import (
     UsageError,
     add_target_arguments,
@@ -29,9 +29,8 @@ from biris_hw.commands.common import (
 from biris_hw.errors import RequestError
 from biris_hw.records import MotorParams
 from regs.hctl1000 import Reg, accel_from_reg, sample_period
-from regs.tech80 import Axis, axis_register
 
-__all__ = ["PARAMS", "add_arguments", "chip_params", "describe", "run"]
+__all__ = ["PARAMS", "add_arguments", "describe", "run"]
 
 PARAMS: dict[str, tuple[str, Reg | tuple[Reg, Reg]]] = {
     "sample": ("--sample", Reg.SAMPLE_TIMER),
@@ -42,13 +41,6 @@ PARAMS: dict[str, tuple[str, Reg | tuple[Reg, Reg]]] = {
     "max_accel": ("--max-accel", (Reg.ACCEL_LSB, Reg.ACCEL_MSB)),
 }
 """MotorParams field -> (flag, the HCTL-1000 register(s) that hold it, LSB first)."""
-
-
-def _register_value(text: str) -> int:
-    try:
-        return int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer (decimal or 0x hex): {text!r}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,28 +54,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "max_accel": "trapezoid acceleration, 8.8 counts/sample^2 (R26H/R27H)",
     }
     for name, (flag, _) in PARAMS.items():
-        new.add_argument(
-            flag, dest=name, type=_register_value, default=None, metavar="N", help=helps[name]
-        )
+        new.add_argument(flag, dest=name, type=integer, default=None, metavar="N", help=helps[name])
     parser.add_argument(
-        "--save-init", metavar="FILE", help="write the init record with these parameters (TOML)"
+        "--save-init",
+        type=path,
+        metavar="FILE",
+        help="write the init record with these parameters (TOML)",
     )
     parser.add_argument("--json", action="store_true", help="one JSON object")
     add_timeout_argument(parser)
     add_target_arguments(parser)
-
-
-def chip_params(motion: BusWindow, axis: Axis = Axis.AZIMUTH) -> dict[str, int]:
-    """The parameters as the chip holds them: plain reads, none of which latches or clears."""
-    values: dict[str, int] = {}
-    for name, (_, reg) in PARAMS.items():
-        if isinstance(reg, tuple):
-            lsb = motion.read8(axis_register(axis, reg[0]))
-            msb = motion.read8(axis_register(axis, reg[1]))
-            values[name] = (msb << 8) | lsb
-        else:
-            values[name] = motion.read8(axis_register(axis, reg))
-    return values
 
 
 def describe(name: str, value: int, sample: int) -> str:
@@ -111,11 +91,10 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     with open_session(args) as session:
         params = dataclasses.replace(session.record.motor, **changes)
         if changes:
-            conn = session.server.open()
-            conn.set_motor_params(params)
-            conn.wait_idle(timeout=args.timeout)
-            conn.close()
-        chip = chip_params(session.hardware.motion)
+            with session.server.open() as conn:
+                conn.set_motor_params(params)
+                conn.wait_idle(timeout=args.timeout)
+        chip = session.hardware.devices.azimuth.read_params()  # the one driver of the chip
         record = dataclasses.replace(session.record, motor=params)
     if args.save_init is not None:
         record.save(args.save_init)

@@ -15,11 +15,11 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from biris_hw.commands.argtypes import degrees
 from biris_hw.commands.common import (
     Session,
     add_target_arguments,
     add_timeout_argument,
-    degrees,
     open_session,
 )
 from biris_hw.data import Point
@@ -57,13 +57,12 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
 
 def latest_point(session: Session, to_deg: float, timeout: float) -> Point:
     """The server's latest point; scans to ``to_deg`` first when it has none yet."""
-    conn = session.server.open()
-    point = conn.request_point()
-    if point is None:
-        conn.single_scan(to_deg)
-        conn.wait_idle(timeout=timeout)
+    with session.server.open() as conn:
         point = conn.request_point()
-    conn.close()
+        if point is None:
+            conn.single_scan(to_deg)
+            conn.wait_idle(timeout=timeout)
+            point = conn.request_point()
     if point is None:
         raise TimeoutError("the scan ended without an acquisition")
     return point

@@ -6,43 +6,36 @@ stands to DEG while BIRIS acquires, and the command prints that scan. Continuous
 every completed sweep is received (none skipped, and any that were would be counted); the first
 sweep runs from where the head stands to the CW limit, so it is shorter than the others.
 
-``--save PATH`` writes PATH.npz (every array of every scan, for programs) and PATH.csv (one row
-per acquisition with its range profile, for spreadsheets); :func:`load_scans` reads the .npz back
-into :class:`~biris_hw.Scan` objects.
+``--save PATH`` writes PATH.npz (every scan whole, for programs:
+:func:`biris_hw.scanfile.load_scans` reads it back into equal :class:`~biris_hw.Scan` objects)
+and PATH.csv (one row per acquisition with its range profile, for spreadsheets); see
+:mod:`biris_hw.scanfile`.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
-from collections.abc import Sequence
-from os import PathLike
 from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
 
+from biris_hw import scanfile
+from biris_hw.commands.argtypes import degrees, path, positive_int
 from biris_hw.commands.common import (
     Session,
     UsageError,
     add_target_arguments,
     add_timeout_argument,
-    degrees,
     open_session,
 )
-from biris_hw.data import ConnectionKind, Direction, Scan
+from biris_hw.data import Direction, Scan
 from biris_hw.plots import closest_points_xy
+from biris_hw.sweeps import sweeping
 
-__all__ = [
-    "add_arguments",
-    "load_scans",
-    "run",
-    "save_scans",
-    "scan_summary",
-    "scan_to_json",
-]
+__all__ = ["add_arguments", "run", "save_files", "scan_summary", "scan_to_json"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     how.add_argument(
         "--sweeps",
-        type=_count,
+        type=positive_int,
         default=None,
         metavar="N",
         help="continuous: stop after N sweeps (default 2)",
@@ -62,21 +55,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     out = parser.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="one JSON object per scan")
     out.add_argument(
-        "--save", metavar="PATH", help="write PATH.npz (all arrays) and PATH.csv (ranges)"
+        "--save",
+        type=path,
+        metavar="PATH",
+        help="write PATH.npz (every scan, whole) and PATH.csv (ranges, for spreadsheets)",
     )
-    out.add_argument("--plot", metavar="PATH", help="write a polar picture (PNG)")
+    out.add_argument("--plot", type=path, metavar="PATH", help="write a polar picture (PNG)")
     add_timeout_argument(parser)
     add_target_arguments(parser)
-
-
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
-    return value
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -105,43 +91,38 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
             _report(scans[0], args, stream)
         outline = session.rig.scene.outline_2d() if session.rig is not None else None
     if args.save is not None:
-        npz, table = save_scans(scans, args.save)
+        npz, table = save_files(args.save, scans)
         print(f"saved {npz} and {table}", file=stream)
     if args.plot is not None:
         from biris_hw.plots import save_polar
 
         latest = {scan.direction: scan for scan in scans}
-        path = save_polar(args.plot, list(latest.values()), outline)
-        print(f"picture: {path}", file=stream)
+        picture = save_polar(args.plot, list(latest.values()), outline)
+        print(f"picture: {picture}", file=stream)
     return 0
 
 
 def _single(session: Session, args: argparse.Namespace) -> list[Scan]:
-    conn = session.server.open()
-    start = int(session.server.status()["azimuth"])
-    dest = conn.single_scan(args.to)
-    conn.wait_idle(timeout=args.timeout)
-    scan = conn.request_scan_data(Direction.of_motion(start, dest))
-    conn.close()
+    with session.server.open() as conn:
+        start = int(session.server.status()["azimuth"])
+        dest = conn.single_scan(args.to)
+        conn.wait_idle(timeout=args.timeout)
+        scan = conn.request_scan_data(Direction.of_motion(start, dest))
     if scan is None:
         raise TimeoutError("the scan ended without delivering data")
     return [scan]
 
 
 def _sweeps(session: Session, args: argparse.Namespace, stream: TextIO) -> list[Scan]:
-    conn = session.server.open()
-    data = session.server.open(ConnectionKind.DATA)
     wanted = args.sweeps or 2
-    conn.continuous_scan(args.cw, args.ccw)
     scans: list[Scan] = []
-    while len(scans) < wanted:  # on an error the session's close stops the head
-        scan = data.ready_for_data(timeout=args.timeout)
-        scans.append(scan)
-        _report(scan, args, stream)
-    conn.stop_scan()  # ends when the sweep under way completes
-    conn.wait_idle(timeout=args.timeout)
-    data.close()
-    conn.close()
+    # On leaving: STOP (the sweep under way completes), the head at rest, connections closed.
+    with sweeping(session.server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
+        for scan in sweeps:
+            scans.append(scan)
+            _report(scan, args, stream)
+            if len(scans) == wanted:
+                break
     return scans
 
 
@@ -192,84 +173,13 @@ def scan_to_json(scan: Scan) -> dict[str, Any]:
 # -- files -----------------------------------------------------------------------------------------
 
 
-def _stem(path: str | PathLike[str]) -> Path:
-    p = Path(path)
-    return p.with_suffix("") if p.suffix in (".npz", ".csv") else p
-
-
-def save_scans(scans: Sequence[Scan], path: str | PathLike[str]) -> tuple[Path, Path]:
-    """Write PATH.npz and PATH.csv (a given .npz or .csv suffix is replaced); returns both.
-
-    The .npz holds the acquisitions of all scans one after the other, ``scan_index`` saying
-    which scan each row belongs to, and per scan its ``direction`` (0 CW, 1 CCW), ``seq`` and
-    ``dropped``. The .csv has one row per acquisition and one column per sample.
-    """
-    if not scans:
-        raise UsageError("no scans to save")
-    stem = _stem(path)
+def save_files(path: str | Path, scans: list[Scan]) -> tuple[Path, Path]:
+    """``--save PATH``: PATH.npz and PATH.csv (a given .npz or .csv suffix is replaced), in a
+    folder made if need be; returns both paths."""
+    stem = Path(path)
+    if stem.suffix in (".npz", ".csv"):
+        stem = stem.with_suffix("")
     stem.parent.mkdir(parents=True, exist_ok=True)
-    npz, table = stem.with_suffix(".npz"), stem.with_suffix(".csv")
-    index = np.concatenate([np.full(s.n_acq, i, dtype=np.int32) for i, s in enumerate(scans)])
-    with open(npz, "wb") as f:
-        np.savez_compressed(
-            f,
-            scan_index=index,
-            direction=np.array([int(s.direction) for s in scans], dtype=np.int8),
-            seq=np.array([s.seq for s in scans], dtype=np.int32),
-            dropped=np.array([s.dropped for s in scans], dtype=np.int32),
-            azimuth=np.concatenate([s.azimuth for s in scans]),
-            azimuth_deg=np.concatenate([s.azimuth_deg for s in scans]),
-            t=np.concatenate([s.t for s in scans]),
-            closest_mm=np.concatenate([s.closest_mm for s in scans]),
-            range_mm=np.concatenate([s.range_mm for s in scans]),
-            intensity=np.concatenate([s.intensity for s in scans]),
-        )
-    samples = scans[0].samples
-    with open(table, "w", newline="", encoding="ascii") as f:
-        writer = csv.writer(f)
-        writer.writerow(
-            ["scan", "direction", "seq", "acq", "t_s", "azimuth_counts", "azimuth_deg"]
-            + ["closest_mm"]
-            + [f"range_{k + 1}_mm" for k in range(samples)]
-        )
-        for i, scan in enumerate(scans):
-            az_deg = scan.azimuth_deg
-            for k in range(scan.n_acq):
-                writer.writerow(
-                    [
-                        i,
-                        scan.direction.name,
-                        scan.seq,
-                        k,
-                        f"{scan.t[k]:.6f}",
-                        int(scan.azimuth[k]),
-                        f"{az_deg[k]:.4f}",
-                        int(scan.closest_mm[k]),
-                        *scan.range_mm[k].tolist(),
-                    ]
-                )
+    npz = scanfile.save_scans(stem.with_name(stem.name + ".npz"), scans)
+    table = scanfile.export_csv(stem.with_name(stem.name + ".csv"), scans)
     return npz, table
-
-
-def load_scans(path: str | PathLike[str]) -> list[Scan]:
-    """The scans a :func:`save_scans` .npz holds, in the order they were saved."""
-    with np.load(_stem(path).with_suffix(".npz")) as data:
-        index = data["scan_index"]
-        scans = []
-        for i, (direction, seq, dropped) in enumerate(
-            zip(data["direction"], data["seq"], data["dropped"], strict=True)
-        ):
-            rows = index == i
-            scans.append(
-                Scan(
-                    direction=Direction(int(direction)),
-                    seq=int(seq),
-                    azimuth=data["azimuth"][rows],
-                    range_mm=data["range_mm"][rows],
-                    closest_mm=data["closest_mm"][rows],
-                    intensity=data["intensity"][rows],
-                    t=data["t"][rows],
-                    dropped=int(dropped),
-                )
-            )
-    return scans

@@ -10,21 +10,23 @@ allowed to finish. A hardware fault seen while watching makes the exit status 1.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import threading
 import time
+from collections.abc import Mapping
 from typing import Any, TextIO
 
 from biris_hw.angles import counts_to_deg
+from biris_hw.commands.argtypes import degrees, seconds
 from biris_hw.commands.common import (
     UsageError,
     add_target_arguments,
     add_timeout_argument,
-    degrees,
     is_terminal,
     open_session,
-    positive_float,
 )
+from biris_hw.sweeps import sweeping
 
 __all__ = ["add_arguments", "run", "status_line", "status_table"]
 
@@ -32,14 +34,14 @@ __all__ = ["add_arguments", "run", "status_line", "status_table"]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration",
-        type=positive_float,
+        type=seconds,
         default=None,
         metavar="S",
         help="stop after S real seconds (default: at Ctrl-C)",
     )
     parser.add_argument(
         "--interval",
-        type=positive_float,
+        type=seconds,
         default=0.5,
         metavar="S",
         help="seconds between refreshes (default 0.5)",
@@ -57,24 +59,22 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     if (args.cw is None) != (args.ccw is None):
         raise UsageError("sweeping while watching needs both --cw and --ccw")
     with open_session(args) as session:
-        conn = session.server.open()
-        if args.cw is not None:
-            conn.continuous_scan(args.cw, args.ccw)
-        show = _Live(stream) if is_terminal(stream) else _Lines(stream)
-        pause = threading.Event()  # never set: waiting on it paces the refreshes
-        started = time.monotonic()
-        with show:
+        server = session.server
+        with contextlib.ExitStack() as stack:
+            if args.cw is not None:  # on leaving: STOP, the sweep under way completes, idle
+                stack.enter_context(sweeping(server, args.cw, args.ccw, timeout=args.timeout))
+            show = stack.enter_context(_Live(stream) if is_terminal(stream) else _Lines(stream))
+            pause = threading.Event()  # never set: waiting on it paces the refreshes
+            started = time.monotonic()
             while True:
                 elapsed = time.monotonic() - started
-                show.update(session.server.status(), elapsed)
+                show.update(server.status(), elapsed)
                 if args.duration is not None and elapsed >= args.duration:
                     break
                 left = None if args.duration is None else args.duration - elapsed
                 pause.wait(args.interval if left is None else min(args.interval, left))
-        if args.cw is not None:
-            conn.stop_scan()
-        conn.wait_idle(timeout=args.timeout)  # raises the fault, if the server is in one
-        conn.close()
+        with server.open() as conn:
+            conn.wait_idle(timeout=args.timeout)  # raises the fault, if the server is in one
     return 0
 
 
@@ -88,7 +88,7 @@ def _deg(counts: int | None) -> str:
     return f"{counts_to_deg(float(counts)):+.2f}deg"
 
 
-def status_line(status: dict[str, Any], elapsed: float) -> str:
+def status_line(status: Mapping[str, Any], elapsed: float) -> str:
     """One line per refresh: for logs and pipes."""
     counters = status.get("counters", {})
     irq = status.get("interrupts", {})
@@ -106,7 +106,7 @@ def status_line(status: dict[str, Any], elapsed: float) -> str:
     return " ".join(parts)
 
 
-def status_table(status: dict[str, Any], elapsed: float) -> Any:
+def status_table(status: Mapping[str, Any], elapsed: float) -> Any:
     """The status as a rich table: one section per kind of figure."""
     from rich.table import Table
 
@@ -150,7 +150,7 @@ class _Lines:
     def __exit__(self, *exc: object) -> None:
         return None
 
-    def update(self, status: dict[str, Any], elapsed: float) -> None:
+    def update(self, status: Mapping[str, Any], elapsed: float) -> None:
         print(status_line(status, elapsed), file=self._out, flush=True)
 
 
@@ -169,5 +169,5 @@ class _Live(_Lines):
     def __exit__(self, *exc: object) -> None:
         self._live.__exit__(None, None, None)
 
-    def update(self, status: dict[str, Any], elapsed: float) -> None:
+    def update(self, status: Mapping[str, Any], elapsed: float) -> None:
         self._live.update(status_table(status, elapsed), refresh=True)

@@ -1,12 +1,13 @@
 """Interrupt lines: how notifiers wait for BIRIS, motor and coupler interrupts.
 
-Physical lines (``eventfd``, ``uio``, ``poll``) are made by kind with :func:`open_line`; the
-level-2 and level-3 demultiplexers turn a physical line into the report's logical interrupts.
+Physical lines (``eventfd``, ``uio``, ``poll``) are made by kind with :func:`open_line`; a
+:class:`Demultiplexer` turns a physical line into logical ones. What the BIRIS levels carry, and
+how they are decoded, is the server's business (:mod:`biris_hw.server.isr`).
 """
 
 from biris_hw.errors import LineClosed
 from biris_hw.irq.base import InterruptLine
-from biris_hw.irq.demux import LEVEL2_LOGICALS, LEVEL3_LOGICALS, Level2Demux, Level3Demux, Logical
+from biris_hw.irq.demux import Demultiplexer
 from biris_hw.irq.eventfd import EventFdLine
 from biris_hw.irq.fdline import FdLine
 from biris_hw.irq.poll import PollLine
@@ -14,16 +15,12 @@ from biris_hw.irq.registry import LINE_KINDS, open_line, register_line
 from biris_hw.irq.uio import UioLine
 
 __all__ = [
-    "LEVEL2_LOGICALS",
-    "LEVEL3_LOGICALS",
     "LINE_KINDS",
+    "Demultiplexer",
     "EventFdLine",
     "FdLine",
     "InterruptLine",
-    "Level2Demux",
-    "Level3Demux",
     "LineClosed",
-    "Logical",
     "PollLine",
     "UioLine",
     "open_line",

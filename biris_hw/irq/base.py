@@ -1,4 +1,4 @@
-"""The interrupt-line contract: how a notifier waits for an interrupt (DESIGN.md section 2.3)."""
+"""The interrupt-line contract: how a notifier waits for an interrupt (docs/registers.md)."""
 
 from __future__ import annotations
 

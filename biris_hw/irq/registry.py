@@ -1,9 +1,12 @@
 """Interrupt-line kinds by name (see :mod:`biris_hw.kinds`); ``biris_hw.lines`` entry points add
-more. A target description names its lines the same way it names its windows."""
+more. A target description names its lines the same way it names its windows.
+
+``open_line("uio", path="/dev/uio3")`` opens a line of the named kind; ``register_line(kind,
+cls)`` adds or replaces a kind; ``LINE_KINDS`` maps every built-in or registered kind to its
+``module:Class``.
+"""
 
 from __future__ import annotations
-
-from typing import Any
 
 from biris_hw.irq.base import InterruptLine
 from biris_hw.kinds import KindRegistry
@@ -22,14 +25,5 @@ _REGISTRY: KindRegistry[InterruptLine] = KindRegistry(
 )
 
 LINE_KINDS = _REGISTRY.kinds
-"""Kind name -> ``module:Class``."""
-
-
-def register_line(kind: str, cls: type[InterruptLine]) -> None:
-    """Make ``open_line(kind, ...)`` build ``cls``; replaces an earlier entry of that name."""
-    _REGISTRY.register(kind, cls)
-
-
-def open_line(kind: str, **options: Any) -> InterruptLine:
-    """Open a line of the named kind: ``open_line("uio", path="/dev/uio3")``."""
-    return _REGISTRY.open(kind, **options)
+open_line = _REGISTRY.open
+register_line = _REGISTRY.register

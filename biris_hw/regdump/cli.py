@@ -9,6 +9,7 @@ import traceback
 from typing import TextIO
 
 from biris_hw import regdump as package
+from biris_hw.commands.argtypes import SAMPLES_METAVAR, offset, positive_int, samples
 from biris_hw.errors import BirisError
 from biris_hw.regdump.decode import snapshot
 from biris_hw.regdump.images import image_layout, images
@@ -19,23 +20,6 @@ from regs.layout import TargetImage
 __all__ = ["add_arguments", "run"]
 
 
-def _offset(text: str) -> int:
-    try:
-        value = int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an offset: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"offset must not be negative: {text}")
-    return value
-
-
-def _positive(text: str) -> int:
-    value = _offset(text)
-    if value == 0:
-        raise argparse.ArgumentTypeError("must be at least 1")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``regdump`` options (the caller owns the parser)."""
     src = parser.add_mutually_exclusive_group(required=True)
@@ -43,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--mmap", metavar="PATH", help="map a file or device (see --offset)")
     src.add_argument("--shm", metavar="NAME", help="a shared-memory segment (the simulator's)")
     parser.add_argument(
-        "--offset", type=_offset, default=0, metavar="N", help="where the image starts (bytes)"
+        "--offset", type=offset, default=0, metavar="N", help="where the image starts (bytes)"
     )
     img = TargetImage()
     mm = img.biris
@@ -53,33 +37,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         ("--biris-at", img.biris_offset, "BIRIS memory"),
     ):
         parser.add_argument(
-            flag, type=_offset, default=default, metavar="N", help=f"image offset of the {what}"
+            flag, type=offset, default=default, metavar="N", help=f"image offset of the {what}"
         )
     parser.add_argument(
-        "--samples", type=int, choices=(64, 128), default=mm.samples, help="samples per frame"
-    )
+        "--samples", type=samples, default=mm.samples, metavar=SAMPLES_METAVAR,
+        help="samples per frame",
+    )  # fmt: skip
     parser.add_argument(
-        "--biexec-offset", type=_offset, default=mm.biexec_offset, metavar="N",
+        "--biexec-offset", type=offset, default=mm.biexec_offset, metavar="N",
         help="BIEXEC_COM's offset in the BIRIS window",
     )  # fmt: skip
     parser.add_argument(
-        "--range-base", type=_offset, default=mm.range_offset, metavar="N",
+        "--range-base", type=offset, default=mm.range_offset, metavar="N",
         help="range array's offset in the BIRIS window",
     )  # fmt: skip
     parser.add_argument(
-        "--frame-size", type=_positive, default=None, metavar="N",
+        "--frame-size", type=positive_int, default=None, metavar="N",
         help="bytes per frame (default: from --samples)",
     )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="one JSON object per dump")
     parser.add_argument(
         "--watch",
-        type=_positive,
+        type=positive_int,
         default=None,
         metavar="MS",
         help="dump every MS ms, marking changes with *",
     )
     parser.add_argument(
-        "--count", type=_positive, default=None, metavar="K", help="stop after K dumps"
+        "--count", type=positive_int, default=None, metavar="K", help="stop after K dumps"
     )
     parser.add_argument(
         "--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks"

@@ -55,12 +55,24 @@ from dataclasses import dataclass
 import numpy as np
 
 from biris_hw.bus.base import BusWindow
-from biris_hw.server.devices import BirisLink
+from biris_hw.devices import BirisLink
 from biris_hw.server.messages import Acquisition
-from regs.biexec import ACQ_LINE_END, ACQ_LINE_STARTUP
+from regs.biexec import ACQ_LINE_END, ACQ_LINE_STARTUP, decode_param
 from regs.layout import AZIMUTH_DTYPE, FRAME_DTYPE, FrameAddressing
 
-__all__ = ["AcquisitionReader", "Drained", "RingState"]
+__all__ = ["AcquisitionReader", "Drained", "RingState", "ring_length"]
+
+
+def ring_length(param: bytes) -> int:
+    """BI_START_CONTINUOUS's answer (PARAM): the ring's length in frames, in decimal.
+
+    0 when the answer is unreadable or not positive: no ring to read, whoever asks (the command
+    notifier, which tells the reader; the administrator, which faults on it).
+    """
+    try:
+        return max(0, int(decode_param(param).strip(), 10))
+    except ValueError:
+        return 0
 
 
 class RingState(enum.Enum):
@@ -110,7 +122,6 @@ class AcquisitionReader:
         self._n = 0
         self._next = 0
         self._t0 = math.inf
-        self.spurious = 0
         # continuous mode
         self._ring_state = RingState.OFF
         self._ring = 0
@@ -145,10 +156,6 @@ class AcquisitionReader:
             self._next = 0
             self._t0 = math.inf
 
-    def abandon(self) -> None:
-        with self.lock:
-            self._active = False
-
     def drain(self, final: bool = False) -> Drained:
         """Read every acquisition completed since the last drain. Hold ``self.lock``.
 
@@ -166,9 +173,7 @@ class AcquisitionReader:
         ACQ_LINE says, nothing more will complete.
         """
         if not self._active or self._addr is None:
-            if not final and self._ring_state is RingState.OFF:
-                self.spurious += 1
-            return _NOTHING
+            return _NOTHING  # no sequence: a spurious or late wake
         line = self._link.acq_line()
         now = self._clock()
         if line == ACQ_LINE_END:

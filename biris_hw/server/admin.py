@@ -1,55 +1,97 @@
 """The BIRIS server's administrator: one thread, blocked on nothing but its inbox.
 
-It owns all server state and decides everything; it never sends, never sleeps and never touches
-a register. Workers get their orders in *replies*; clients that must wait (wait_idle,
-READY_FOR_DATA, reset) are parked and replied to later. "With the arrival of a message at the
-server, an appropriate case statement is executed and the server again blocks awaiting the next
-request": :meth:`Administrator.run` is that loop, and :meth:`Administrator._cases` maps every
-message to its case. The cases live with their topic:
+"With the arrival of a message at the server, an appropriate case statement is executed and the
+server again blocks awaiting the next request": :meth:`Administrator.run` is that loop,
+:meth:`Administrator._cases` maps every message to its case, and :meth:`Administrator.handle`
+runs one case -- which is all a test needs to drive the server's decisions without threads (see
+``tests/core.py``). The administrator never sends, never sleeps and never touches a register:
+workers get their orders in *replies*, and clients that must wait (wait_idle, READY_FOR_DATA,
+reset) are parked and replied to later.
 
-* :mod:`~biris_hw.server.cmd_transfer` -- BIRIS commands, one at a time (``Biris_ready``), and
-  the BIRIS timeout;
-* :mod:`~biris_hw.server.motor_control` -- the axis workers' reports, BIRIS_HOME,
-  BIRIS_MOTOR_PARAMS (every destination through _Scan_limit);
-* :mod:`~biris_hw.server.scanning` -- single and continuous scans, NEW_POINT, double-buffered
-  data per direction;
-* :mod:`~biris_hw.server.elevation` -- SET_ELEVATION: tilts, with the calibration table reloaded;
-* :mod:`~biris_hw.server.continuous_mode` -- Appendix D's ring (BI_START_CONTINUOUS);
-* :mod:`~biris_hw.server.faults` and :mod:`~biris_hw.server.reset` -- the fault state, reset and
-  the initialiser's requests;
-* here -- connections, data requests, wait_idle and status, which need no topic of their own.
+Its state lives in components that own their fields and expose named operations:
 
-Their shared fields are in :class:`~biris_hw.server.admin_state.AdminState`, with the operations
-one topic asks of another.
+* :class:`~biris_hw.server.faults.Lifecycle` -- initialising / idle, the fault, who waits;
+* :class:`~biris_hw.server.cmd_transfer.CommandChannel` -- BIRIS commands one at a time
+  (``Biris_ready``) and the BIRIS timeout;
+* :class:`~biris_hw.server.motion.AxisState` (pan and tilt) -- each axis worker's orders and
+  watchdog; :class:`~biris_hw.server.motor_control.MotorRequests` -- HOME and motor parameters
+  waiting for the pan;
+* :class:`~biris_hw.server.scanning.ScanSequencer` -- single and continuous scans, buffers per
+  direction, the latest point;
+* :class:`~biris_hw.server.elevation.TiltControl` -- SET_ELEVATION's tilts;
+* :class:`~biris_hw.server.continuous_mode.Ring` -- Appendix D's continuous acquisition;
+* :class:`~biris_hw.server.connections.Connections` -- clients and every hand-over of data.
+
+The administrator coordinates them: the cases below are the report's, and what follows the end
+of a BIRIS command or of a motion is found through the command's or order's *purpose*
+(:meth:`_command_done`, :meth:`_motion_done`), not through stored closures.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
+from biris_hw import protocol as p
+from biris_hw.angles import clamp_counts
 from biris_hw.data import ConnectionKind, Direction
-from biris_hw.errors import BirisError, RequestError
-from biris_hw.ipc import Envelope, TaskStopped
+from biris_hw.errors import BirisError, ConnectionClosed, FaultKind, HardwareFault, RequestError
+from biris_hw.ipc import Envelope, Mailbox, TaskStopped
+from biris_hw.records import BirisInitRecord, MotorParams, acquisitions_for
 from biris_hw.server import messages as m
-from biris_hw.server.admin_state import fail_quietly, log
-from biris_hw.server.cmd_transfer import BirisCommands
-from biris_hw.server.continuous_mode import ContinuousMode
-from biris_hw.server.elevation import Elevation
-from biris_hw.server.faults import Faults
-from biris_hw.server.motor_control import MotorControl
-from biris_hw.server.reset import Reset
-from biris_hw.server.scanning import Scanning
+from biris_hw.server.acquisition import ring_length
+from biris_hw.server.cmd_transfer import BirisCommand, CommandChannel, CommandPurpose, Timer
+from biris_hw.server.cmd_transfer import status_name as status_name
+from biris_hw.server.connections import Connections
+from biris_hw.server.continuous_mode import Ring
+from biris_hw.server.counters import Counters
+from biris_hw.server.delivery import ClientConn
+from biris_hw.server.elevation import Tilt, TiltControl, TiltPhase
+from biris_hw.server.faults import Lifecycle, Phase, fail_quietly, log
+from biris_hw.server.initialiser import InitResult
+from biris_hw.server.motion import AxisState, Motion, MotionPurpose
+from biris_hw.server.motor_control import MotorRequests
+from biris_hw.server.scan_assembly import ActiveScan
+from biris_hw.server.scanning import AcquisitionFate, ScanSequencer
+from biris_hw.status import ServerState, ServerStatus
+from regs.biexec import BiCommand, BiStatus
+from regs.tech80 import Axis
 
 __all__ = ["Administrator"]
 
 Case = Callable[[Envelope, Any], None]
 
 
-class Administrator(
-    Scanning, Elevation, ContinuousMode, MotorControl, BirisCommands, Reset, Faults
-):
-    """State and decisions of the BIRIS server; ``run()`` is the administrator thread."""
+class Administrator:
+    """The server's decisions; ``run()`` is the administrator thread, ``handle()`` one case."""
+
+    def __init__(
+        self,
+        record: BirisInitRecord,
+        inbox: Mailbox,
+        clock: Callable[[], float],
+        biris_timeout: Timer,
+        motor_watchdog: Timer,
+        start_initialiser: Callable[[], None],
+        elevation_watchdog: Timer | None = None,
+    ) -> None:
+        self.record = record
+        self.inbox = inbox
+        self.clock = clock
+        self._start_initialiser = start_initialiser
+        self.counters = Counters()
+        self.life = Lifecycle()
+        self.commands = CommandChannel(biris_timeout, record.timeout_s)
+        # one record per axis (the tilt's watchdog is the pan's if none is given)
+        self.az = AxisState(Axis.AZIMUTH, motor_watchdog, record.motor)
+        self.el = AxisState(Axis.ELEVATION, elevation_watchdog or motor_watchdog, record.tilt_motor)
+        self.requests = MotorRequests()
+        self.scans = ScanSequencer(self.counters, record.mount)
+        self.tilt = TiltControl(record.elevation_limits_counts)
+        self.ring = Ring(record.continuous_acquisition)
+        self.clients = Connections(clock, self.counters)
+        self._handlers = self._cases()
 
     def _cases(self) -> dict[type, Case]:
         """The report's case statements: every message the server receives, and its case."""
@@ -78,101 +120,695 @@ class Administrator(
             m.InitMove: self._on_init_move,
             m.InitDone: self._on_init_done,
             # from clients
-            m.OpenRequest: self._on_open,  # OPEN_REQUEST
-            m.CloseRequest: self._on_close,  # CLOSE_REQUEST
-            m.RequestPoint: self._on_request_point,  # REQUEST_POINT
-            m.RequestScanData: self._on_request_scan_data,  # REQUEST_SCAN_DATA
-            m.TimeoutEnable: self._on_timeout_enable,  # BIRIS_TIMEOUT_ENABLE
-            m.TimeoutDisable: self._on_timeout_disable,  # BIRIS_TIMEOUT_DISABLE
-            m.BirisMotorParams: self._on_motor_params,  # BIRIS_MOTOR_PARAMS
-            m.SingleScanRqst: self._on_single_scan,  # BIRIS_SINGLE_SCAN_RQST
-            m.ContScanRqst: self._on_cont_scan,  # BIRIS_CONT_SCAN_RQST
-            m.StopScanRqst: self._on_stop_scan,  # BIRIS_STOP_SCAN_RQST
-            m.BirisHome: self._on_home,  # BIRIS_HOME
-            m.SetElevation: self._on_set_elevation,  # the report's future elevation message
-            m.ReadyForData: self._on_ready_for_data,  # READY_FOR_DATA
-            m.WaitIdle: self._on_wait_idle,  # beyond the report, as are the two below
-            m.ResetRequest: self._on_reset,
-            m.StatusRequest: self._on_status,
+            p.OpenRequest: self._on_open,  # OPEN_REQUEST
+            p.CloseRequest: self._on_close,  # CLOSE_REQUEST
+            p.RequestPoint: self._on_request_point,  # REQUEST_POINT
+            p.RequestScanData: self._on_request_scan_data,  # REQUEST_SCAN_DATA
+            p.TimeoutEnable: self._on_timeout_enable,  # BIRIS_TIMEOUT_ENABLE
+            p.TimeoutDisable: self._on_timeout_disable,  # BIRIS_TIMEOUT_DISABLE
+            p.BirisMotorParams: self._on_motor_params,  # BIRIS_MOTOR_PARAMS
+            p.SingleScanRqst: self._on_single_scan,  # BIRIS_SINGLE_SCAN_RQST
+            p.ContScanRqst: self._on_cont_scan,  # BIRIS_CONT_SCAN_RQST
+            p.StopScanRqst: self._on_stop_scan,  # BIRIS_STOP_SCAN_RQST
+            p.BirisHome: self._on_home,  # BIRIS_HOME
+            p.SetElevation: self._on_set_elevation,  # the report's future elevation message
+            p.ReadyForData: self._on_ready_for_data,  # READY_FOR_DATA
+            p.WaitIdle: self._on_wait_idle,  # beyond the report, as are the two below
+            p.ResetRequest: self._on_reset,
+            p.StatusRequest: self._on_status,
         }
 
     # ============================================================================ the loop
     def run(self) -> None:
-        handlers = self._cases()
+        """The administrator thread: receive, handle, until the inbox closes."""
         while True:
             try:
                 env = self.inbox.receive()
             except TaskStopped:
                 return
-            handler = handlers.get(type(env.message))
-            if handler is None:
-                env.fail(RequestError(f"unknown message {type(env.message).__name__}"))
-                continue
-            try:
-                handler(env, env.message)
-            except BirisError as exc:  # RequestError, HardwareFault, ConnectionClosed: the caller's
-                fail_quietly(env, exc)
-            except Exception as exc:  # a bug must not kill the server silently
-                log.exception("administrator: %s failed", type(env.message).__name__)
-                fail_quietly(env, exc)
+            self.handle(env)
+
+    def handle(self, env: Envelope) -> None:
+        """One message: its case runs; an error it raises goes back to the sender."""
+        handler = self._handlers.get(type(env.message))
+        if handler is None:
+            env.fail(RequestError(f"unknown message {type(env.message).__name__}"))
+            return
+        try:
+            handler(env, env.message)
+        except BirisError as exc:  # RequestError, HardwareFault, ConnectionClosed: the caller's
+            fail_quietly(env, exc)
+        except Exception as exc:  # a bug must not kill the server silently
+            log.exception("administrator: %s failed", type(env.message).__name__)
+            fail_quietly(env, exc)
+
+    def shutdown(self) -> None:
+        """Called by the server after this thread has ended: nobody may stay blocked."""
+        stopped = ConnectionClosed("the BIRIS server has stopped")
+        for env in self.life.idle_waiters + self.life.init_waiters:
+            fail_quietly(env, stopped)
+        self.clients.fail_waiting(stopped, forget=False)
+
+    # ======================================================================= where things stand
+    @property
+    def position(self) -> int:
+        """Where the pan axis stands, or will once its current move ends (counts)."""
+        return self.az.position
+
+    def _axis(self, axis: Axis) -> AxisState:
+        return self.az if axis is Axis.AZIMUTH else self.el
+
+    def is_idle(self) -> bool:
+        """Initialised, and no component has anything under way or waiting."""
+        return (
+            self.life.phase is Phase.IDLE
+            and not self.scans.busy()
+            and not self.az.busy()
+            and not self.el.busy()
+            and self.tilt.current is None
+            and self.tilt.pending is None
+            and self.requests.idle()
+            and not self.commands.busy()
+            and self.ring.settled()
+        )
+
+    def _check_idle_waiters(self) -> None:
+        """Release every wait_idle caller once nothing is under way or waiting."""
+        if self.life.idle_waiters and self.is_idle():
+            self.life.release_idle_waiters()
+
+    def _ready_to_acquire(self) -> bool:
+        """No tilt under way, and in continuous acquisition the ring is live."""
+        return self.tilt.current is None and self.ring.ready()
+
+    def _conn(self, ident: int, *, data: bool = False) -> ClientConn:
+        """The open connection a client message names (READY_FOR_DATA needs a DATA one)."""
+        conn = self.clients.get(ident)
+        if conn is None:
+            raise ConnectionClosed(f"connection {ident} is not open")
+        if data and conn.kind is not ConnectionKind.DATA:
+            raise RequestError("READY_FOR_DATA needs a DATA connection")
+        return conn
+
+    def _usable_conn(self, ident: int, *, data: bool = False) -> ClientConn:
+        """:meth:`_conn`, then the lifecycle's check: the start of nearly every client case."""
+        conn = self._conn(ident, data=data)
+        self.life.check_usable()
+        return conn
 
     # ============================================================================ client cases
-    def _on_open(self, env: Envelope, msg: m.OpenRequest) -> None:
+    def _on_open(self, env: Envelope, msg: p.OpenRequest) -> None:
         conn = self.clients.open(ConnectionKind(msg.kind), msg.policy, msg.depth, msg.owner_ident)
         env.reply((conn.ident, conn.policy, conn.depth))
 
-    def _on_close(self, env: Envelope, msg: m.CloseRequest) -> None:
+    def _on_close(self, env: Envelope, msg: p.CloseRequest) -> None:
         self.clients.close(msg.conn)
         env.reply(None)
 
-    def _on_request_point(self, env: Envelope, msg: m.RequestPoint) -> None:
+    def _on_request_point(self, env: Envelope, msg: p.RequestPoint) -> None:
         conn = self._usable_conn(msg.conn)
-        self.clients.hand_over(env, conn, self.latest_point)
+        self.clients.hand_over(env, conn, self.scans.latest_point)
 
-    def _on_request_scan_data(self, env: Envelope, msg: m.RequestScanData) -> None:
+    def _on_request_scan_data(self, env: Envelope, msg: p.RequestScanData) -> None:
         conn = self._usable_conn(msg.conn)
-        self.clients.hand_over(env, conn, self.buffers[Direction(msg.direction)])
+        self.clients.hand_over(env, conn, self.scans.buffers[Direction(msg.direction)])
 
-    def _on_ready_for_data(self, env: Envelope, msg: m.ReadyForData) -> None:
+    def _on_ready_for_data(self, env: Envelope, msg: p.ReadyForData) -> None:
         conn = self._usable_conn(msg.conn, data=True)
         self.clients.ready(env, conn)
 
-    def _on_wait_idle(self, env: Envelope, msg: m.WaitIdle) -> None:
+    def _on_wait_idle(self, env: Envelope, msg: p.WaitIdle) -> None:
         self._usable_conn(msg.conn)
         if self.is_idle():
             env.reply(None)
         else:
-            self.idle_waiters.append(env)
+            self.life.idle_waiters.append(env)
 
-    def _on_status(self, env: Envelope, msg: m.StatusRequest) -> None:
+    def _on_status(self, env: Envelope, msg: p.StatusRequest) -> None:
         env.reply(self.status())
 
-    # ============================================================================ status
-    def state(self) -> str:
+    def state(self) -> ServerState:
         """What the server is doing, for status(): the most telling of its activities."""
-        if self.fault is not None:
-            return f"fault:{self.fault.kind}"
-        if self.phase == "initialising":
-            return "initialising"
-        if self.homing:
-            return "homing"
-        if self.tilt is not None:
-            return "tilting"
-        if self._scan_busy() or self.continuous is not None:
-            return "scanning"
-        return "idle"
+        if self.life.fault is not None:
+            return ServerState.FAULT
+        if self.life.initialising:
+            return ServerState.INITIALISING
+        if self.requests.homing:
+            return ServerState.HOMING
+        if self.tilt.current is not None:
+            return ServerState.TILTING
+        if self.scans.active():
+            return ServerState.SCANNING
+        return ServerState.IDLE
 
-    def status(self) -> dict[str, Any]:
-        counters = dict(self.counters)
+    def status(self) -> ServerStatus:
+        counters = self.counters.as_dict()
         counters["dropped_deliveries"] = self.clients.dropped()
-        return {
-            "state": self.state(),
-            "azimuth": self.position,
-            "elevation": self.el.position,
-            "calibration": self.lut,
-            "continuous": self.continuous is not None,
-            "acquisition": "continuous" if self.ring_mode else "single",
-            "ring": self.ring,
-            "counters": counters,
-            "connections": self.clients.summaries(),
-        }
+        fault = self.life.fault
+        return ServerStatus(
+            state=self.state(),
+            fault=fault.kind if fault is not None else None,
+            azimuth=self.az.position,
+            elevation=self.el.position,
+            calibration=self.tilt.lut,
+            continuous=self.scans.continuous is not None,
+            acquisition="continuous" if self.ring.mode else "single",
+            ring=self.ring.state.value,
+            counters=counters,
+            connections=self.clients.summaries(),
+        )
+
+    # ============================================================================ scans
+    def _check_can_scan(self) -> None:
+        if self.scans.active():
+            raise RequestError("a scan is in progress; stop it or wait for it to end first")
+        if self.az.moving() or self.requests.home_pending:
+            raise RequestError("the motor is moving; wait until it is idle")
+        params = self.requests.take_params()  # cannot be: it is only pending while moving
+        if params is not None:
+            self._load_params(params)
+
+    def _on_single_scan(self, env: Envelope, msg: p.SingleScanRqst) -> None:
+        self._usable_conn(msg.conn)
+        self._check_can_scan()
+        dest = clamp_counts(msg.destination)
+        if dest == self.position:
+            raise RequestError(f"the head is already at {dest} counts; a scan needs a length")
+        self._when_ready(dest)
+        env.reply(dest)
+
+    def _on_cont_scan(self, env: Envelope, msg: p.ContScanRqst) -> None:
+        self._usable_conn(msg.conn)
+        self._check_can_scan()
+        cw, ccw = clamp_counts(msg.cw_limit), clamp_counts(msg.ccw_limit)
+        if cw >= ccw:
+            raise RequestError(
+                f"the CW limit ({cw} counts) must lie clockwise of the CCW limit ({ccw})"
+            )
+        self.scans.start_continuous(cw, ccw)
+        self._when_ready(None)
+        env.reply((cw, ccw))
+
+    def _on_stop_scan(self, env: Envelope, msg: p.StopScanRqst) -> None:
+        self._usable_conn(msg.conn)
+        if self.scans.stop():
+            self._after_motion_settles()
+        env.reply(None)
+        self._check_idle_waiters()
+
+    def _when_ready(self, dest: int | None) -> None:
+        """Start a scan now if BIRIS may acquire, else once it may (a tilt, the ring).
+
+        ``dest`` None: a continuous scan's first sweep (its limit is chosen when it starts).
+        """
+        if self._ready_to_acquire():
+            self._start_scan(self._destination(dest))
+            return
+        self.scans.defer(dest)
+        if self.ring.mode and self.tilt.current is None:
+            self._start_ring()
+
+    def _destination(self, dest: int | None) -> int:
+        return self.scans.first_limit(self.position) if dest is None else dest
+
+    def _run_deferred(self) -> None:
+        """Start a scan that waited for a tilt or for the ring, if it may start now."""
+        if self.scans.deferred is None or not self._ready_to_acquire():
+            return
+        if self.life.fault is not None:
+            return
+        deferred = self.scans.take_deferred()
+        assert deferred is not None
+        self._start_scan(self._destination(deferred.destination))
+
+    def _start_scan(self, dest: int, after: ActiveScan | None = None) -> None:
+        """Start a scan to ``dest``; ``after`` is the sweep it turns straight round from."""
+        if dest == self.position:
+            raise RequestError(f"the head is already at {dest} counts; a scan needs a length")
+        if self.ring.mode:
+            self._start_sweep(dest, after)
+            return
+        n = acquisitions_for(abs(dest - self.position), self._record_with_motor())
+        scan = self.scans.open_scan(dest, self.position, self.tilt.elevation, n)
+        self._submit_command(
+            BirisCommand(
+                int(BiCommand.BI_ACQUIRE),
+                str(n),
+                CommandPurpose.ACQUIRE,
+                n=n,
+                seq_id=scan.seq_id,
+                scan=scan,
+            )
+        )
+        self._submit_motion(self.az, Motion(m.MoveOrder(dest), MotionPurpose.SCAN, scan=scan))
+
+    def _start_sweep(self, dest: int, after: ActiveScan | None) -> None:
+        """A continuous-acquisition scan: only the motor is ordered; the ring supplies data.
+
+        A sweep that turns straight round from ``after`` starts with ``after``'s tail (made at
+        the turn-around after its last acquisition) and reads on from where it ended.
+        """
+        follows = after is not None and after.ring and after.elevation == self.tilt.elevation
+        scan = self.scans.open_scan(
+            dest, self.position, self.tilt.elevation, ring=True, follows=follows
+        )
+        if after is not None:
+            points = self.scans.carry_tail(after, scan, follows)
+            if points:
+                self.clients.deliver_points(points, 0)
+        order = m.MoveOrder(dest, sweep=scan.seq_id, follows=follows)
+        self._submit_motion(self.az, Motion(order, MotionPurpose.SCAN, scan=scan))
+        self._rearm_timeout()
+
+    def _record_with_motor(self) -> BirisInitRecord:
+        """The record with the motor parameters the next move will run with: a parameter load
+        still queued ahead of it counts, since the motion queue is served in order."""
+        motor = self.az.motor_for_next_move()
+        return self.record if motor == self.record.motor else replace(self.record, motor=motor)
+
+    def _on_new_point(self, env: Envelope, msg: m.NewPoint) -> None:
+        env.reply(None)
+        scan = self.scans.scan
+        self._note_biris_alive()
+        points = []
+        for acq in msg.acquisitions:
+            fate = self.scans.classify(acq)
+            if fate is AcquisitionFate.KEPT:
+                assert scan is not None
+                points.append(self.scans.keep(scan, acq))
+            elif fate is AcquisitionFate.STALE:
+                self.counters.stale_acquisitions += 1
+            elif fate is AcquisitionFate.STANDING:
+                self.counters.constant_azimuth += 1  # the head stood still: dropped
+        if scan is not None:
+            scan.lost += msg.lost
+        if points or (scan is not None and msg.lost):
+            self.clients.deliver_points(points, msg.lost if scan is not None else 0)
+
+    def _on_sweep_data_done(self, env: Envelope, msg: m.SweepDataDone) -> None:
+        env.reply(None)
+        scan = self.scans.scan
+        if scan is None or not scan.ring or scan.seq_id != msg.seq_id:
+            self.counters.stale_completions += 1
+            return
+        self._scan_part_done(scan, cmd_status=int(BiStatus.OK))
+
+    def _scan_part_done(
+        self, scan: ActiveScan | None, *, motion: bool = False, cmd_status: int | None = None
+    ) -> None:
+        """AZ_SCAN_DONE (``motion``) or the data's end (``cmd_status``) of ``scan``; the scan
+        completes when both have arrived."""
+        if scan is None or self.scans.scan is not scan:
+            return
+        finished = self.scans.part_done(scan, motion=motion, cmd_status=cmd_status)
+        if cmd_status is not None:
+            self._rearm_timeout()
+        if finished:
+            self._finish_scan(scan)
+
+    def _finish_scan(self, scan: ActiveScan) -> None:
+        if scan.status != BiStatus.OK:
+            self._fault("protocol", f"BI_ACQUIRE ended with STATUS {scan.status}")
+            return
+        self.clients.deliver(self.scans.complete(scan))
+        following = self.scans.following(scan)
+        pending = self.tilt.pending
+        if pending is not None or following is None:
+            self.scans.drop_tail(scan)  # no sweep follows straight on
+        if pending is not None:  # a tilt asked for during the sweep goes between sweeps
+            if following is not None:
+                self.scans.defer(following)
+            self._start_tilt(pending)
+            self._after_motion_settles()
+        elif following is not None:
+            self._start_scan(following, after=scan)
+        else:
+            self._after_motion_settles()
+        self._check_idle_waiters()
+
+    # ============================================================================ BIRIS commands
+    def _submit_command(self, cmd: BirisCommand) -> None:
+        self.commands.submit(cmd)
+        self._pump_commands()
+
+    def _pump_commands(self) -> None:
+        if self.life.fault is None and self.commands.pump() is not None:
+            self._rearm_timeout()
+
+    def _on_cmd_transfer_rdy(self, env: Envelope, msg: m.CmdTransferRdy) -> None:
+        self.commands.worker_ready(env)
+        self._pump_commands()
+
+    def _on_cmd_complete(self, env: Envelope, msg: m.BirisCmdComplete) -> None:
+        cmd = self.commands.complete(env, msg.token)
+        if cmd is None:
+            self.counters.stale_completions += 1
+            return
+        self._rearm_timeout()
+        self._command_done(cmd, msg.status, msg.param)
+        self._pump_commands()
+        self._check_idle_waiters()
+
+    def _command_done(self, cmd: BirisCommand, status: int, param: bytes) -> None:
+        """What the completion of ``cmd`` leads to, by its purpose."""
+        purpose = cmd.purpose
+        if purpose is CommandPurpose.ACQUIRE:
+            self._scan_part_done(cmd.scan, cmd_status=status)
+        elif purpose is CommandPurpose.LOAD_LUT:
+            self._tilt_lut_loaded(cmd.tilt, status)
+        elif purpose is CommandPurpose.START_CONTINUOUS:
+            self._ring_started(status, param)
+        elif purpose is CommandPurpose.STOP_CONTINUOUS:
+            self._ring_stopped()
+        elif cmd.requester is not None:  # INIT
+            cmd.requester.reply((status, param))
+
+    def _command_failed(self, cmd: BirisCommand, fault: HardwareFault) -> None:
+        """A command given up on by a fault: only the initialiser waits on one."""
+        if cmd.purpose is CommandPurpose.INIT and cmd.requester is not None:
+            fail_quietly(cmd.requester, fault)
+
+    # -- _Biris_timeout ----------------------------------------------------------------------
+    def _biris_owed(self) -> bool:
+        """BIRIS owes a completion, a continuous-mode sweep's data, or its ring's start."""
+        scan = self.scans.scan
+        return (
+            self.commands.current is not None
+            or (scan is not None and scan.ring and not scan.cmd_done)
+            or self.ring.starting
+        )
+
+    def _rearm_timeout(self) -> None:
+        self.commands.rearm_timeout(self._biris_owed())
+
+    def _note_biris_alive(self) -> None:
+        if self.commands.timeout_enabled:  # per acquisition: ask nothing more when it is off
+            self.commands.note_alive(self._biris_owed())
+
+    def _on_timeout_err(self, env: Envelope, msg: m.BirisTimeoutErr) -> None:
+        env.reply(None)
+        if self.commands.timed_out(msg.generation, self._biris_owed()):
+            self._fault(
+                "timeout",
+                f"BIRIS did not respond for {self.commands.timeout_s:g} s of hardware time",
+            )
+
+    def _on_timeout_enable(self, env: Envelope, msg: p.TimeoutEnable) -> None:
+        self._usable_conn(msg.conn)
+        self.commands.enable_timeout(self._biris_owed())
+        env.reply(None)
+
+    def _on_timeout_disable(self, env: Envelope, msg: p.TimeoutDisable) -> None:
+        self._usable_conn(msg.conn)
+        self.commands.disable_timeout()
+        env.reply(None)
+
+    # ============================================================================ motion
+    def _submit_motion(self, axis: AxisState, job: Motion) -> None:
+        axis.submit(job)
+        self._pump_motion(axis)
+
+    def _pump_motion(self, axis: AxisState) -> None:
+        if self.life.fault is None:
+            axis.dispatch()
+
+    def _on_axis_ready(self, axis: AxisState, env: Envelope, error: str | None) -> None:
+        """AZ_READY / EL_READY: the worker is parked again; a parameter load is then done."""
+        axis.env = env
+        job = axis.current
+        if job is not None:
+            if error is not None:
+                axis.finish_current()
+                self._fault("motor_stall" if "profile" in error else "bus", error)
+                if self.life.fault is not None:
+                    self._motion_failed(job, self.life.fault)
+                return
+            if isinstance(job.order, m.ParamsOrder):
+                axis.finish_current()
+                self._motion_done(job)
+        self._pump_motion(axis)
+        self._check_idle_waiters()
+
+    def _on_axis_done(self, axis: AxisState, env: Envelope) -> None:
+        """AZ_SCAN_DONE / EL_SCAN_DONE: the move has ended and the axis has come to rest."""
+        env.reply(None)
+        job = axis.current
+        if job is None or not isinstance(job.order, m.MoveOrder):
+            self.counters.spurious_motor_end += 1
+            return
+        axis.finish_current()
+        self._motion_done(job)
+        self._pump_motion(axis)
+        self._check_idle_waiters()
+
+    def _motion_done(self, job: Motion) -> None:
+        """What the end of ``job`` leads to, by its purpose."""
+        purpose = job.purpose
+        if purpose is MotionPurpose.SCAN:
+            self._scan_part_done(job.scan, motion=True)
+        elif purpose is MotionPurpose.TILT:
+            if job.tilt is not None:
+                self._tilt_part(job.tilt, moved=True)
+        elif purpose is MotionPurpose.HOME:
+            self.requests.homing = False
+            self._after_motion_settles()
+        elif purpose is MotionPurpose.PARAMS:
+            assert isinstance(job.order, m.ParamsOrder)
+            self.az.motor = job.order.params
+            self._after_motion_settles()
+        elif job.requester is not None:  # INIT
+            job.requester.reply(None)
+
+    def _motion_failed(self, job: Motion, fault: HardwareFault) -> None:
+        """An order given up on by a fault: only the initialiser waits on one."""
+        if job.purpose is MotionPurpose.INIT and job.requester is not None:
+            fail_quietly(job.requester, fault)
+
+    def _on_watchdog_err(self, env: Envelope, msg: m.MotorWatchdogErr) -> None:
+        env.reply(None)
+        axis = self._axis(msg.axis)
+        if msg.generation == axis.watchdog_gen and axis.current is not None:
+            self._fault("motor_stall", f"the {axis.name} motor did not reach its destination")
+
+    # -- BIRIS_HOME and BIRIS_MOTOR_PARAMS ---------------------------------------------------
+    def _on_motor_params(self, env: Envelope, msg: p.BirisMotorParams) -> None:
+        self._usable_conn(msg.conn)
+        if not self.scans.busy() and not self.az.moving():
+            self._load_params(msg.params)
+        else:
+            self.requests.params_pending = msg.params
+        env.reply(None)
+
+    def _on_home(self, env: Envelope, msg: p.BirisHome) -> None:
+        self._usable_conn(msg.conn)
+        if not self.scans.busy() and not self.az.busy() and self.requests.params_pending is None:
+            self._go_home()
+        else:
+            self.requests.home_pending = True
+        env.reply(None)
+
+    def _after_motion_settles(self) -> None:
+        """Run a pending parameter load, then a pending HOME, once nothing else moves."""
+        if self.scans.scan is not None or self.az.busy() or self.life.fault is not None:
+            return
+        params = self.requests.take_params()
+        if params is not None:
+            self._load_params(params)
+        waiting = self.scans.continuous is not None or self.scans.deferred is not None
+        if self.requests.home_pending and not waiting:
+            self.requests.home_pending = False
+            self._go_home()
+
+    def _load_params(self, params: MotorParams) -> None:
+        self._submit_motion(self.az, Motion(m.ParamsOrder(params), MotionPurpose.PARAMS))
+
+    def _go_home(self) -> None:
+        if self.position == 0:
+            return
+        self.requests.homing = True
+        self._submit_motion(self.az, Motion(m.MoveOrder(0), MotionPurpose.HOME))
+
+    # ============================================================================ the tilt
+    def _on_set_elevation(self, env: Envelope, msg: p.SetElevation) -> None:
+        self._usable_conn(msg.conn)
+        dest = self.tilt.clamp(msg.destination)
+        if self.scans.scan is not None or self.tilt.current is not None:
+            self.tilt.ask_later(dest)  # after the sweep (or tilt) under way; the latest wins
+        elif self.tilt.needed(dest):
+            self._start_tilt(dest)
+        env.reply(dest)
+
+    def _start_tilt(self, dest: int) -> None:
+        """Tilt to ``dest`` and load its calibration table (the ring stopped first)."""
+        await_ring = not self.ring.off
+        tilt = self.tilt.begin(dest, await_ring=await_ring)
+        self.counters.tilts += 1
+        if await_ring:
+            self._stop_ring()
+        else:
+            self._tilt_go(tilt)
+
+    def _tilt_go(self, tilt: Tilt) -> None:
+        if not self.tilt.is_current(tilt) or self.life.fault is not None:
+            return
+        tilt.phase = TiltPhase.UNDER_WAY
+        dest = tilt.destination
+        if dest != self.el.position:
+            self._submit_motion(self.el, Motion(m.MoveOrder(dest), MotionPurpose.TILT, tilt=tilt))
+        else:
+            tilt.moved = True
+        self._submit_command(
+            BirisCommand(int(BiCommand.BI_LOAD_LUT), str(dest), CommandPurpose.LOAD_LUT, tilt=tilt)
+        )
+
+    def _tilt_lut_loaded(self, tilt: Tilt | None, status: int) -> None:
+        if tilt is None or not self.tilt.is_current(tilt):
+            return
+        if status != BiStatus.OK:
+            self._fault(
+                "protocol",
+                f"BI_LOAD_LUT {tilt.destination} failed: STATUS {status} ({status_name(status)})"
+                " -- BIRIS has no calibration for an elevation the init record allows",
+            )
+            return
+        self.tilt.lut = tilt.destination
+        self.counters.lut_loads += 1
+        tilt.lut = True
+        self._tilt_part(tilt)
+
+    def _tilt_part(self, tilt: Tilt, *, moved: bool = False) -> None:
+        """One half of the tilt is done; when both are, what waited for it goes on."""
+        if not self.tilt.is_current(tilt):
+            return
+        if moved:
+            tilt.moved = True
+        if not tilt.over:
+            return
+        pending = self.tilt.finish(tilt)
+        if pending is not None:
+            self._start_tilt(pending)
+            return
+        if self.ring.mode:
+            self._start_ring()
+        self._run_deferred()
+        self._after_motion_settles()
+        self._check_idle_waiters()
+
+    # ============================================================================ the ring
+    def _start_ring(self) -> None:
+        """BI_START_CONTINUOUS, unless BIRIS already acquires continuously (or may not now)."""
+        if self.life.fault is not None or self.life.initialising or self.tilt.current is not None:
+            return
+        if self.ring.start():
+            self._submit_command(
+                BirisCommand(
+                    int(BiCommand.BI_START_CONTINUOUS), "", CommandPurpose.START_CONTINUOUS
+                )
+            )
+
+    def _ring_started(self, status: int, param: bytes) -> None:
+        if status != BiStatus.OK or ring_length(param) <= 0:
+            self._fault(
+                "protocol",
+                f"BI_START_CONTINUOUS failed: STATUS {status} ({status_name(status)}), "
+                f"answer {param.split(bytes(1))[0]!r}",
+            )
+
+    def _on_continuous_live(self, env: Envelope, msg: m.ContinuousLive) -> None:
+        env.reply(None)
+        if not self.ring.went_live():
+            return  # stopped again before its first acquisition
+        self.counters.continuous_starts += 1
+        self._rearm_timeout()
+        self._run_deferred()
+        self._check_idle_waiters()
+
+    def _stop_ring(self) -> None:
+        """BI_STOP_CONTINUOUS (unless one is on its way already)."""
+        if self.ring.stop():
+            code = int(BiCommand.BI_STOP_CONTINUOUS)
+            self._submit_command(BirisCommand(code, "", CommandPurpose.STOP_CONTINUOUS))
+
+    def _ring_stopped(self) -> None:
+        """BI_STOP_CONTINUOUS completed: a tilt that waited for it goes on."""
+        if not self.ring.stopping:
+            return  # a stop a reset has forgotten
+        self.ring.stopped()
+        tilt = self.tilt.current
+        if tilt is not None and tilt.phase is TiltPhase.AWAIT_RING_STOP:
+            self._tilt_go(tilt)
+        self._check_idle_waiters()
+
+    # ============================================================================ faults and reset
+    def _task_fault(self, env: Envelope, kind: FaultKind, text: str) -> None:
+        """A notifier's report of a fault: released at once, then the fault state."""
+        env.reply(None)
+        self._fault(kind, text)
+
+    def _fault(self, kind: FaultKind, text: str) -> None:
+        """The fault state: everything under way ends; every caller waiting is told."""
+        fault = self.life.enter_fault(kind, text)
+        if fault is None:
+            return
+        self.counters.faults += 1
+        self.commands.stop_timer()
+        for axis in (self.az, self.el):
+            for job in axis.abandon():  # the initialiser may wait on one
+                self._motion_failed(job, fault)
+        self._clear_activity()
+        for cmd in self.commands.discard():
+            self._command_failed(cmd, fault)
+        current = self.commands.current
+        if current is not None:
+            self._command_failed(current, fault)
+        self.clients.fail_waiting(fault)
+
+    def _clear_activity(self) -> None:
+        """Forget every scan, tilt and motion under way or waiting (reset, fault)."""
+        self.scans.forget()
+        self.requests.forget()
+        self.tilt.forget()
+        for axis in (self.az, self.el):
+            axis.abandon()
+
+    def _on_reset(self, env: Envelope, msg: p.ResetRequest) -> None:
+        if msg.conn:
+            self._conn(msg.conn)
+        self.life.begin_reset(env)
+        self._clear_activity()
+        self.ring.forget()
+        self._start_initialiser()
+
+    def _on_init_command(self, env: Envelope, msg: m.InitCommand) -> None:
+        self._submit_command(BirisCommand(msg.code, msg.param, CommandPurpose.INIT, requester=env))
+
+    def _on_init_move(self, env: Envelope, msg: m.InitMove) -> None:
+        order = m.MoveOrder(msg.destination)
+        self._submit_motion(self._axis(msg.axis), Motion(order, MotionPurpose.INIT, requester=env))
+
+    def _on_init_done(self, env: Envelope, msg: m.InitDone) -> None:
+        env.reply(None)
+        waiters = self.life.initialised()
+        # commands the initialiser gave up on must not be issued later
+        self.commands.discard(keep=lambda c: c.purpose is not CommandPurpose.INIT)
+        if msg.error is not None:
+            exc = msg.error
+            fault = (
+                exc
+                if isinstance(exc, HardwareFault)
+                else HardwareFault("protocol", f"initialisation failed: {exc}")
+            )
+            self._fault(fault.kind, fault.message)
+            for w in waiters:
+                fail_quietly(w, fault)
+            return
+        result = msg.addressing
+        assert isinstance(result, InitResult)
+        self.scans.samples = result.samples
+        self.az.position = 0
+        self.el.position = 0
+        self.tilt.homed()  # the initialiser stood the tilt level and loaded its table
+        for w in waiters:
+            w.reply(result)
+        self._start_ring()
+        self._check_idle_waiters()

@@ -1,4 +1,4 @@
-"""Command transfers from the server to BIRIS, and the BIRIS timeout that watches them.
+"""The command channel: BIRIS commands one at a time, and the BIRIS timeout that watches them.
 
 The report's rule: a new BIRIS command only after BIRIS_CMD of the previous one was serviced
 (``Biris_ready``). Commands therefore wait in a queue; one is issued when BIRIS is ready *and*
@@ -7,97 +7,184 @@ _Biris_cmd_notifier is replied, so that it is blocked on its interrupt again bef
 raise it. Each transfer carries a token, so a BIRIS_CMD_COMPLETE that belongs to a transfer
 abandoned by a reset is recognised and ignored.
 
-_Biris_timeout is armed whenever BIRIS owes the server an answer (a completion, a continuous-mode
-sweep's data, its ring's start) and the client enabled it; BIRIS_TIMEOUT_ERR is a fault only if it
-is the latest arming and BIRIS still owes that answer, since a timer message may cross the answer
-in the inbox.
+_Biris_timeout is armed whenever BIRIS owes the server an answer and the client enabled it. What
+BIRIS owes is the administrator's to say (a completion, a continuous-mode sweep's data, its
+ring's start), so it passes ``owed`` in; BIRIS_TIMEOUT_ERR counts only if it is the latest arming
+and BIRIS still owes that answer, since a timer message may cross the answer in the inbox.
+
+A command carries its *purpose* (why it was issued) and what it was issued for (the scan, the
+tilt, the initialiser's envelope); the administrator maps the purpose to the named method that
+handles the completion, so what follows a command can be found by reading, not by tracing a
+stored closure.
 """
 
 from __future__ import annotations
 
+import enum
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
 from biris_hw.ipc import Envelope
-from biris_hw.server import messages as m
-from biris_hw.server.admin_state import AdminState, BirisCommand
+from biris_hw.server.messages import TransferOrder
+from regs.biexec import BiStatus
 
-__all__ = ["BirisCommands"]
+if TYPE_CHECKING:
+    from biris_hw.server.elevation import Tilt
+    from biris_hw.server.scan_assembly import ActiveScan
+
+__all__ = ["BirisCommand", "CommandChannel", "CommandPurpose", "Timer", "status_name"]
 
 
-class BirisCommands(AdminState):
-    """CMD_TRANSFER_RDY, BIRIS_CMD_COMPLETE, BIRIS_TIMEOUT_ENABLE/DISABLE, BIRIS_TIMEOUT_ERR."""
+class Timer(Protocol):
+    """What the administrator needs of a deadline timer (the real one is a task; tests fake it)."""
 
-    def _submit_command(self, cmd: BirisCommand) -> None:
-        self.cmd_queue.append(cmd)
-        self._pump_commands()
+    def arm(self, hw_seconds: float, real_slack_s: float = 0.0) -> int: ...
 
-    def _pump_commands(self) -> None:
-        if self.fault is not None or not self.biris_ready or self.transfer_env is None:
-            return
-        if not self.cmd_queue:
-            return
-        cmd = self.cmd_queue.popleft()
-        self.current_cmd = cmd
-        self.biris_ready = False
-        if self.cmd_notifier_env is not None:  # put the notifier back on its interrupt first
-            self.cmd_notifier_env.reply(None)
-            self.cmd_notifier_env = None
-        env, self.transfer_env = self.transfer_env, None
-        self.cmd_token += 1
-        cmd.token = self.cmd_token
-        env.reply(m.TransferOrder(cmd.code, cmd.param, cmd.seq_id, cmd.n, cmd.token))
-        self._rearm_timeout()
+    def disarm(self) -> None: ...
 
-    def _on_cmd_transfer_rdy(self, env: Envelope, msg: m.CmdTransferRdy) -> None:
-        self.transfer_env = env
-        self._pump_commands()
 
-    def _on_cmd_complete(self, env: Envelope, msg: m.BirisCmdComplete) -> None:
-        self.cmd_notifier_env = env  # replied just before the next command is issued
-        if self.current_cmd is None or msg.token != self.current_cmd.token:
-            self.counters["stale_completions"] += 1
-            return
-        cmd, self.current_cmd = self.current_cmd, None
-        self.biris_ready = True
-        self._rearm_timeout()
-        cmd.on_done(msg.status, msg.param)
-        self._pump_commands()
-        self._check_idle_waiters()
+class CommandPurpose(enum.Enum):
+    """Why a BIRIS command was issued: names the administrator's case for its completion."""
+
+    ACQUIRE = "acquire"  # BI_ACQUIRE of a report-mode scan
+    LOAD_LUT = "load_lut"  # BI_LOAD_LUT of a tilt
+    START_CONTINUOUS = "start_continuous"  # Appendix D's ring
+    STOP_CONTINUOUS = "stop_continuous"
+    INIT = "init"  # the initialiser's (replied to its envelope)
+
+
+@dataclass(eq=False)
+class BirisCommand:
+    """One BIEXEC_COM command on its way to BIRIS, and what it was issued for."""
+
+    code: int
+    param: str
+    purpose: CommandPurpose
+    n: int = 0
+    """Acquisitions a BI_ACQUIRE asks for (0 for any other command)."""
+    seq_id: int = 0
+    scan: ActiveScan | None = None
+    tilt: Tilt | None = None
+    requester: Envelope | None = None
+    """The initialiser's INIT_COMMAND, replied with (STATUS, PARAM)."""
+    token: int = 0
+    """Which transfer this is, so a late completion of an abandoned one is recognised."""
+
+
+def status_name(status: int) -> str:
+    """A BIEXEC_COM STATUS's name, for a fault's message."""
+    try:
+        return BiStatus(status).name
+    except ValueError:
+        return "error"
+
+
+class CommandChannel:
+    """The queue of BIRIS commands, the one in flight, the parked workers and the timeout."""
+
+    def __init__(self, timer: Timer, timeout_s: float) -> None:
+        self._timer = timer
+        self._timeout_s = timeout_s
+        self._queue: deque[BirisCommand] = deque()
+        self.current: BirisCommand | None = None
+        """The command BIRIS is executing (issued, not yet completed)."""
+        self._transfer_env: Envelope | None = None
+        """_Biris_cmd_transfer, parked on CMD_TRANSFER_RDY."""
+        self._notifier_env: Envelope | None = None
+        """_Biris_cmd_notifier, parked on its last BIRIS_CMD_COMPLETE."""
+        self._token = 0
+        self.timeout_enabled = False
+        self._timeout_gen = -1
+
+    @property
+    def timeout_s(self) -> float:
+        return self._timeout_s
+
+    def busy(self) -> bool:
+        """A command runs or waits."""
+        return self.current is not None or bool(self._queue)
+
+    # -- the command flow --------------------------------------------------------------------
+    def submit(self, cmd: BirisCommand) -> None:
+        """Queue ``cmd``; :meth:`pump` issues it once BIRIS and the worker are ready."""
+        self._queue.append(cmd)
+
+    def pump(self) -> BirisCommand | None:
+        """Issue the next command if BIRIS is ready and the worker parked; returns it."""
+        if self.current is not None or self._transfer_env is None or not self._queue:
+            return None
+        cmd = self._queue.popleft()
+        self.current = cmd
+        if self._notifier_env is not None:  # put the notifier back on its interrupt first
+            self._notifier_env.reply(None)
+            self._notifier_env = None
+        env, self._transfer_env = self._transfer_env, None
+        self._token += 1
+        cmd.token = self._token
+        env.reply(TransferOrder(cmd.code, cmd.param, cmd.seq_id, cmd.n, cmd.token))
+        return cmd
+
+    def worker_ready(self, env: Envelope) -> None:
+        """CMD_TRANSFER_RDY: the worker is parked until the next command."""
+        self._transfer_env = env
+
+    def complete(self, env: Envelope, token: int) -> BirisCommand | None:
+        """BIRIS_CMD_COMPLETE: the command it completes, or None when it is stale.
+
+        The notifier stays parked (replied just before the next command is issued).
+        """
+        self._notifier_env = env
+        if self.current is None or token != self.current.token:
+            return None
+        cmd, self.current = self.current, None
+        return cmd
+
+    def discard(self, keep: Callable[[BirisCommand], bool] | None = None) -> list[BirisCommand]:
+        """Take waiting commands out of the queue (those ``keep`` refuses, or all); returns them.
+
+        The command in flight stays: BIRIS is executing it, and its completion must still be
+        recognised (as stale, or for whoever waits on it).
+        """
+        if keep is None:
+            dropped, self._queue = list(self._queue), deque()
+            return dropped
+        dropped = [c for c in self._queue if not keep(c)]
+        self._queue = deque(c for c in self._queue if keep(c))
+        return dropped
+
+    def waiting(self) -> Iterable[BirisCommand]:
+        return tuple(self._queue)
 
     # -- _Biris_timeout ----------------------------------------------------------------------
-    def _biris_expected(self) -> bool:
-        """BIRIS owes a completion, a continuous-mode sweep's data, or its ring's start."""
-        scan = self.scan
-        return (
-            self.current_cmd is not None
-            or (scan is not None and scan.ring and not scan.cmd_done)
-            or self.ring == "starting"
-        )
+    def rearm_timeout(self, owed: bool) -> None:
+        """Arm the timeout afresh if enabled and BIRIS owes an answer, else disarm it.
 
-    def _note_biris_alive(self) -> None:
-        """BIRIS has shown life (an acquisition): the timeout starts over if it runs."""
-        if self.timeout_enabled and self._biris_expected():
-            self.timeout_gen = self.biris_timeout.arm(self.record.timeout_s)
-
-    def _rearm_timeout(self) -> None:
-        if self.timeout_enabled and self._biris_expected():
-            self.timeout_gen = self.biris_timeout.arm(self.record.timeout_s)
+        Also how life from BIRIS (an acquisition) restarts the countdown.
+        """
+        if self.timeout_enabled and owed:
+            self._timeout_gen = self._timer.arm(self._timeout_s)
         else:
-            self.biris_timeout.disarm()
+            self._timer.disarm()
 
-    def _on_timeout_err(self, env: Envelope, msg: m.BirisTimeoutErr) -> None:
-        env.reply(None)
-        if msg.generation == self.timeout_gen and self._biris_expected():
-            self._fault(
-                "timeout", f"BIRIS did not respond for {self.record.timeout_s:g} s of hardware time"
-            )
+    def note_alive(self, owed: bool) -> None:
+        """BIRIS has shown life: the countdown starts over if it runs (never disarms)."""
+        if self.timeout_enabled and owed:
+            self._timeout_gen = self._timer.arm(self._timeout_s)
 
-    def _on_timeout_enable(self, env: Envelope, msg: m.TimeoutEnable) -> None:
-        self._usable_conn(msg.conn)
+    def timed_out(self, generation: int, owed: bool) -> bool:
+        """BIRIS_TIMEOUT_ERR: True if it is the latest arming and BIRIS still owes."""
+        return generation == self._timeout_gen and owed
+
+    def enable_timeout(self, owed: bool) -> None:
         self.timeout_enabled = True
-        self._rearm_timeout()
-        env.reply(None)
+        self.rearm_timeout(owed)
 
-    def _on_timeout_disable(self, env: Envelope, msg: m.TimeoutDisable) -> None:
-        self._usable_conn(msg.conn)
+    def disable_timeout(self) -> None:
         self.timeout_enabled = False
-        self.biris_timeout.disarm()
-        env.reply(None)
+        self._timer.disarm()
+
+    def stop_timer(self) -> None:
+        """Disarm without changing whether the timeout is enabled (a fault, a reset)."""
+        self._timer.disarm()

@@ -9,27 +9,25 @@ Only the administrator thread calls this.
 
 from __future__ import annotations
 
-import logging
 import threading
 import weakref
 from collections.abc import Callable
-from typing import Any
 
 from biris_hw.data import ConnectionKind, Point, Scan
 from biris_hw.errors import ConnectionClosed
 from biris_hw.ipc import Envelope
+from biris_hw.server.counters import Counters
 from biris_hw.server.delivery import ClientConn, check_policy, stamp
+from biris_hw.server.faults import fail_quietly, log
+from biris_hw.status import ConnectionStatus
 
-__all__ = ["Connections", "fail_quietly"]
-
-log = logging.getLogger("biris_hw.server.admin")
-"""The administrator thread's messages, whichever module writes them: one name to configure."""
+__all__ = ["Connections"]
 
 
 class Connections:
-    """Open connections by ident; ``counters["deliveries"]`` counts every hand-over."""
+    """Open connections by ident; ``counters.deliveries`` counts every hand-over."""
 
-    def __init__(self, clock: Callable[[], float], counters: dict[str, int]) -> None:
+    def __init__(self, clock: Callable[[], float], counters: Counters) -> None:
         self._clock = clock
         self._counters = counters
         self._conns: dict[int, ClientConn] = {}
@@ -93,7 +91,7 @@ class Connections:
                 before = conn.delivered
                 conn.offer(scan, now, sent)
                 delivered += conn.delivered - before
-        self._counters["deliveries"] += delivered
+        self._counters.deliveries += delivered
 
     def deliver_points(self, points: list[Point], lost: int) -> None:
         """New acquisitions (and how many were lost), to every connection that takes each one."""
@@ -104,13 +102,13 @@ class Connections:
             before = conn.delivered
             for point in points:
                 conn.offer(point, now)
-            self._counters["deliveries"] += conn.delivered - before
+            self._counters.deliveries += conn.delivered - before
 
     def ready(self, env: Envelope, conn: ClientConn) -> None:
         """READY_FOR_DATA: answered from the connection's queue, or parked until data come."""
         before = conn.delivered
         conn.ready(env, self._clock())
-        self._counters["deliveries"] += conn.delivered - before
+        self._counters.deliveries += conn.delivered - before
 
     def hand_over(self, env: Envelope, conn: ClientConn, item: Scan | Point | None) -> None:
         """Answer REQUEST_POINT / REQUEST_SCAN_DATA: stamped, and its latency recorded."""
@@ -120,7 +118,7 @@ class Connections:
         sent = stamp(item, self._clock())
         if env.reply(sent) is not False:
             conn.record(sent)
-            self._counters["deliveries"] += 1
+            self._counters.deliveries += 1
 
     def fail_waiting(self, exc: BaseException, *, forget: bool = True) -> None:
         """Every parked READY_FOR_DATA gets ``exc``; ``forget=False`` leaves them parked."""
@@ -134,14 +132,6 @@ class Connections:
         """Deliveries dropped so far, by open and closed connections alike."""
         return self._closed_drops + sum(c.dropped for c in self._conns.values())
 
-    def summaries(self) -> dict[int, dict[str, Any]]:
+    def summaries(self) -> dict[int, ConnectionStatus]:
         """Each open connection's part of ``server.status()``."""
         return {c.ident: c.summary() for c in self._conns.values()}
-
-
-def fail_quietly(env: Envelope, exc: BaseException) -> None:
-    """Fail ``env``; one that was already answered has nobody left to tell."""
-    try:
-        env.fail(exc)
-    except Exception:
-        log.debug("envelope already answered", exc_info=True)

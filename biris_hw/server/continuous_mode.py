@@ -1,75 +1,107 @@
-"""Appendix D's continuous mode: BIRIS acquiring into its ring without a command per sweep.
+"""Appendix D's continuous acquisition: BIRIS acquiring into its ring without a command per sweep.
 
 With ``BirisInitRecord.continuous_acquisition`` BIRIS is started once (BI_START_CONTINUOUS)
 after initialisation and keeps acquiring into its ring, so the 240 ms start-up is paid once, not
 per sweep. It is stopped (BI_STOP_CONTINUOUS) for a tilt, since no acquisition may run while
 tilting, and restarted after. The ring is *live* once its first acquisition has begun
 (CONTINUOUS_LIVE); only then may a sweep start, so a sweep's first acquisitions are never the
-start-up's. ``ring`` is off, starting, live or stopping.
+start-up's.
+
+:class:`Ring` owns that state; its transitions are the table :data:`TRANSITIONS`, and every
+change goes through it, so an impossible step (live without starting) is an error, not a
+silently odd state.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import enum
 
-from biris_hw.ipc import Envelope
-from biris_hw.server import messages as m
-from biris_hw.server.admin_state import AdminState, BirisCommand, status_name
-from regs.biexec import BiCommand, BiStatus, decode_param
-
-__all__ = ["ContinuousMode"]
+__all__ = ["TRANSITIONS", "Ring", "RingState"]
 
 
-def _ring_answer(param: bytes) -> int:
-    """BI_START_CONTINUOUS's answer: the ring's length in frames, 0 if unreadable."""
-    try:
-        return int(decode_param(param).strip(), 10)
-    except ValueError:
-        return 0
+class RingState(enum.Enum):
+    """Where BIRIS's continuous acquisition stands, as the administrator knows it."""
+
+    OFF = "off"
+    STARTING = "starting"  # BI_START_CONTINUOUS issued, no acquisition yet
+    LIVE = "live"  # acquisitions arrive
+    STOPPING = "stopping"  # BI_STOP_CONTINUOUS issued
 
 
-class ContinuousMode(AdminState):
-    """BI_START_CONTINUOUS, BI_STOP_CONTINUOUS and CONTINUOUS_LIVE."""
+TRANSITIONS: dict[RingState, frozenset[RingState]] = {
+    RingState.OFF: frozenset({RingState.STARTING}),
+    RingState.STARTING: frozenset({RingState.LIVE, RingState.STOPPING}),
+    RingState.LIVE: frozenset({RingState.STOPPING}),
+    RingState.STOPPING: frozenset({RingState.OFF}),
+}
+"""Every step the ring may take (a reset or a fault sets OFF from anywhere: :meth:`Ring.forget`)."""
 
-    def _start_ring(self) -> None:
-        if not self.ring_mode or self.ring != "off" or self.fault is not None:
-            return
-        if self.phase != "idle" or self.tilt is not None:
-            return
-        self.ring = "starting"
 
-        def started(status: int, param: bytes) -> None:
-            if status != BiStatus.OK or _ring_answer(param) <= 0:
-                self._fault(
-                    "protocol",
-                    f"BI_START_CONTINUOUS failed: STATUS {status} ({status_name(status)}), "
-                    f"answer {param.split(bytes(1))[0]!r}",
-                )
+class Ring:
+    """The continuous-acquisition ring: whether it is used, and its state."""
 
-        self._submit_command(BirisCommand(int(BiCommand.BI_START_CONTINUOUS), "", started))
+    def __init__(self, mode: bool) -> None:
+        self.mode = mode
+        """Appendix D's acquisition is selected (the init record's ``continuous_acquisition``)."""
+        self.state = RingState.OFF
 
-    def _on_continuous_live(self, env: Envelope, msg: m.ContinuousLive) -> None:
-        env.reply(None)
-        if self.ring != "starting":
-            return  # stopped again before its first acquisition
-        self.ring = "live"
-        self.counters["continuous_starts"] += 1
-        self._rearm_timeout()
-        self._run_deferred()
-        self._check_idle_waiters()
+    def _go(self, new: RingState) -> None:
+        if new not in TRANSITIONS[self.state]:
+            raise AssertionError(f"ring: {self.state.value} -> {new.value} is not a transition")
+        self.state = new
 
-    def _stop_ring(self, then: Callable[[], None]) -> None:
-        """BI_STOP_CONTINUOUS, then ``then`` (also when a stop is already on its way)."""
-        self.ring_stop_waiters.append(then)
-        if self.ring == "stopping":
-            return
-        self.ring = "stopping"
+    @property
+    def off(self) -> bool:
+        return self.state is RingState.OFF
 
-        def stopped(status: int, param: bytes) -> None:
-            self.ring = "off"
-            waiters, self.ring_stop_waiters = self.ring_stop_waiters, []
-            for waiter in waiters:
-                waiter()
-            self._check_idle_waiters()
+    @property
+    def live(self) -> bool:
+        return self.state is RingState.LIVE
 
-        self._submit_command(BirisCommand(int(BiCommand.BI_STOP_CONTINUOUS), "", stopped))
+    @property
+    def starting(self) -> bool:
+        return self.state is RingState.STARTING
+
+    @property
+    def stopping(self) -> bool:
+        return self.state is RingState.STOPPING
+
+    def ready(self) -> bool:
+        """BIRIS may acquire for a sweep: report mode, or the ring is live."""
+        return not self.mode or self.state is RingState.LIVE
+
+    def settled(self) -> bool:
+        """Nothing is on its way: off or live (for ``is_idle``)."""
+        return self.state in (RingState.OFF, RingState.LIVE)
+
+    def start(self) -> bool:
+        """Begin starting if the mode wants a ring and none runs; True if BI_START_CONTINUOUS
+        must now be issued."""
+        if not self.mode or self.state is not RingState.OFF:
+            return False
+        self._go(RingState.STARTING)
+        return True
+
+    def went_live(self) -> bool:
+        """CONTINUOUS_LIVE; False if the ring was stopped again before its first acquisition."""
+        if self.state is not RingState.STARTING:
+            return False
+        self._go(RingState.LIVE)
+        return True
+
+    def stop(self) -> bool:
+        """Begin stopping; True if BI_STOP_CONTINUOUS must now be issued (none on its way)."""
+        if self.state is RingState.STOPPING:
+            return False
+        if self.state is RingState.OFF:
+            raise AssertionError("ring: stop while off")
+        self._go(RingState.STOPPING)
+        return True
+
+    def stopped(self) -> None:
+        """BI_STOP_CONTINUOUS completed."""
+        self._go(RingState.OFF)
+
+    def forget(self) -> None:
+        """A reset: BIRIS is made to stop acquiring by the initialiser, whatever it did."""
+        self.state = RingState.OFF

@@ -16,12 +16,13 @@ import threading
 import weakref
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import TypeVar
 
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
 from biris_hw.errors import RequestError
 from biris_hw.ipc import Envelope
 from biris_hw.server.latency import LatencyHistogram
+from biris_hw.status import ConnectionStatus
 
 __all__ = ["ClientConn", "check_policy", "stamp"]
 
@@ -157,14 +158,14 @@ class ClientConn:
         self.waiting = env
         return False
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> ConnectionStatus:
         """This connection's part of ``server.status()``."""
-        return {
-            "kind": self.kind.name,
-            "policy": self.policy.name,
-            "depth": self.depth,
-            "queued": len(self.queue),
-            "delivered": self.delivered,
-            "dropped": self.dropped,
-            "latency": self.latency.summary(),
-        }
+        return ConnectionStatus(
+            kind=self.kind.name,
+            policy=self.policy.name,
+            depth=self.depth,
+            queued=len(self.queue),
+            delivered=self.delivered,
+            dropped=self.dropped,
+            latency=self.latency.summary(),
+        )

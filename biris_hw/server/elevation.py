@@ -6,94 +6,95 @@ _el_scan_notifier) while BI_LOAD_LUT loads that elevation's calibration table --
 must exist for each angle of elevation" -- and the tilt is over when both are. "Data acquisitions
 will not occur during elevation changes": a tilt asked for during a scan waits for the end of
 that sweep (in continuous scanning, it happens between two sweeps), and a scan asked for during a
-tilt waits for the tilt (see :mod:`biris_hw.server.scanning`). In continuous acquisition the
-ring is stopped for the tilt and restarted after. A BI_LOAD_LUT that BIRIS refuses (no table for
-that elevation) is a ``protocol`` fault: the record's limits promise tables BIRIS does not have.
+tilt waits for the tilt. In continuous acquisition the ring is stopped for the tilt first
+(:attr:`TiltPhase.AWAIT_RING_STOP`) and restarted after. A BI_LOAD_LUT that BIRIS refuses (no
+table for that elevation) is a ``protocol`` fault: the record's limits promise tables BIRIS does
+not have.
+
+:class:`TiltControl` owns where the tilt stands, which table BIRIS holds, the tilt under way and
+the one asked for meanwhile; the administrator issues the motion and the command it decides on.
 """
 
 from __future__ import annotations
 
+import enum
+from dataclasses import dataclass
+
 from biris_hw.angles import clamp_counts
-from biris_hw.ipc import Envelope
-from biris_hw.server import messages as m
-from biris_hw.server.admin_state import AdminState, BirisCommand, Tilt, status_name
-from regs.biexec import BiCommand, BiStatus
 
-__all__ = ["Elevation"]
+__all__ = ["Tilt", "TiltControl", "TiltPhase"]
 
 
-class Elevation(AdminState):
-    """SET_ELEVATION and the tilts it starts."""
+class TiltPhase(enum.Enum):
+    AWAIT_RING_STOP = "await_ring_stop"  # continuous acquisition is being stopped first
+    UNDER_WAY = "under_way"  # the tilt motor moves and/or BI_LOAD_LUT runs
 
-    def _on_set_elevation(self, env: Envelope, msg: m.SetElevation) -> None:
-        self._usable_conn(msg.conn)
-        lo, hi = self.record.elevation_limits_counts
-        dest = min(max(clamp_counts(msg.destination), lo), hi)
-        if self.scan is not None or self.tilt is not None:
-            # after the sweep under way (or the tilt under way); the latest request wins
-            settled = self.tilt is None and dest == self.elevation and self.lut == dest
-            self.elevation_pending = None if settled else dest
-        elif dest != self.elevation or self.lut != dest:
-            self._start_tilt(dest)
-        env.reply(dest)
 
-    def _start_tilt(self, dest: int) -> None:
-        self.elevation_pending = None
-        tilt = Tilt(dest)
-        self.tilt = tilt
-        self.counters["tilts"] += 1
-        if self.ring in ("starting", "live", "stopping"):
-            self._stop_ring(lambda: self._tilt_go(tilt))
-        else:
-            self._tilt_go(tilt)
+@dataclass(eq=False)
+class Tilt:
+    """A tilt under way: over when the tilt motor has moved *and* BI_LOAD_LUT has loaded."""
 
-    def _tilt_go(self, tilt: Tilt) -> None:
-        if self.tilt is not tilt or self.fault is not None:
-            return
-        dest = tilt.destination
-        if dest != self.el.position:
-            self._move(self.el, m.MoveOrder(dest), lambda: self._tilt_part(tilt, moved=True))
-        else:
-            tilt.moved = True
-        self._submit_command(
-            BirisCommand(
-                int(BiCommand.BI_LOAD_LUT),
-                str(dest),
-                lambda status, param: self._tilt_lut_loaded(tilt, status),
-            )
-        )
+    destination: int
+    phase: TiltPhase = TiltPhase.UNDER_WAY
+    moved: bool = False
+    lut: bool = False
 
-    def _tilt_lut_loaded(self, tilt: Tilt, status: int) -> None:
-        if self.tilt is not tilt:
-            return
-        if status != BiStatus.OK:
-            self._fault(
-                "protocol",
-                f"BI_LOAD_LUT {tilt.destination} failed: STATUS {status} ({status_name(status)})"
-                " -- BIRIS has no calibration for an elevation the init record allows",
-            )
-            return
-        self.lut = tilt.destination
-        self.counters["lut_loads"] += 1
-        tilt.lut = True
-        self._tilt_part(tilt)
+    @property
+    def over(self) -> bool:
+        return self.moved and self.lut
 
-    def _tilt_part(self, tilt: Tilt, *, moved: bool = False) -> None:
-        """One half of the tilt is done; when both are, what waited for it goes on."""
-        if self.tilt is not tilt:
-            return
-        if moved:
-            tilt.moved = True
-        if not (tilt.moved and tilt.lut):
-            return
-        self.tilt = None
+
+class TiltControl:
+    """Where the tilt stands, the calibration BIRIS holds, and the tilt under way or asked for."""
+
+    def __init__(self, limits: tuple[int, int]) -> None:
+        self._limits = limits
+        self.elevation = 0
+        """Where the tilt stands (counts) once the last tilt is over."""
+        self.lut: int | None = None
+        """Elevation (counts) of the calibration table BIRIS holds, None when unknown."""
+        self.current: Tilt | None = None
+        self.pending: int | None = None
+        """A tilt asked for during a sweep or another tilt: it goes next (the latest wins)."""
+
+    def clamp(self, destination: int) -> int:
+        """_Scan_limit, then the record's elevation limits."""
+        lo, hi = self._limits
+        return min(max(clamp_counts(destination), lo), hi)
+
+    def needed(self, dest: int) -> bool:
+        """Whether standing at ``dest`` with its table takes a tilt."""
+        return dest != self.elevation or self.lut != dest
+
+    def ask_later(self, dest: int) -> None:
+        """Keep ``dest`` for after the sweep or tilt under way (nothing if already there)."""
+        settled = self.current is None and not self.needed(dest)
+        self.pending = None if settled else dest
+
+    def begin(self, dest: int, *, await_ring: bool) -> Tilt:
+        self.pending = None
+        phase = TiltPhase.AWAIT_RING_STOP if await_ring else TiltPhase.UNDER_WAY
+        self.current = Tilt(dest, phase)
+        return self.current
+
+    def is_current(self, tilt: Tilt | None) -> bool:
+        return tilt is not None and tilt is self.current
+
+    def finish(self, tilt: Tilt) -> int | None:
+        """``tilt`` is over: the elevation is its destination; returns a pending tilt to begin."""
+        self.current = None
         self.elevation = tilt.destination
-        pending, self.elevation_pending = self.elevation_pending, None
-        if pending is not None and (pending != self.elevation or self.lut != pending):
-            self._start_tilt(pending)
-            return
-        if self.ring_mode:
-            self._start_ring()
-        self._run_deferred()
-        self._after_motion_settles()
-        self._check_idle_waiters()
+        pending, self.pending = self.pending, None
+        if pending is not None and self.needed(pending):
+            return pending
+        return None
+
+    def forget(self) -> None:
+        """A fault or reset: no tilt under way or asked for."""
+        self.current = None
+        self.pending = None
+
+    def homed(self) -> None:
+        """Initialisation stood the tilt level and loaded the table for it."""
+        self.elevation = 0
+        self.lut = 0

@@ -1,52 +1,87 @@
-"""The fault state: what a hardware fault stops, and who is told.
+"""The server's lifecycle: initialising, idle, or faulted, and who waits on it.
 
 A fault -- BIRIS_BUS_ERR or BIRIS_PARITY_ERR from their notifiers, a BIRIS timeout, a stalled
 motor, a protocol error -- ends everything under way, and every blocked and later call gets the
 :class:`HardwareFault` until a reset initialises the server again: the report's server can only
-report such failures, and a client must not wait for data that will not come.
+report such failures, and a client must not wait for data that will not come. The initialiser
+(:mod:`biris_hw.server.initialiser`) runs in a worker of its own so that the administrator never
+waits on it; RESET_REQUEST starts it, INIT_DONE ends it.
 """
 
 from __future__ import annotations
 
-from biris_hw.errors import ConnectionClosed, FaultKind, HardwareFault
+import enum
+import logging
+
+from biris_hw.errors import FaultKind, HardwareFault, RequestError
 from biris_hw.ipc import Envelope
-from biris_hw.server.admin_state import AdminState, fail_quietly, log
 
-__all__ = ["Faults"]
+__all__ = ["Lifecycle", "Phase", "fail_quietly", "log"]
+
+log = logging.getLogger("biris_hw.server.admin")
+"""The administrator thread's messages, whichever module writes them: one name to configure."""
 
 
-class Faults(AdminState):
-    """BIRIS_BUS_ERR, BIRIS_PARITY_ERR, and every fault found elsewhere."""
+def fail_quietly(env: Envelope, exc: BaseException) -> None:
+    """Fail ``env``; one that was already answered has nobody left to tell."""
+    try:
+        env.fail(exc)
+    except Exception:
+        log.debug("envelope already answered", exc_info=True)
 
-    def _task_fault(self, env: Envelope, kind: FaultKind, text: str) -> None:
-        """A notifier's report of a fault: released at once, then the fault state."""
-        env.reply(None)
-        self._fault(kind, text)
 
-    def _fault(self, kind: FaultKind, text: str) -> None:
+class Phase(enum.Enum):
+    INITIALISING = "initialising"
+    IDLE = "idle"  # initialised: serving requests (the activities say what it does)
+
+
+class Lifecycle:
+    """Phase, fault, and the callers parked on initialisation or on idleness."""
+
+    def __init__(self) -> None:
+        self.phase = Phase.INITIALISING
+        self.fault: HardwareFault | None = None
+        self.init_waiters: list[Envelope] = []
+        self.idle_waiters: list[Envelope] = []
+
+    @property
+    def initialising(self) -> bool:
+        return self.phase is Phase.INITIALISING
+
+    def check_usable(self) -> None:
+        """Raise the fault, or RequestError while initialising: what every request checks."""
         if self.fault is not None:
-            return
+            raise self.fault
+        if self.phase is Phase.INITIALISING:
+            raise RequestError("the server is initialising")
+
+    def begin_reset(self, env: Envelope) -> None:
+        """RESET_REQUEST: the fault is forgotten and initialisation (re)starts."""
+        if self.phase is Phase.INITIALISING and self.init_waiters:
+            raise RequestError("initialisation is already running")
+        self.init_waiters.append(env)
+        self.phase = Phase.INITIALISING
+        self.fault = None
+
+    def initialised(self) -> list[Envelope]:
+        """INIT_DONE: idle; returns the reset callers to answer."""
+        self.phase = Phase.IDLE
+        waiters, self.init_waiters = self.init_waiters, []
+        return waiters
+
+    def enter_fault(self, kind: FaultKind, text: str) -> HardwareFault | None:
+        """The fault state; None when already in one (the first fault is the one reported)."""
+        if self.fault is not None:
+            return None
         fault = HardwareFault(kind, text)
         log.error("hardware fault: %s", fault)
         self.fault = fault
-        self.counters["faults"] += 1
-        self.biris_timeout.disarm()
-        for axis in (self.az, self.el):
-            axis.fail_all(fault)  # before forgetting them: the initialiser may wait on one
-        self._clear_activity()
-        for cmd in list(self.cmd_queue):
-            cmd.on_fail(fault)
-        self.cmd_queue.clear()
-        if self.current_cmd is not None and self.current_cmd in self.init_commands:
-            self.current_cmd.on_fail(fault)
         waiters, self.idle_waiters = self.idle_waiters, []
         for env in waiters:
             fail_quietly(env, fault)
-        self.clients.fail_waiting(fault)
+        return fault
 
-    def shutdown(self) -> None:
-        """Called by the server after this thread has ended: nobody may stay blocked."""
-        stopped = ConnectionClosed("the BIRIS server has stopped")
-        for env in self.idle_waiters + self.init_waiters:
-            fail_quietly(env, stopped)
-        self.clients.fail_waiting(stopped, forget=False)
+    def release_idle_waiters(self) -> None:
+        waiters, self.idle_waiters = self.idle_waiters, []
+        for env in waiters:
+            env.reply(None)

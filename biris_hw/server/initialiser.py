@@ -18,6 +18,9 @@ not acquiring the stop simply completes. Moves and BIRIS commands go through the
 administrator (InitMove, InitCommand) so that they use the same workers and notifiers as scans.
 Every step is bounded: no index within the configured revolutions, a command BIRIS never
 completes, or a move that never ends is a HardwareFault, never a hang.
+
+The registers are reached through the hardware bundle's one set of drivers
+(``BirisHardware.devices``), the same objects the server's tasks use.
 """
 
 from __future__ import annotations
@@ -31,14 +34,14 @@ from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
 from biris_hw.records import BirisInitRecord
-from biris_hw.server.devices import AxisDriver, BirisLink, Coupler, MotionBoard
+from biris_hw.server.cmd_transfer import status_name
 from biris_hw.server.messages import InitCommand, InitMove
 from regs.biexec import BiCommand, BiStatus, decode_param
 from regs.hctl1000 import COUNTS_PER_REV
 from regs.layout import FrameAddressing, acquisition_period_s, samples_for_frame_size
 from regs.tech80 import DEFAULT_IRQ_VECTOR, Axis
 
-__all__ = ["InitResult", "Initialiser", "wait_settled"]
+__all__ = ["InitResult", "Initialiser", "run_initialiser"]
 
 log = logging.getLogger(__name__)
 
@@ -61,37 +64,6 @@ class InitResult:
     period_s: float
 
 
-def wait_settled(
-    axis: AxisDriver,
-    clock: Callable[[], float],
-    time_scale: float,
-    stop: threading.Event,
-    limit_s: float = 1.0,
-    sample_s: float = 0.0015,
-) -> bool:
-    """Poll until the actual position equals the command position and holds for 3 samples.
-
-    Polling is how the HCTL-1000 datasheet says to tell that the motor has stopped (the profile
-    flag clears before it does). Bounded by ``limit_s`` of hardware time; False if not settled.
-    """
-    deadline = clock() + limit_s
-    last: int | None = None
-    steady = 0
-    while clock() < deadline:
-        pos = axis.actual_position()
-        target = axis.command_position()
-        if abs(pos - target) <= 1 and pos == last:
-            steady += 1
-            if steady >= 3:
-                return True
-        else:
-            steady = 0
-        last = pos
-        if stop.wait(sample_s / time_scale):
-            return False
-    return False
-
-
 class Initialiser:
     """One run of the initialisation sequence; ``run()`` returns an InitResult or raises."""
 
@@ -106,11 +78,12 @@ class Initialiser:
         self.record = record
         self.admin = admin
         self.stop = stop
-        self.board = MotionBoard(hw.motion)
-        self.azimuth = AxisDriver(hw.motion, Axis.AZIMUTH)
-        self.elevation = AxisDriver(hw.motion, Axis.ELEVATION)
-        self.coupler = Coupler(hw.coupler)
-        self.link = BirisLink(hw.biris, hw.biexec_offset)
+        self.devices = hw.devices
+        self.board = hw.devices.board
+        self.azimuth = hw.devices.azimuth
+        self.elevation = hw.devices.elevation
+        self.coupler = hw.devices.coupler
+        self.link = hw.devices.link
         self._position = {Axis.AZIMUTH: 0, Axis.ELEVATION: 0}
 
     # -- steps ---------------------------------------------------------------------------------
@@ -139,24 +112,12 @@ class Initialiser:
         ):
             self.board.reset_chip(axis.axis)
             axis.configure(params)
-            self._wait_still(axis)
+            axis.wait_still(self.stop)  # after a reset the motor coasts
             axis.hold_here()
             self.board.acknowledge(axis.axis)
             self._position[axis.axis] = axis.command_position()
         self.board.enable_end_of_scan(Axis.AZIMUTH, DEFAULT_IRQ_VECTOR)
         self.board.enable_end_of_scan(Axis.ELEVATION, DEFAULT_IRQ_VECTOR)
-
-    def _wait_still(self, axis: AxisDriver) -> None:
-        """After a reset the motor coasts; wait until the encoder stops changing."""
-        deadline = self.hw.clock() + 2.0
-        last = axis.actual_position()
-        steady = 0
-        while self.hw.clock() < deadline and steady < 5:
-            if self.stop.wait(0.002 / self.hw.time_scale):
-                return
-            pos = axis.actual_position()
-            steady = steady + 1 if pos == last else 0
-            last = pos
 
     def _move(self, destination: int, axis: Axis = Axis.AZIMUTH) -> None:
         if destination == self._position[axis]:
@@ -229,7 +190,7 @@ class Initialiser:
                 low = mid
         self._move(high, axis)
         driver.idle()
-        self._wait_still(driver)
+        driver.wait_still(self.stop)
         driver.hold_here(zero_counter=True)
         self._position[axis] = 0
         board.clear_index(axis)
@@ -240,10 +201,7 @@ class Initialiser:
         assert isinstance(reply, tuple)
         status, raw = reply
         if status != BiStatus.OK:
-            try:
-                name = BiStatus(status).name
-            except ValueError:
-                name = "error"
+            name = status_name(status)
             raise HardwareFault("protocol", f"{code.name} failed: STATUS {status} ({name})")
         try:
             return decode_param(raw)

@@ -4,9 +4,9 @@ Internal tasks send the first group (NEW_POINT, CMD_TRANSFER_RDY, AZ_READY, AZ_S
 BIRIS_CMD_COMPLETE and the three *_ERR reports; the tilt axis's EL_READY and EL_SCAN_DONE, which
 the report foresees with its future tasks _el_scan_start and _el_scan_notifier; and the two
 reports of Appendix D's continuous mode, CONTINUOUS_LIVE and SWEEP_DATA_DONE); clients send the
-second (REQUEST_POINT, REQUEST_SCAN_DATA, ... READY_FOR_DATA, and SET_ELEVATION, the "new
-message" the report asks for to servo the elevation axis). Orders the administrator *replies* to
-its workers are the third group. All are immutable; arrays inside them are read-only.
+second, and live in :mod:`biris_hw.protocol` below client and server. Orders the administrator
+*replies* to its workers are the third group here. All are immutable; arrays inside them are
+read-only.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction
 from biris_hw.records import MotorParams
 from regs.tech80 import Axis
 
@@ -157,103 +156,6 @@ class InitDone:
 
     error: BaseException | None
     addressing: object | None = None
-
-
-# --- from clients ----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class OpenRequest:
-    kind: ConnectionKind
-    owner_ident: object
-    """The opening thread: the connection is released when it ends."""
-    policy: DeliveryPolicy = DeliveryPolicy.LATEST
-    depth: int | None = None
-    """None: the policy's default."""
-
-
-@dataclass(frozen=True, slots=True)
-class CloseRequest:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class RequestPoint:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class RequestScanData:
-    conn: int
-    direction: Direction
-
-
-@dataclass(frozen=True, slots=True)
-class TimeoutEnable:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class TimeoutDisable:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class BirisMotorParams:
-    conn: int
-    params: MotorParams
-
-
-@dataclass(frozen=True, slots=True)
-class SingleScanRqst:
-    conn: int
-    destination: int
-
-
-@dataclass(frozen=True, slots=True)
-class ContScanRqst:
-    conn: int
-    cw_limit: int
-    ccw_limit: int
-
-
-@dataclass(frozen=True, slots=True)
-class StopScanRqst:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class BirisHome:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class SetElevation:
-    """The report's future elevation message: tilt to ``destination`` counts and reload the
-    calibration table for it."""
-
-    conn: int
-    destination: int
-
-
-@dataclass(frozen=True, slots=True)
-class ReadyForData:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class WaitIdle:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class ResetRequest:
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class StatusRequest:
-    conn: int | None = None
 
 
 # --- orders the administrator replies to its workers -------------------------------------------

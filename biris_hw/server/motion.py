@@ -6,39 +6,60 @@ AZ_READY and is *replied* the next destination, and _Biris_az_notifier, which re
 are therefore the same bookkeeping: orders wait in a queue until the worker is free, one runs at
 a time, and a watchdog (beyond the report) turns a motion that never ends into a fault instead
 of a hang. Only the administrator thread touches these objects; they never block.
+
+An order carries its *purpose* (a scan's move, a tilt's, homing, a parameter load, the
+initialiser's move) and what it serves; the administrator maps the purpose to the named method
+that handles its end.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import enum
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from biris_hw.angles import clamp_counts
+from biris_hw.devices import SETTLE_LIMIT_S
 from biris_hw.ipc import Envelope
 from biris_hw.records import MotorParams
+from biris_hw.server.cmd_transfer import Timer
 from biris_hw.server.messages import MoveOrder, ParamsOrder
-from biris_hw.server.tasks import DeadlineTimer
 from regs.tech80 import Axis
 
-__all__ = ["AxisState", "Motion", "expected_move_s"]
+if TYPE_CHECKING:
+    from biris_hw.server.elevation import Tilt
+    from biris_hw.server.scan_assembly import ActiveScan
 
-SETTLE_LIMIT_S = 1.0
-"""Longest a motor notifier polls for the head to come to rest (``wait_settled``'s default)."""
+__all__ = ["AxisState", "Motion", "MotionPurpose", "expected_move_s"]
+
 
 WATCHDOG_REAL_SLACK_S = 0.5
 """Real seconds a motor watchdog allows on top, for notifier threads that a busy machine runs
 late: on a simulator clock 20 times fast, 50 ms of starvation is a whole hardware second."""
 
 
-@dataclass
+class MotionPurpose(enum.Enum):
+    """Why an axis order was given: names the administrator's case for its end."""
+
+    SCAN = "scan"  # a scan's or sweep's move
+    TILT = "tilt"  # a tilt's move
+    HOME = "home"  # BIRIS_HOME
+    PARAMS = "params"  # BIRIS_MOTOR_PARAMS (a ParamsOrder)
+    INIT = "init"  # the initialiser's move (replied to its envelope)
+
+
+@dataclass(eq=False)
 class Motion:
-    """One order for an axis worker and what to do when it is done (or fails)."""
+    """One order for an axis worker, and what it serves."""
 
     order: MoveOrder | ParamsOrder
-    on_done: Callable[[str | None], object]
-    on_fail: Callable[[BaseException], object]
+    purpose: MotionPurpose
+    scan: ActiveScan | None = None
+    tilt: Tilt | None = None
+    requester: Envelope | None = None
+    """The initialiser's INIT_MOVE, replied when the move ends."""
 
 
 def expected_move_s(distance: int, params: MotorParams) -> float:
@@ -53,7 +74,7 @@ def expected_move_s(distance: int, params: MotorParams) -> float:
 class AxisState:
     """The administrator's record of one axis; ``position`` is where its last move ends."""
 
-    def __init__(self, axis: Axis, watchdog: DeadlineTimer, motor: MotorParams) -> None:
+    def __init__(self, axis: Axis, watchdog: Timer, motor: MotorParams) -> None:
         self.axis = axis
         self.watchdog = watchdog
         self.motor = motor
@@ -119,12 +140,10 @@ class AxisState:
             self.watchdog.disarm()
         return job
 
-    def fail_all(self, fault: BaseException) -> None:
-        """A fault: every order, running or waiting, fails with it."""
+    def abandon(self) -> list[Motion]:
+        """A fault or reset: every order, running or waiting, is given up; returns them."""
         self.watchdog.disarm()
-        for job in list(self.queue):
-            job.on_fail(fault)
+        jobs = [*([self.current] if self.current else []), *self.queue]
         self.queue.clear()
-        if self.current is not None:
-            self.current.on_fail(fault)
-            self.current = None
+        self.current = None
+        return jobs

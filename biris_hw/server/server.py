@@ -1,44 +1,39 @@
 """``BirisServer``: creates the report's tasks in order, initialises, and hands out connections.
 
-The threads, in creation order (Appendix B's task list, plus the demultiplexers that play the
-interrupt service routine and the initialiser that plays _Create_server's start-up):
-level-2 demultiplexer, which is also biris_data_notifier (it drains the acquisitions itself rather
-than wake a thread for them); level-3 demultiplexer; biris_cmd_notifier, biris_cmd_transfer,
-biris_az_notifier, az_scan_start, biris_timeout, biris_parity_err, biris_bus_err; the report's
-future tilt tasks el_scan_notifier and el_scan_start; the two motor watchdogs; the
-administrator. ``close()`` stops them in reverse and leaves no thread behind.
+The tasks, their threads and their order are the task table (:mod:`biris_hw.server.task_table`):
+the server starts each row's thread from it, with the body :meth:`BirisServer._task_bodies`
+gives that row, and refuses to start if the two disagree. ``close()`` stops every task and
+leaves no thread behind. The devices are the hardware bundle's one set of drivers
+(``BirisHardware.devices``), shared with the initialiser, ``status()`` and the CLI.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import threading
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any, Literal, overload
+from typing import Literal, overload
 
 from biris_hw.affinity import check_cpus, pinned
 from biris_hw.client import Connection
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
-from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
+from biris_hw.devices import AxisDriver
+from biris_hw.errors import BirisError, ConnectionClosed
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
-from biris_hw.irq.demux import Level2Demux, Level3Demux, Logical
+from biris_hw.protocol import OpenRequest, ResetRequest, StatusRequest
 from biris_hw.records import BirisInitRecord
 from biris_hw.server import tasks
 from biris_hw.server.acquisition import AcquisitionReader
 from biris_hw.server.admin import Administrator
-from biris_hw.server.devices import AxisDriver, BirisLink, Coupler, MotionBoard
-from biris_hw.server.initialiser import Initialiser, InitResult, run_initialiser, wait_settled
-from biris_hw.server.messages import (
-    BirisTimeoutErr,
-    InitDone,
-    MotorWatchdogErr,
-    OpenRequest,
-    ResetRequest,
-    StatusRequest,
-)
+from biris_hw.server.initialiser import Initialiser, InitResult, run_initialiser
+from biris_hw.server.isr import Level2Demux, Level3Demux, Logical
+from biris_hw.server.messages import BirisTimeoutErr, InitDone, MotorWatchdogErr
+from biris_hw.server.task_table import TASKS, Starts, task
+from biris_hw.status import ServerState, ServerStatus
 from regs.tech80 import Axis
 
 __all__ = ["BirisServer"]
@@ -64,23 +59,24 @@ class BirisServer:
         self._threads: list[threading.Thread] = []
         self._closed = False
         self.inbox = Mailbox("BIRISSERV")
-        self.link = BirisLink(hw.biris, hw.biexec_offset)
-        self.azimuth = AxisDriver(hw.motion, Axis.AZIMUTH)
-        self.elevation = AxisDriver(hw.motion, Axis.ELEVATION)
-        self.board = MotionBoard(hw.motion)
-        self.coupler = Coupler(hw.coupler)
+        self.devices = hw.devices  # the bundle's one driver per device (biris_hw.devices)
+        self.link = self.devices.link
+        self.azimuth = self.devices.azimuth
+        self.elevation = self.devices.elevation
+        self.board = self.devices.board
+        self.coupler = self.devices.coupler
         self.reader = AcquisitionReader(hw.biris, self.link, hw.clock, self.record.max_range)
         self.ledger = tasks.CommandLedger()
         self.level2 = Level2Demux(hw.level2, hw.coupler, hw.biris, hw.biexec_offset)
         self.level3 = Level3Demux(hw.level3, hw.motion)
         self.biris_timeout = tasks.DeadlineTimer(
-            "biris_timeout", self.inbox, hw.clock, hw.time_scale, BirisTimeoutErr
+            task("biris_timeout").thread, self.inbox, hw.clock, hw.time_scale, BirisTimeoutErr
         )
         self.motor_watchdog = tasks.DeadlineTimer(
-            "az_watchdog", self.inbox, hw.clock, hw.time_scale, MotorWatchdogErr
+            task("az_watchdog").thread, self.inbox, hw.clock, hw.time_scale, MotorWatchdogErr
         )
         self.elevation_watchdog = tasks.DeadlineTimer(
-            "el_watchdog",
+            task("el_watchdog").thread,
             self.inbox,
             hw.clock,
             hw.time_scale,
@@ -104,68 +100,64 @@ class BirisServer:
             raise
 
     # -- task creation ---------------------------------------------------------------------
-    def _spawn(self, name: str, target: Callable[..., None], *args: Any) -> None:
-        thread = threading.Thread(target=target, args=args, name=name, daemon=True)
+    def _spawn(self, name: str, target: Callable[[], None]) -> None:
+        thread = threading.Thread(target=target, name=name, daemon=True)
         self._threads.append(thread)
         thread.start()
 
-    def _settle(self, axis: AxisDriver) -> None:
-        wait_settled(axis, self.hardware.clock, self.hardware.time_scale, self._stop)
+    def _task_bodies(self) -> dict[str, Callable[[], None]]:
+        """Each task of the table, by name: its thread's body, or, for a task that runs in
+        another task's thread, what puts it there."""
+        inbox, reader, ledger, stop = self.inbox, self.reader, self.ledger, self._stop
+        level2, level3 = self.level2, self.level3
+        set_continuous = level2.set_continuous
+        return {
+            "biris_cmd_notifier": lambda: tasks.biris_cmd_notifier(
+                level2.line(Logical.BIRIS_CMD), inbox, self.link, reader, ledger, set_continuous
+            ),
+            "biris_cmd_transfer": lambda: tasks.biris_cmd_transfer(
+                inbox, self.link, reader, ledger, set_continuous
+            ),
+            "biris_data_notifier": lambda: level2.attach_data_notifier(
+                tasks.BirisDataNotifier(inbox, reader)
+            ),
+            "biris_az_notifier": lambda: tasks.biris_az_notifier(
+                level3.line(Logical.MOTOR_END_OF_SCAN), inbox, self.azimuth, stop, reader
+            ),
+            "az_scan_start": lambda: tasks.az_scan_start(inbox, self.azimuth, reader),
+            "biris_timeout": self.biris_timeout.run,
+            "biris_parity_err": lambda: tasks.biris_parity_err(
+                level2.line(Logical.BIT3_PERR), inbox
+            ),
+            "biris_bus_err": lambda: tasks.biris_bus_err(level2.line(Logical.BIT3_BERR), inbox),
+            "el_scan_notifier": lambda: tasks.el_scan_notifier(
+                level3.line(Logical.ELEVATION_END_OF_SCAN), inbox, self.elevation, stop
+            ),
+            "el_scan_start": lambda: tasks.el_scan_start(inbox, self.elevation),
+            "az_watchdog": self.motor_watchdog.run,
+            "el_watchdog": self.elevation_watchdog.run,
+            "level2_isr": level2.run,
+            "level3_isr": level3.run,
+            "biris_server": self.admin.run,
+            "biris_init": self._start_initialiser,
+        }
 
     def _create_tasks(self) -> None:
-        # biris_data_notifier runs in the level-2 demultiplexer's thread (see biris_hw.irq.demux)
-        self.level2.attach_data_notifier(tasks.BirisDataNotifier(self.inbox, self.reader))
-        self.level2.start()
-        self.level3.start()
-        inbox = self.inbox
-        self._spawn(
-            "biris_cmd_notifier",
-            tasks.biris_cmd_notifier,
-            self.level2.line(Logical.BIRIS_CMD),
-            inbox,
-            self.link,
-            self.reader,
-            self.ledger,
-            self.level2.set_continuous,
-        )
-        self._spawn(
-            "biris_cmd_transfer",
-            tasks.biris_cmd_transfer,
-            inbox,
-            self.link,
-            self.reader,
-            self.ledger,
-            self.level2.set_continuous,
-        )
-        self._spawn(
-            "biris_az_notifier",
-            tasks.biris_az_notifier,
-            self.level3.line(Logical.MOTOR_END_OF_SCAN),
-            inbox,
-            self.azimuth,
-            self._settle,
-            self.reader,
-        )
-        self._spawn("az_scan_start", tasks.az_scan_start, inbox, self.azimuth, self.reader)
-        self.biris_timeout.start()
-        self._spawn(
-            "biris_parity_err", tasks.biris_parity_err, self.level2.line(Logical.BIT3_PERR), inbox
-        )
-        self._spawn(
-            "biris_bus_err", tasks.biris_bus_err, self.level2.line(Logical.BIT3_BERR), inbox
-        )
-        self._spawn(
-            "el_scan_notifier",
-            tasks.el_scan_notifier,
-            self.level3.line(Logical.ELEVATION_END_OF_SCAN),
-            inbox,
-            self.elevation,
-            self._settle,
-        )
-        self._spawn("el_scan_start", tasks.el_scan_start, inbox, self.elevation)
-        self.motor_watchdog.start()
-        self.elevation_watchdog.start()
-        self._spawn("biris_server", self.admin.run)
+        """Start the table's tasks in its order: a thread per row that has its own, and the
+        rows that share a thread put into it."""
+        bodies = self._task_bodies()
+        if set(bodies) != {spec.name for spec in TASKS}:
+            raise RuntimeError(
+                "the task table and the server disagree: "
+                f"{sorted(set(bodies) ^ {spec.name for spec in TASKS})}"
+            )
+        for spec in TASKS:
+            if spec.starts is not Starts.WITH_SERVER:
+                continue  # started by the administrator (the initialiser, on reset)
+            if spec.own_thread:
+                self._spawn(spec.thread, bodies[spec.name])
+            else:
+                bodies[spec.name]()
 
     def _start_initialiser(self) -> None:
         """Called by the administrator (on reset): never blocks, the work runs in a thread."""
@@ -183,7 +175,10 @@ class BirisServer:
                 pass
 
         thread = threading.Thread(
-            target=run_initialiser, args=(init, report), name="biris_init", daemon=True
+            target=run_initialiser,
+            args=(init, report),
+            name=task("biris_init").thread,
+            daemon=True,
         )
         self._threads = [t for t in self._threads if t.is_alive()]
         self._threads.append(thread)
@@ -244,25 +239,34 @@ class BirisServer:
             return Connection[Point](self.inbox, number, ConnectionKind(kind), chosen, used)
         return Connection[Scan](self.inbox, number, ConnectionKind(kind), chosen, used)
 
-    def status(self) -> dict[str, Any]:
-        """What the server is doing and has done: ``state`` (initialising, idle, scanning,
-        homing, tilting, fault:<kind>), ``azimuth`` and ``elevation`` (counts: where the axes
-        were last sent), ``azimuth_live`` and ``elevation_live`` (counts: the encoders now, None
-        while initialising or if the board cannot be read), ``counters``,
-        ``interrupts`` by logical kind, and per connection its policy, queue, deliveries, drops
-        and delivery-latency histogram with p50 and p99 (see the README)."""
+    def status(self) -> ServerStatus:
+        """What the server is doing and has done (:class:`biris_hw.status.ServerStatus`).
+
+        ``state`` (a :class:`~biris_hw.status.ServerState`; ``status["state"]`` reads
+        initialising, idle, scanning, homing, tilting or fault:<kind>), ``fault`` (the kind),
+        ``azimuth`` and ``elevation`` (counts: where the axes were last sent),
+        ``azimuth_live`` and ``elevation_live`` (counts: the encoders now, None while
+        initialising or if the board cannot be read), ``counters``, ``interrupts`` by logical
+        kind, and per connection its policy, queue, deliveries, drops and delivery-latency
+        histogram with p50 and p99 (see the README).
+
+        Raises:
+            ConnectionClosed: the server has stopped.
+        """
         if self._closed:
             raise ConnectionClosed("the BIRIS server has stopped")
         result = self.inbox.send(StatusRequest())
-        assert isinstance(result, dict)
-        result["interrupts"] = {
-            **{k.name: v for k, v in self.level2.counts.items()},
-            **{k.name: v for k, v in self.level3.counts.items()},
-        }
-        homed = result["state"] != "initialising"
-        result["azimuth_live"] = self._encoder(self.azimuth) if homed else None
-        result["elevation_live"] = self._encoder(self.elevation) if homed else None
-        return result
+        assert isinstance(result, ServerStatus)
+        homed = result.state is not ServerState.INITIALISING
+        return dataclasses.replace(
+            result,
+            interrupts={
+                **{k.name: v for k, v in self.level2.counts.items()},
+                **{k.name: v for k, v in self.level3.counts.items()},
+            },
+            azimuth_live=self._encoder(self.azimuth) if homed else None,
+            elevation_live=self._encoder(self.elevation) if homed else None,
+        )
 
     @staticmethod
     def _encoder(axis: AxisDriver) -> int | None:
@@ -270,6 +274,7 @@ class BirisServer:
         latter. Read here, in the caller's thread, because the administrator never waits on the
         bus; None when the board cannot be read (the fault is reported by the tasks that hit it).
         """
+        # ``axis`` is the bundle's shared driver (self.devices): its position latch holds here too
         try:
             return axis.actual_position()
         except BirisError:
@@ -318,6 +323,3 @@ class BirisServer:
         tb: TracebackType | None,
     ) -> None:
         self.close()
-
-
-_ = HardwareFault  # re-exported for readers of this module's docstring

@@ -1,13 +1,23 @@
 """The BIRIS server's internal tasks (report Fig. 4), one function or class each.
 
+Which of them the server starts, on which thread, what each waits on and what it sends, is the
+task table, :mod:`biris_hw.server.task_table`; this module is their bodies.
+
 Notifiers block on an interrupt and *send* to the administrator: ``biris_cmd_notifier``,
-``biris_data_notifier``, ``biris_az_notifier``, ``el_scan_notifier``, ``biris_parity_err``,
-``biris_bus_err``. Workers report ready and block until the administrator *replies* with an
-order: ``biris_cmd_transfer`` (writes the next BIRIS command), ``az_scan_start`` and
-``el_scan_start`` (start the next pan or tilt trapezoid). ``biris_timeout`` and the motor
-watchdogs are timers. Every task ends when its line is closed or the administrator's mailbox
+``biris_az_notifier``, ``el_scan_notifier``, ``biris_parity_err``, ``biris_bus_err``; and
+:class:`BirisDataNotifier`, which the level-2 interrupt service routine runs for each
+BIRIS_DATA_DEV and which therefore *posts one-way* (it must never wait on the administrator).
+Workers report ready and block until the administrator *replies* with an order:
+``biris_cmd_transfer`` (writes the next BIRIS command), ``az_scan_start`` and ``el_scan_start``
+(start the next pan or tilt trapezoid). ``biris_timeout`` and the motor watchdogs are timers
+(:class:`DeadlineTimer`). Every task ends when its line is closed or the administrator's mailbox
 stops. ``el_scan_notifier`` and ``el_scan_start`` are the report's "future tasks" for a tilt
 axis, "similar to [the azimuth ones] except that they apply to the elevation scan".
+
+What a notifier has drained from BIRIS memory (NEW_POINT, CONTINUOUS_LIVE, SWEEP_DATA_DONE) is
+always posted one-way, under the reader's lock: so the inbox holds it in the reader's order,
+and no task ever waits for the administrator while holding that lock -- which the level-2
+routine takes for every acquisition.
 
 Continuous mode (Appendix D) touches three tasks: ``biris_cmd_transfer`` raises the
 continuous-mode flag of the level-2 demultiplexer and primes the reader before it writes
@@ -22,11 +32,11 @@ import logging
 import threading
 from collections.abc import Callable
 
+from biris_hw.devices import AxisDriver, BirisLink
 from biris_hw.errors import BirisError, BusError, LineClosed
-from biris_hw.ipc import Mailbox, TaskStopped, Ticket
+from biris_hw.ipc import Mailbox, TaskStopped
 from biris_hw.irq.base import InterruptLine
-from biris_hw.server.acquisition import AcquisitionReader, Drained
-from biris_hw.server.devices import AxisDriver, BirisLink
+from biris_hw.server.acquisition import AcquisitionReader, Drained, ring_length
 from biris_hw.server.messages import (
     AzReady,
     AzScanDone,
@@ -43,7 +53,7 @@ from biris_hw.server.messages import (
     SweepDataDone,
     TransferOrder,
 )
-from regs.biexec import BiCommand, BiStatus, decode_param
+from regs.biexec import BiCommand, BiStatus
 
 __all__ = [
     "BirisDataNotifier",
@@ -54,7 +64,6 @@ __all__ = [
     "biris_bus_err",
     "biris_cmd_notifier",
     "biris_cmd_transfer",
-    "biris_data_notifier",
     "biris_parity_err",
     "el_scan_notifier",
     "el_scan_start",
@@ -90,26 +99,18 @@ class CommandLedger:
         self.outstanding: TransferOrder | None = None
 
 
-def _no_flag(on: bool) -> None:
-    """Stand-in for the demultiplexer's continuous-mode flag when there is none to set."""
+def _post_drained(admin: Mailbox, drained: Drained) -> None:
+    """What a drain produced, as one-way messages, in order: NEW_POINT, then what it completed.
 
-
-def _ring_length(param: bytes) -> int:
-    """BI_START_CONTINUOUS's answer: the ring's length in frames, 0 if unreadable."""
-    try:
-        return max(0, int(decode_param(param).strip(), 10))
-    except ValueError:
-        return 0
-
-
-def _send_drained(send: Callable[[object], object], drained: Drained) -> None:
-    """What a drain produced, as messages, in order: NEW_POINT, then what it completed."""
+    Called under the reader's lock (see the module notes); raises TaskStopped once the
+    administrator has stopped.
+    """
     if drained.acquisitions or drained.lost:
-        send(NewPoint(drained.acquisitions, drained.lost))
+        admin.post_oneway(NewPoint(drained.acquisitions, drained.lost))
     if drained.live:
-        send(ContinuousLive())
+        admin.post_oneway(ContinuousLive())
     if drained.sweep_done:
-        send(SweepDataDone(drained.sweep_done))
+        admin.post_oneway(SweepDataDone(drained.sweep_done))
 
 
 def biris_cmd_notifier(
@@ -118,7 +119,7 @@ def biris_cmd_notifier(
     link: BirisLink,
     reader: AcquisitionReader,
     ledger: CommandLedger,
-    set_continuous: Callable[[bool], None] = _no_flag,
+    set_continuous: Callable[[bool], None],
 ) -> None:
     """BIRIS_CMD -> BIRIS_CMD_COMPLETE (after handing over any acquisitions not yet read).
 
@@ -136,12 +137,12 @@ def biris_cmd_notifier(
                 ledger.outstanding = None
             status, param = link.status(), link.param_raw()
             if order.code == BiCommand.BI_START_CONTINUOUS and status == BiStatus.OK:
-                reader.ring_started(_ring_length(param))
+                reader.ring_started(ring_length(param))
             elif order.code in (BiCommand.BI_START_CONTINUOUS, BiCommand.BI_STOP_CONTINUOUS):
                 reader.stop_ring()
                 set_continuous(False)
             with reader.lock:
-                _send_drained(admin.send, reader.drain_sequence(final=True))
+                _post_drained(admin, reader.drain_sequence(final=True))
             admin.send(BirisCmdComplete(status, param, order.token))
         except TaskStopped:
             return
@@ -150,76 +151,52 @@ def biris_cmd_notifier(
 
 
 class BirisDataNotifier:
-    """The report's _Biris_data_notifier as one step per BIRIS_DATA_DEV: drain, NEW_POINT.
+    """The report's _Biris_data_notifier, one step per BIRIS_DATA_DEV: drain, NEW_POINT.
 
-    The server has the level-2 demultiplexer run it in place of raising the logical line (see
-    :mod:`biris_hw.irq.demux`): the notifier task is then that thread, which waits on the
-    physical interrupt, and an acquisition reaches the administrator without waking another.
+    BIRIS_DATA_DEV -> NEW_POINT with every acquisition completed since the last one; in
+    continuous mode also CONTINUOUS_LIVE (the start-up is over) and SWEEP_DATA_DONE (the sweep's
+    last acquisition has been sent). The level-2 interrupt service routine runs it in place of
+    raising the logical line (:meth:`biris_hw.server.isr.Level2Demux.attach_data_notifier`), so
+    its messages are posted one-way: the routine never waits for the administrator, and BIRIS_CMD,
+    BIT3_PERR and BIT3_BERR are demultiplexed as soon as the frames are read. Why it shares that
+    thread rather than having its own is measured in the task table
+    (:mod:`biris_hw.server.task_table`, row ``biris_data_notifier``).
 
-    Each message is *sent*, with the wait for its reply put off until the task next sends:
-    posted under the reader's lock, so the inbox's order is the reader's, and collected before
-    the next post, so this task never has more than one message outstanding, as a Harmony
-    sender. The administrator answers NEW_POINT at once; a reply that finds nobody waiting
-    wakes no thread, so the administrator goes straight on to hand the data to clients.
+    The administrator answers NEW_POINT at once and nobody waits for the answer; a refusal is
+    logged by the mailbox (debug) and by the administrator.
     """
 
     def __init__(self, admin: Mailbox, reader: AcquisitionReader) -> None:
         self._admin = admin
         self._reader = reader
-        self._outstanding: Ticket | None = None
 
     def __call__(self, count: int = 1) -> bool:
         """One interrupt (``count`` coalesced); False once the administrator has stopped."""
         try:
             with self._reader.lock:
-                _send_drained(self._send, self._reader.drain())
+                _post_drained(self._admin, self._reader.drain())
         except TaskStopped:
             return False
         except BusError:
             log.exception("biris_data_notifier: bus error reading a frame")
         return True
 
-    def _send(self, message: object) -> None:
-        """Collect the reply to the previous message, then post this one."""
-        outstanding, self._outstanding = self._outstanding, None
-        if outstanding is not None:
-            try:
-                outstanding.wait()
-            except TaskStopped:
-                raise
-            except Exception:  # refused by the administrator, whose log says why; go on
-                log.debug("biris_data_notifier: message refused", exc_info=True)
-        self._outstanding = self._admin.post(message)
-
-
-def biris_data_notifier(line: InterruptLine, admin: Mailbox, reader: AcquisitionReader) -> None:
-    """BIRIS_DATA_DEV -> NEW_POINT with every acquisition completed since the last one.
-
-    In continuous mode also CONTINUOUS_LIVE (the start-up is over) and SWEEP_DATA_DONE (the
-    sweep's last acquisition has been sent). This is the task as a thread of its own, blocked on
-    the logical line; the server runs :class:`BirisDataNotifier` in the demultiplexer instead.
-    """
-    notify = BirisDataNotifier(admin, reader)
-    while (count := _await(line)) is not None:
-        if not notify(count):
-            return
-
 
 def _axis_notifier(
     line: InterruptLine,
     admin: Mailbox,
     axis: AxisDriver,
-    settle: Callable[[AxisDriver], None],
+    stop: threading.Event,
     done: object,
     reader: AcquisitionReader | None = None,
 ) -> None:
     """Shared body of the two motor notifiers: end of profile -> settled -> ``done``."""
     while _await(line) is not None:
         try:
-            settle(axis)
+            axis.wait_settled(stop)
             if reader is not None:
                 with reader.lock:
-                    _send_drained(admin.send, reader.end_sweep())
+                    _post_drained(admin, reader.end_sweep())
             admin.send(done)
         except TaskStopped:
             return
@@ -231,28 +208,29 @@ def biris_az_notifier(
     line: InterruptLine,
     admin: Mailbox,
     axis: AxisDriver,
-    settle: Callable[[AxisDriver], None],
+    stop: threading.Event,
     reader: AcquisitionReader | None = None,
 ) -> None:
     """MOTOR_END_OF_SCAN -> AZ_SCAN_DONE, once the head has actually come to rest.
 
     The chip signals the end of the profile when it issues the last setpoint, not when the motor
-    stops; the notifier polls the position briefly (``settle``) so that AZ_SCAN_DONE means what
-    the report says: motion has terminated. In continuous mode it then tells the reader that
-    the sweep ends with the frame in exposure (and sends what is already complete) first.
+    stops; the notifier polls the position briefly (:meth:`AxisDriver.wait_settled`, given up
+    when ``stop`` is set) so that AZ_SCAN_DONE means what the report says: motion has
+    terminated. In continuous mode it then tells the reader that the sweep ends with the frame
+    in exposure (and posts what is already complete) first.
     """
-    _axis_notifier(line, admin, axis, settle, AzScanDone(), reader)
+    _axis_notifier(line, admin, axis, stop, AzScanDone(), reader)
 
 
 def el_scan_notifier(
     line: InterruptLine,
     admin: Mailbox,
     axis: AxisDriver,
-    settle: Callable[[AxisDriver], None],
+    stop: threading.Event,
 ) -> None:
     """ELEVATION_END_OF_SCAN -> EL_SCAN_DONE, once the tilt has come to rest (the report's
     future _el_scan_notifier)."""
-    _axis_notifier(line, admin, axis, settle, ElScanDone())
+    _axis_notifier(line, admin, axis, stop, ElScanDone())
 
 
 def error_notifier(line: InterruptLine, admin: Mailbox, message: object) -> None:
@@ -282,7 +260,7 @@ def biris_cmd_transfer(
     link: BirisLink,
     reader: AcquisitionReader,
     ledger: CommandLedger,
-    set_continuous: Callable[[bool], None] = _no_flag,
+    set_continuous: Callable[[bool], None],
 ) -> None:
     """CMD_TRANSFER_RDY, then write whatever command the reply carries; forever.
 
@@ -381,6 +359,7 @@ class DeadlineTimer:
         time_scale: float,
         make: Callable[[int], object],
     ) -> None:
+        self.name = name
         self._admin = admin
         self._clock = clock
         self._scale = time_scale
@@ -389,10 +368,16 @@ class DeadlineTimer:
         self._deadline: float | None = None
         self._generation = 0
         self._stopped = False
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread: threading.Thread | None = None
 
     def start(self) -> None:
-        self._thread.start()
+        """Run the task in a thread of its own, named :attr:`name`."""
+        thread = threading.Thread(target=self.run, name=self.name, daemon=True)
+        with self._cond:
+            if self._thread is not None:
+                raise RuntimeError(f"{self.name} is already running")
+            self._thread = thread
+            thread.start()  # returns before run() takes the lock
 
     @property
     def generation(self) -> int:
@@ -420,14 +405,20 @@ class DeadlineTimer:
             self._deadline = None  # the task finds it so when its present wait ends
 
     def stop(self) -> None:
+        """End the task and join its thread; an expiry not yet sent is dropped."""
         with self._cond:
             self._stopped = True
             self._cond.notify()
-        if self._thread.is_alive():
-            self._thread.join()
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join()
 
-    def _run(self) -> None:
+    def run(self) -> None:
+        """The task's body, for an owner that makes the thread itself (:meth:`start` runs it
+        too); returns once :meth:`stop` is called or the administrator has stopped."""
         with self._cond:
+            if self._thread is None:
+                self._thread = threading.current_thread()
             while not self._stopped:
                 if self._deadline is None:
                     self._cond.wait()

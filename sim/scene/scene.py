@@ -8,6 +8,7 @@ number of array operations however many rays and shapes there are; its plan view
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -111,6 +112,32 @@ class Scene:
         if ceiling:
             shapes.append(Plane(height_m, albedo=0.8))
         return cls(shapes)
+
+    @classmethod
+    def from_spec(cls, spec: str) -> Scene:
+        """The scene a command line names: ``room`` (:meth:`room`, furnished as by default) or
+        ``circle:R`` (:meth:`circle` of radius R metres).
+
+        The one rule for R is :meth:`circle`'s own: any finite number above 0. A wall beyond
+        BIRIS's reach (BIRIS_MAX_RANGE, 32.767 m by default) is a legitimate scene, the one
+        that shows what "no return" looks like; the range limit belongs to the sensor and the
+        server's init record, not to what the sensor looks at. Anything else is a ValueError
+        whose message is one line fit for a usage error.
+        """
+        if spec == "room":
+            return cls.room()
+        kind, colon, radius_text = spec.partition(":")
+        if kind != "circle" or not colon:
+            raise ValueError(f"a scene is 'room' or 'circle:R' (R in metres), not {spec!r}")
+        try:
+            radius = float(radius_text)
+        except ValueError:
+            radius = math.nan
+        if not (math.isfinite(radius) and radius > 0.0):
+            raise ValueError(
+                f"circle:R needs a radius in metres, a finite R > 0, not {radius_text!r}"
+            )
+        return cls.circle(radius)
 
     # --- ray casting -----------------------------------------------------------------------------
 

@@ -67,12 +67,6 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
             return self._executing != 0
 
     @property
-    def current_command(self) -> int:
-        """The code being executed, 0 when idle."""
-        with self._lock:
-            return self._executing
-
-    @property
     def continuous(self) -> bool:
         with self._lock:
             return self._continuous

@@ -1,14 +1,18 @@
-"""The benchmark suite behind ``make bench`` (``python -m biris_hw.bench``).
+"""The benchmark suite behind ``make bench`` (``python -m benchmarks`` from the checkout's root).
+
+This folder is not part of the installed distribution: it imports the simulator freely, which
+``biris_hw`` may not, and uses only the public API of ``biris_hw`` and ``sim``.
 
 Benchmarks are not tests: they never fail the build. Each section of the report is measured by
 one registered function and every figure is written beside its target, met or not, with the
 method that produced it, into ``build/bench/report.json`` and ``build/bench/report.md``.
 
 Adding a section (say ``latency_us``) takes one new module in this package, e.g.
-``biris_hw/bench/latency.py``; nothing else is edited, because the harness imports every module
-of ``biris_hw.bench`` (except ``harness`` and ``report``) when the suite starts::
+``benchmarks/latency.py``; nothing else is edited, because the harness imports every module
+of ``benchmarks`` (except ``harness`` and ``report``; helpers such as ``common`` and ``floor``
+register nothing and are imported harmlessly) when the suite starts::
 
-    from biris_hw.bench.harness import BenchContext, Figure, Target, benchmark, summarise
+    from benchmarks.harness import BenchContext, Figure, Target, benchmark, summarise
 
     @benchmark("latency_us")          # the section's JSON key; one benchmark per section
     def latency(ctx: BenchContext) -> list[Figure]:
@@ -21,10 +25,10 @@ of ``biris_hw.bench`` (except ``harness`` and ``report``) when the suite starts:
 Figures are medians and percentiles over repeated runs (``summarise``); a comparison is a ratio
 of two contenders timed in the same run (``interleaved_rounds``). Raise ``BenchSkipped`` when
 the section cannot run here; anything else a benchmark raises is recorded as a failure and the
-suite goes on. Run one section with ``python -m biris_hw.bench --only latency_us --quick``.
+suite goes on. Run one section with ``python -m benchmarks --only latency_us --quick``.
 """
 
-from biris_hw.bench.harness import (
+from benchmarks.harness import (
     SECTIONS,
     BenchContext,
     BenchSkipped,

@@ -19,17 +19,9 @@ from __future__ import annotations
 from contextlib import ExitStack
 from itertools import pairwise
 
-from biris_hw.bench.common import (
-    FeatureMissing,
-    acquisition_period_s,
-    continuous_acquisition_record,
-    not_measured,
-    running_server,
-    snap_to,
-)
-from biris_hw.bench.harness import BenchContext, Figure, Target, benchmark, summarise
-from biris_hw.data import ConnectionKind
-from biris_hw.records import BirisInitRecord
+from benchmarks.common import acquisition_period_s, running_server, snap_to
+from benchmarks.harness import BenchContext, Figure, Target, benchmark, summarise
+from biris_hw import BirisInitRecord, ConnectionKind
 
 __all__ = ["sweep_gap"]
 
@@ -37,8 +29,8 @@ SAMPLES = 64
 SWEEP_DEG = 45.0
 TIME_SCALE = 3.0
 EXPLAINING_COUNTERS = ("dropped_acquisitions", "constant_azimuth")
-"""Server status counters shown beside the gaps: acquisitions lost, and (once the server has
-it) acquisitions discarded because the head stood still, e.g. at a turn-around."""
+"""Server status counters shown beside the gaps: acquisitions lost, and acquisitions discarded
+because the head stood still, e.g. at a turn-around."""
 BUFFER_TIMEOUT = 10.0
 """Wall seconds to wait for a buffer; a sweep takes about 0.4 s at TIME_SCALE."""
 
@@ -61,27 +53,16 @@ def sweep_gap(ctx: BenchContext) -> list[Figure]:
         )
     ]
     ctx.log("bench: sweep_gap_ms.continuous_acquisition")
-    key = "sweep_gap_ms.continuous_acquisition"
-    try:
-        cont = _measure(continuous_acquisition_record(), sweeps)
-        if cont.sequences >= cont.buffers - 1:
-            raise FeatureMissing(
-                "needs the server to honour BirisInitRecord(continuous_acquisition=True): it is "
-                f"accepted, but {cont.sequences} acquisition sequences ran for {cont.buffers} "
-                "sweeps (report mode)"
-            )
-    except FeatureMissing as exc:
-        figures.append(not_measured(key, "ms", target, str(exc)))
-    else:
-        figures.append(
-            Figure(
-                key=key,
-                values={**summarise(cont.gaps), **cont.extra(period_ms)},
-                unit="ms",
-                target=target,
-                method=_method(sweeps, "BirisInitRecord(continuous_acquisition=True)"),
-            )
+    cont = _measure(BirisInitRecord(continuous_acquisition=True), sweeps)
+    figures.append(
+        Figure(
+            key="sweep_gap_ms.continuous_acquisition",
+            values={**summarise(cont.gaps), **cont.extra(period_ms)},
+            unit="ms",
+            target=target,
+            method=_method(sweeps, "BirisInitRecord(continuous_acquisition=True)"),
         )
+    )
     return figures
 
 
@@ -94,7 +75,7 @@ def _method(sweeps: int, record: str) -> str:
         "periods means k-1 acquisitions are in neither buffer. sequences = acquisition "
         "sequences BIRIS started while scanning; dropped_acquisitions and constant_azimuth "
         "(acquisitions discarded while the head stood still) are the server's status counters "
-        "at the end, where it has them."
+        "at the end."
     )
 
 
@@ -106,7 +87,7 @@ class _Gaps:
         self.skipped = 0
         self.unsnapped = 0
         self.counters: dict[str, float] = {}
-        """Server status counters that explain a long gap, where the server has them."""
+        """Server status counters that explain a long gap."""
 
     def extra(self, period_ms: float) -> dict[str, float]:
         longer = sum(1 for g in self.gaps if g > 1.5 * period_ms)
@@ -122,45 +103,28 @@ class _Gaps:
 
 
 def _measure(record: BirisInitRecord, sweeps: int) -> _Gaps:
-    """Scan until ``sweeps`` buffers have arrived; FeatureMissing if the mode will not run."""
+    """Scan until ``sweeps`` buffers have arrived."""
     out = _Gaps()
     edges: list[tuple[float, float, int]] = []  # (first t, last t, client dropped so far)
-    trying = record.continuous_acquisition  # failures of the new mode are findings, not bugs
     with ExitStack() as stack:
-        try:
-            bench = stack.enter_context(
-                running_server(samples=SAMPLES, time_scale=TIME_SCALE, record=record)
-            )
-        except Exception as exc:
-            if trying:
-                raise FeatureMissing(f"the server did not start in that mode: {exc}") from exc
-            raise
+        bench = stack.enter_context(
+            running_server(samples=SAMPLES, time_scale=TIME_SCALE, record=record)
+        )
         conn = stack.enter_context(bench.server.open())
         data = stack.enter_context(bench.server.open(ConnectionKind.DATA))
         starts0 = len(bench.rig.supervisor.sequence_starts)
-        try:
-            conn.continuous_scan(-SWEEP_DEG, SWEEP_DEG)
-        except Exception as exc:
-            if trying:
-                raise FeatureMissing(f"continuous scanning failed in that mode: {exc}") from exc
-            raise
+        conn.continuous_scan(-SWEEP_DEG, SWEEP_DEG)
         try:
             while len(edges) < sweeps:
                 scan = data.ready_for_data(timeout=BUFFER_TIMEOUT)
                 if scan.n_acq:
                     edges.append((float(scan.t[0]), float(scan.t[-1]), data.dropped))
-        except TimeoutError as exc:
-            if trying:
-                raise FeatureMissing(f"no buffer within {BUFFER_TIMEOUT:g} s in that mode") from exc
-            raise
         finally:
             conn.stop_scan()
             conn.wait_idle(timeout=30.0)
         out.sequences = len(bench.rig.supervisor.sequence_starts) - starts0
-        counters = bench.server.status().get("counters", {})
-        for name in EXPLAINING_COUNTERS:
-            if name in counters:
-                out.counters[name] = float(counters[name])
+        counters = bench.server.status()["counters"]
+        out.counters = {name: float(counters[name]) for name in EXPLAINING_COUNTERS}
         times = bench.rig.supervisor.acquisition_times
     period = acquisition_period_s(SAMPLES)
     out.buffers = len(edges)

@@ -18,7 +18,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from biris_hw.bench.harness import Figure, Outcome
+from benchmarks.harness import Figure, Outcome
 
 __all__ = ["collect_meta", "render_markdown", "to_document", "write_reports"]
 
@@ -94,7 +94,7 @@ def _figure(fig: Figure) -> dict[str, Any]:
             "on": fig.target.on,
             "text": str(fig.target),
         }
-    return {
+    entry: dict[str, Any] = {
         "key": fig.key,
         "values": {name: _finite(v) for name, v in fig.values.items()},
         "unit": fig.unit,
@@ -102,6 +102,9 @@ def _figure(fig: Figure) -> dict[str, Any]:
         "met": fig.met,
         "method": fig.method,
     }
+    if fig.note:
+        entry["note"] = fig.note
+    return entry
 
 
 def _finite(value: float) -> float | None:
@@ -156,9 +159,11 @@ def _section_lines(entry: Mapping[str, Any]) -> list[str]:
     figures: Mapping[str, Any] = entry["figures"]
     if not figures:
         return [f"Ran in {entry['seconds']:.1f} s but produced no figures."]
-    rows = [
-        f"Ran in {entry['seconds']:.1f} s.",
-        "",
+    rows = [f"Ran in {entry['seconds']:.1f} s.", ""]
+    notes = [fig["note"] for fig in figures.values() if fig.get("note")]
+    if notes:
+        rows += [*(f"- {_cell(note)}" for note in notes), ""]
+    rows += [
         "| figure | value | target | met | method |",
         "|---|---|---|---|---|",
     ]

@@ -26,10 +26,10 @@ import threading
 import time
 from dataclasses import dataclass
 
-from biris_hw.bench.common import Bench, IrqRecorder, running_server
-from biris_hw.bench.harness import BenchContext, Figure, Target, benchmark, summarise
+from benchmarks.common import Bench, IrqRecorder, running_server
+from benchmarks.harness import BenchContext, Figure, Target, benchmark, summarise
+from biris_hw import ConnectionKind
 from biris_hw.client import Connection
-from biris_hw.data import ConnectionKind
 
 __all__ = ["fanout"]
 

@@ -99,7 +99,8 @@ class Figure:
 
     ``key`` is a dotted path whose first part is the section (``registers.read16``); ``method``
     says in a sentence or two how the numbers were obtained, because a figure without its method
-    cannot be compared with anything.
+    cannot be compared with anything. ``note``, when given, is one sentence that report.md shows
+    above the section's table: the conclusion a reader should not have to work out.
     """
 
     key: str
@@ -107,6 +108,7 @@ class Figure:
     unit: str
     method: str
     target: Target | None = None
+    note: str = ""
 
     @property
     def section(self) -> str:
@@ -187,7 +189,7 @@ class Registry:
     def _import_package_modules(self) -> None:
         # Discovery rather than a list, so that engineers adding sections side by side never
         # edit the same line; a module that fails to import is reported, not fatal.
-        package = importlib.import_module(__package__ or "biris_hw.bench")
+        package = importlib.import_module(__package__ or "benchmarks")
         for info in pkgutil.iter_modules(package.__path__):
             if info.name in _NOT_BENCHMARKS or info.name.startswith("_"):
                 continue
@@ -199,7 +201,7 @@ class Registry:
 
 
 registry = Registry(discover=True)
-"""The suite's registry: every module of ``biris_hw.bench`` registers into it on import."""
+"""The suite's registry: every module of ``benchmarks`` registers into it on import."""
 
 
 def benchmark(name: str, *, into: Registry | None = None) -> Callable[[BenchFn], BenchFn]:
@@ -337,7 +339,7 @@ def run_suite(
 def _parse_args(argv: Sequence[str] | None, names: Iterable[str]) -> argparse.Namespace:
     known = sorted(names)
     parser = argparse.ArgumentParser(
-        prog="python -m biris_hw.bench",
+        prog="python -m benchmarks",
         description="Run the biris-hw benchmark suite and write report.json and report.md.",
         epilog="Benchmarks never fail the build: exit status 0 unless the options are wrong (2) "
         "or the report cannot be written (1).",
@@ -367,21 +369,22 @@ def _parse_args(argv: Sequence[str] | None, names: Iterable[str]) -> argparse.Na
 
 def main(argv: Sequence[str] | None = None, *, reg: Registry | None = None) -> int:
     """The command line: run, write both reports, say where they are."""
-    from biris_hw.bench import report  # the report module imports this one
+    from benchmarks import report  # the report module imports this one
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
 
     reg = registry if reg is None else reg
     benches = reg.benchmarks()
+    # Said before the options are checked: a section that failed to load is otherwise "unknown".
+    for module, error in reg.load_errors.items():
+        log(f"bench: could not load {module}: {error}")
     args = _parse_args(argv, benches)
     if args.list:
         for name, bench in sorted(benches.items()):
             print(f"{name:16} {bench.doc}")
         return 0
 
-    def log(msg: str) -> None:
-        print(msg, file=sys.stderr, flush=True)
-
-    for module, error in reg.load_errors.items():
-        log(f"bench: could not load {module}: {error}")
     started = time.perf_counter()
     outcomes = run_suite(reg, args.only, args.quick, log)
     meta = report.collect_meta(

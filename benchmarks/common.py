@@ -1,5 +1,5 @@
-"""Shared machinery of the server benchmarks: a rig with a server on it, interrupt timestamps,
-CPU accounting, and the detection of server features that have not landed yet.
+"""Shared machinery of the server benchmarks: a rig with a server on it, interrupt timestamps
+and CPU accounting.
 
 This module registers no benchmark (it holds no ``@benchmark``), so discovery imports it
 harmlessly. Everything here is about measuring *honestly* in one process:
@@ -9,49 +9,39 @@ harmlessly. Everything here is about measuring *honestly* in one process:
   threads, the simulator's and the rest (clients), per thread from ``/proc``;
 * latencies start at the moment the simulated hardware raised its interrupt
   (:class:`IrqRecorder`, through :attr:`sim.irqgate.InterruptGate.on_raise`), not at some point
-  inside the driver, so the whole driver path is inside the figure;
-* a feature another engineer is still adding (delivery policies, continuous acquisition) is
-  detected at run time; :class:`FeatureMissing` turns into a "not measured" figure that says
-  what is needed, and the code measures it as soon as the feature is there.
+  inside the driver, so the whole driver path is inside the figure.
+
+Only the public API is used (``biris_hw``, ``sim``, ``regs``), so the server's internals can
+change under the benchmarks.
 """
 
 from __future__ import annotations
 
 import bisect
-import inspect
 import os
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-import biris_hw
-from biris_hw.bench.harness import BenchSkipped, Figure, Target
-from biris_hw.client import Connection
-from biris_hw.data import ConnectionKind, Point, Scan
-from biris_hw.records import BirisInitRecord
-from biris_hw.server import BirisServer
+from benchmarks.harness import Figure, Target
+from biris_hw import BirisInitRecord, BirisServer
 from regs.biexec import ACQ_LINE_END, OFF_ACQ_LINE
+from sim import Scene, SimulatedBiris
 from sim.clock import FIELD_PERIOD
-from sim.rig import SimulatedBiris
-from sim.scene import Scene
 
 __all__ = [
     "HOME_NEAR_COUNTS",
     "Bench",
     "CpuMeter",
     "DataRaise",
-    "FeatureMissing",
     "IrqRecorder",
     "acquisition_period_s",
-    "continuous_acquisition_record",
     "not_measured",
-    "open_every_acquisition",
     "running_server",
     "snap_to",
-    "stream_point",
 ]
 
 HOME_NEAR_COUNTS = -200.0
@@ -61,22 +51,18 @@ about a second at time_scale 1 instead of five. Initialisation is not what is me
 _NANO = 1_000_000_000
 
 
-class FeatureMissing(BenchSkipped):
-    """A server feature a figure needs is not there (yet); the message says which."""
-
-
 def not_measured(key: str, unit: str, target: Target | None, reason: str) -> Figure:
-    """The figure that stands in for one whose feature is missing: n = 0 and the reason.
+    """The figure that stands in for one this machine cannot measure: n = 0 and the reason.
 
     A section keeps the figures it could measure; this row says, in the report, what the other
-    one needs, so a missing feature is visible rather than an absent row.
+    one needs (CPU affinity, say), so the gap is visible rather than an absent row.
     """
     return Figure(
         key=key,
         values={"n": 0.0},
         unit=unit,
         target=target,
-        method=f"NOT MEASURED: {reason}. Measured automatically once the feature exists.",
+        method=f"NOT MEASURED: {reason}.",
     )
 
 
@@ -309,50 +295,3 @@ class CpuMeter:
                 used = (_thread_cpu_ns(threads) - self._thread0[name]) / _NANO
                 self.values[f"{name}_cpu_percent"] = 100.0 * used / wall if wall > 0 else 0.0
         self.values["wall_s"] = wall
-
-
-# -- features that may not exist yet -------------------------------------------------------------
-
-
-def open_every_acquisition(server: BirisServer) -> Connection:
-    """A DATA connection delivering every acquisition (DeliveryPolicy.EVERY_ACQUISITION).
-
-    Raises :class:`FeatureMissing` until the server has delivery policies; written against the
-    planned API (``server.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_ACQUISITION)``,
-    ``DeliveryPolicy`` exported by ``biris_hw``), so it works the day they land.
-    """
-    policies = getattr(biris_hw, "DeliveryPolicy", None)
-    member = getattr(policies, "EVERY_ACQUISITION", None) if policies is not None else None
-    if member is None:
-        raise FeatureMissing("needs DeliveryPolicy.EVERY_ACQUISITION (not in biris_hw yet)")
-    opener: Callable[..., Connection] = server.open
-    try:
-        accepts_policy = "policy" in inspect.signature(opener).parameters
-    except (TypeError, ValueError):
-        accepts_policy = True
-    if not accepts_policy:
-        raise FeatureMissing("needs BirisServer.open(kind, policy=...) (no policy parameter yet)")
-    return opener(ConnectionKind.DATA, policy=member)
-
-
-def stream_point(conn: Connection, timeout: float) -> Point:
-    """The next acquisition on an EVERY_ACQUISITION connection; FeatureMissing if it is a Scan."""
-    result: object = conn.ready_for_data(timeout=timeout)
-    if not isinstance(result, Point):
-        kind = "a Scan" if isinstance(result, Scan) else type(result).__name__
-        raise FeatureMissing(
-            f"needs ready_for_data to return a Point on an EVERY_ACQUISITION connection "
-            f"(it returned {kind})"
-        )
-    return result
-
-
-def continuous_acquisition_record() -> BirisInitRecord:
-    """BirisInitRecord(continuous_acquisition=True), or FeatureMissing if it cannot be made."""
-    try:
-        record = BirisInitRecord(continuous_acquisition=True)
-    except TypeError as exc:
-        raise FeatureMissing(f"needs BirisInitRecord(continuous_acquisition=True) ({exc})") from exc
-    if getattr(record, "continuous_acquisition", False) is not True:
-        raise FeatureMissing("needs BirisInitRecord.continuous_acquisition")
-    return record

@@ -1,14 +1,24 @@
-"""Register sequences for the three devices the server drives, one small class each.
+"""One driver object per physical device: BIEXEC_COM, the two HCTL-1000s, the Model 7600, the Bit 3.
 
-Only workers, notifiers and the initialiser use these; the administrator never touches a
-register. Every access is width-explicit (``read8``/``write16``...), because the HCTL-1000 latches
-on reads and BIRIS acts on the COMMAND write.
+Register sequences for the devices the server drives, one small class each, and :class:`Devices`,
+the bundle of them that :class:`~biris_hw.hardware.BirisHardware` builds *once* (its ``devices``
+field). Everything that touches a device -- the server's workers and notifiers, the initialiser,
+``BirisServer.status()`` in a client's thread, the CLI -- goes through that one bundle, so a lock
+kept by a driver (the HCTL-1000's latched position read, say) holds across all of them. Two
+drivers over the same window would each have their own lock, and their reads could interleave.
+
+The administrator never touches a register. Every access is width-explicit
+(``read8``/``write16``...), because the HCTL-1000 latches on reads and BIRIS acts on the COMMAND
+write.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
 from biris_hw.angles import clamp_counts
 from biris_hw.bus.base import BusWindow
@@ -28,9 +38,13 @@ from regs.hctl1000 import (
 )
 from regs.tech80 import AXIS_BASE, Axis, AxisBit, BoardReg
 
-__all__ = ["AxisDriver", "BirisLink", "Coupler", "MotionBoard"]
+__all__ = ["SETTLE_LIMIT_S", "AxisDriver", "BirisLink", "Coupler", "Devices", "MotionBoard"]
 
 log = logging.getLogger(__name__)
+
+SETTLE_LIMIT_S = 1.0
+"""Longest :meth:`AxisDriver.wait_settled` polls by default for the head to come to rest
+(hardware seconds)."""
 
 _AXIS_BIT = {Axis.AZIMUTH: int(AxisBit.AZIMUTH), Axis.ELEVATION: int(AxisBit.ELEVATION)}
 
@@ -64,15 +78,31 @@ class MotionBoard:
 
 
 class AxisDriver:
-    """One HCTL-1000 on the board: configure it, start trapezoids, read positions."""
+    """One HCTL-1000 on the board: configure it, start trapezoids, read positions, and tell when
+    the motor has come to rest.
 
-    def __init__(self, window: BusWindow, axis: Axis) -> None:
+    ``clock`` is the hardware clock (seconds) and ``time_scale`` hardware seconds per real
+    second: the settling polls are paced in hardware time, as the chip's sample timer is.
+    """
+
+    def __init__(
+        self,
+        window: BusWindow,
+        axis: Axis,
+        clock: Callable[[], float] = time.monotonic,
+        time_scale: float = 1.0,
+    ) -> None:
         self.window = window
         self.axis = axis
         self._base = AXIS_BASE[axis]
+        self._clock = clock
+        self._scale = time_scale
         self._latch = threading.Lock()
         """A position is three byte reads that must not interleave with another thread's: the
-        R14H read latches R13H/R12H, and a second latch between them would mix two readings."""
+        R14H read latches R13H/R12H, and a second latch between them would mix two readings.
+        The parameter block is written and read back under it too, so a reader never sees half
+        of a BIRIS_MOTOR_PARAMS load. One lock per chip, because :class:`Devices` makes one
+        driver per chip."""
 
     def _wr(self, reg: int, value: int) -> None:
         self.window.write8(self._base + reg, value & 0xFF)
@@ -105,13 +135,31 @@ class AxisDriver:
     # -- configuration -------------------------------------------------------------------------
     def configure(self, params: MotorParams) -> None:
         """Sample timer, filter and profile limits: BIRIS_MOTOR_PARAMS' six values."""
-        self._wr(Reg.SAMPLE_TIMER, params.sample)
-        self._wr(Reg.FILTER_ZERO, params.zero)
-        self._wr(Reg.FILTER_POLE, params.pole)
-        self._wr(Reg.FILTER_GAIN, params.gain)
-        self._wr(Reg.MAX_VELOCITY, params.max_vel)
-        self._wr(Reg.ACCEL_LSB, params.max_accel & 0xFF)
-        self._wr(Reg.ACCEL_MSB, (params.max_accel >> 8) & 0x7F)
+        with self._latch:
+            self._wr(Reg.SAMPLE_TIMER, params.sample)
+            self._wr(Reg.FILTER_ZERO, params.zero)
+            self._wr(Reg.FILTER_POLE, params.pole)
+            self._wr(Reg.FILTER_GAIN, params.gain)
+            self._wr(Reg.MAX_VELOCITY, params.max_vel)
+            self._wr(Reg.ACCEL_LSB, params.max_accel & 0xFF)
+            self._wr(Reg.ACCEL_MSB, (params.max_accel >> 8) & 0x7F)
+
+    def read_params(self) -> dict[str, int]:
+        """The six parameters as the chip holds them now, in Appendix B's order (the keys of
+        :meth:`MotorParams.to_dict`). Plain reads: none of these registers latches or clears.
+
+        Raw register values, not a :class:`MotorParams`: a chip that did not take the writes may
+        hold values no record would accept, and showing them is the point.
+        """
+        with self._latch:
+            return {
+                "sample": self._rd(Reg.SAMPLE_TIMER),
+                "zero": self._rd(Reg.FILTER_ZERO),
+                "pole": self._rd(Reg.FILTER_POLE),
+                "gain": self._rd(Reg.FILTER_GAIN),
+                "max_vel": self._rd(Reg.MAX_VELOCITY),
+                "max_accel": (self._rd(Reg.ACCEL_MSB) << 8) | self._rd(Reg.ACCEL_LSB),
+            }
 
     def idle(self) -> None:
         """Init/idle: motor command held at zero, filter history cleared."""
@@ -157,6 +205,54 @@ class AxisDriver:
             self._wr(reg, byte)
         self._wr(Reg.FLAG, flag_write(Flag.F0_TRAPEZOID, True))
         return dest
+
+    # -- waiting for the motor -------------------------------------------------------------------
+    def wait_settled(
+        self,
+        stop: threading.Event,
+        limit_s: float = SETTLE_LIMIT_S,
+        sample_s: float = 0.0015,
+    ) -> bool:
+        """Poll until the actual position equals the command position and holds for 3 samples.
+
+        Polling is how the HCTL-1000 datasheet says to tell that the motor has stopped (the
+        profile flag clears before it does). Bounded by ``limit_s`` of hardware time, polled
+        every ``sample_s`` (about one chip sample); False if not settled, or if ``stop`` is set.
+        """
+        clock = self._clock
+        deadline = clock() + limit_s
+        last: int | None = None
+        steady = 0
+        while clock() < deadline:
+            pos = self.actual_position()
+            target = self.command_position()
+            if abs(pos - target) <= 1 and pos == last:
+                steady += 1
+                if steady >= 3:
+                    return True
+            else:
+                steady = 0
+            last = pos
+            if stop.wait(sample_s / self._scale):
+                return False
+        return False
+
+    def wait_still(
+        self, stop: threading.Event, limit_s: float = 2.0, sample_s: float = 0.002
+    ) -> None:
+        """Poll until the encoder stops changing (5 equal samples), bounded by ``limit_s`` of
+        hardware time: after a chip reset the motor coasts, and nothing is commanded to compare
+        it with."""
+        clock = self._clock
+        deadline = clock() + limit_s
+        last = self.actual_position()
+        steady = 0
+        while clock() < deadline and steady < 5:
+            if stop.wait(sample_s / self._scale):
+                return
+            pos = self.actual_position()
+            steady = steady + 1 if pos == last else 0
+            last = pos
 
 
 class Coupler:
@@ -204,9 +300,6 @@ class BirisLink:
     def acq_line(self) -> int:
         return _s16(self.window.read16(self.base + biexec.OFF_ACQ_LINE))
 
-    def current_frame(self) -> int:
-        return _s16(self.window.read16(self.base + biexec.OFF_CURRENT_FRAME))
-
     def param_raw(self) -> bytes:
         return self.window.read(self.base + biexec.OFF_PARAM, biexec.BIEXEC_PARAM_SIZE)
 
@@ -228,3 +321,47 @@ class BirisLink:
 
 def _s16(raw: int) -> int:
     return raw - 0x10000 if raw & 0x8000 else raw
+
+
+@dataclass(frozen=True, eq=False)
+class Devices:
+    """The one driver object of each physical device, shared by every thread that touches it.
+
+    Built once per hardware bundle (``BirisHardware.devices``); nothing else constructs the
+    drivers, so a driver's lock is the device's lock.
+    """
+
+    link: BirisLink
+    """BIEXEC_COM in BIRIS memory, through the coupler."""
+    azimuth: AxisDriver
+    """The pan HCTL-1000 (axis 0 of the Model 7600)."""
+    elevation: AxisDriver
+    """The tilt HCTL-1000 (axis 1)."""
+    board: MotionBoard
+    """The Model 7600's own registers."""
+    coupler: Coupler
+    """The Bit 3 local node."""
+
+    @classmethod
+    def over(
+        cls,
+        *,
+        biris: BusWindow,
+        biexec_offset: int,
+        motion: BusWindow,
+        coupler: BusWindow,
+        clock: Callable[[], float],
+        time_scale: float,
+    ) -> Devices:
+        """One driver per device over these windows. Touches no register."""
+        return cls(
+            link=BirisLink(biris, biexec_offset),
+            azimuth=AxisDriver(motion, Axis.AZIMUTH, clock, time_scale),
+            elevation=AxisDriver(motion, Axis.ELEVATION, clock, time_scale),
+            board=MotionBoard(motion),
+            coupler=Coupler(coupler),
+        )
+
+    def axis(self, axis: Axis) -> AxisDriver:
+        """The driver of ``axis``."""
+        return self.azimuth if axis is Axis.AZIMUTH else self.elevation

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from biris_hw.bench.harness import (
+from benchmarks.harness import (
     BenchContext,
     BenchSkipped,
     Figure,

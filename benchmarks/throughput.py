@@ -29,8 +29,8 @@ import math
 import time
 from dataclasses import dataclass, field
 
-from biris_hw.bench.common import IrqRecorder, acquisition_period_s, running_server
-from biris_hw.bench.harness import BenchContext, Figure, Target, benchmark
+from benchmarks.common import IrqRecorder, acquisition_period_s, running_server
+from benchmarks.harness import BenchContext, Figure, Target, benchmark
 
 __all__ = ["throughput"]
 

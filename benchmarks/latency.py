@@ -1,7 +1,7 @@
 """Server-added latency: from BIRIS raising a data interrupt to a client holding the acquisition.
 
 The clock starts in the simulator, at the instant it raises the data interrupt that announces
-acquisition k (:class:`~biris_hw.bench.common.IrqRecorder`), so the whole driver path is inside
+acquisition k (:class:`~benchmarks.common.IrqRecorder`), so the whole driver path is inside
 the figure: level-2 demultiplexer, data notifier, frame read, administrator, reply, and the
 client thread waking up. Everything runs at time_scale 1, in one process, on one GIL, with the
 simulator's own work competing: that is the honest worst case of an in-process rig.
@@ -17,30 +17,36 @@ Two ways of holding an acquisition are timed, one after the other during the sam
   announced; latency = that return minus the raise, and the number of calls it took is reported.
   The polling is load on the administrator and the return includes one full round trip, so this
   is an upper bound on when the administrator had the acquisition.
+
+Right after, with the rig closed, the same process measures the **floor**
+(:mod:`benchmarks.floor`): the bare hand-over chain the data path needs at least (eventfd
+written at the same cadence, a thread polling it, the administrator's inbox, the client's
+thread), as many samples as every_acquisition has. ``server_over_floor`` = every_acquisition
+p50 / floor p50 is the server's own cost as a ratio: 1 would be a server that adds nothing to
+moving an item between threads.
 """
 
 from __future__ import annotations
 
 import bisect
 import contextlib
+import math
 import queue
 import time
 
-from biris_hw.affinity import available_cpus, pinned
-from biris_hw.bench.common import (
+from benchmarks.common import (
     Bench,
     DataRaise,
-    FeatureMissing,
     IrqRecorder,
     acquisition_period_s,
     not_measured,
-    open_every_acquisition,
     running_server,
-    stream_point,
 )
-from biris_hw.bench.harness import BenchContext, Figure, Target, benchmark, percentile, summarise
+from benchmarks.floor import hand_over_floor
+from benchmarks.harness import BenchContext, Figure, Target, benchmark, percentile, summarise
+from biris_hw import BirisInitRecord, ConnectionKind, DeliveryPolicy
+from biris_hw.affinity import available_cpus, pinned
 from biris_hw.errors import RequestError
-from biris_hw.records import BirisInitRecord
 
 __all__ = ["latency"]
 
@@ -60,11 +66,17 @@ POLL_GIVE_UP_NS = 100_000_000
 def latency(ctx: BenchContext) -> list[Figure]:
     """Interrupt raise to DATA delivery (EVERY_ACQUISITION) and to request_point, time_scale 1.
 
-    Then the same again with the opt-in of :mod:`biris_hw.affinity` (``_pinned`` figures): the
-    server's threads, the client's and the simulator's (the interrupt's source) on one CPU.
+    Then the bare hand-over floor and the server's cost over it (``floor``,
+    ``server_over_floor``). Then the first two again with the opt-in of
+    :mod:`biris_hw.affinity` (``_pinned`` figures): the server's threads, the client's and the
+    simulator's (the interrupt's source) on one CPU.
     """
     seconds = float(ctx.pick(full=20, quick=2))
     figures = _measure(ctx, seconds, "", None)
+    every = next(f for f in figures if f.key == "latency_us.every_acquisition")
+    ctx.log("bench: latency_us.floor")
+    floor = _floor(int(every.values["n"]))
+    figures += [floor, _server_over_floor(every, floor)]
     try:
         return figures + _measure(ctx, seconds, "_pinned", min(available_cpus()))
     except RequestError as exc:  # not Linux, or affinity refused here
@@ -96,13 +108,7 @@ def _measure(ctx: BenchContext, seconds: float, suffix: str, cpu: int | None) ->
         conn.continuous_scan(-SWEEP_DEG, SWEEP_DEG)
         try:
             ctx.log(f"bench: latency_us.every_acquisition{suffix}")
-            try:
-                figures += _every_acquisition(bench, irq, seconds, suffix, note)
-            except FeatureMissing as exc:
-                for key, target in _KEYS[:2]:
-                    figures.append(
-                        not_measured(f"latency_us.{key}{suffix}", "us", target, str(exc))
-                    )
+            figures += _every_acquisition(bench, irq, seconds, suffix, note)
             ctx.log(f"bench: latency_us.request_point{suffix}")
             figures += _request_point(bench, irq, seconds, suffix, note)
         finally:
@@ -125,14 +131,14 @@ def _every_acquisition(
     bench: Bench, irq: IrqRecorder, seconds: float, suffix: str = "", note: str = ""
 ) -> list[Figure]:
     irq.clear()
-    data = open_every_acquisition(bench.server)
+    data = bench.server.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_ACQUISITION)
     returns: list[tuple[int, int, int]] = []  # (entered ready_for_data, returned, acq)
     try:
         end = time.perf_counter() + seconds
         while time.perf_counter() < end:
             called = time.perf_counter_ns()
             try:
-                point = stream_point(data, timeout=2.0)
+                point = data.ready_for_data(timeout=2.0)
             except TimeoutError:
                 continue
             returns.append((called, time.perf_counter_ns(), point.acq))
@@ -225,6 +231,60 @@ def _request_point(
         "missed": float(missed + overtaken),
     }
     return _pair(f"request_point{suffix}", samples, method + note, extra)
+
+
+def _floor(samples: int) -> Figure:
+    """The bare hand-over chain, as many samples as every_acquisition (same process, rig closed)."""
+    period = acquisition_period_s(SAMPLES)
+    run = hand_over_floor(samples, period)
+    if not run.latencies_us:
+        raise RuntimeError("the hand-over floor chain delivered nothing")
+    values = summarise(run.latencies_us)
+    values["p999"] = percentile(run.latencies_us, 99.9)
+    values["not_waiting"] = float(run.not_waiting)
+    method = (
+        "The bare hand-over chain the data path needs at least, no server logic: a 'simulator' "
+        f"thread writes an os.eventfd every {period * 1e3:.1f} ms (the acquisition cadence of "
+        "every_acquisition), a thread blocked in select.poll on it reads it and posts the item "
+        "to a biris_hw.ipc.Mailbox (collecting the previous post's reply first, as the data "
+        "notifier does), an 'administrator' thread receives it, replies at once and replies the "
+        "item to the client's parked send (READY_FOR_DATA), and the client thread wakes holding "
+        "it. Latency = perf_counter_ns in the client thread minus perf_counter_ns just before the "
+        f"eventfd write; {int(values['n'])} samples, as many as every_acquisition, measured in "
+        "the same process right after it with the rig closed (no simulator load). "
+        f"{run.not_waiting} items written before the client was back waiting were left out. No "
+        "target: the yardstick for server_over_floor."
+    )
+    return Figure(key="latency_us.floor", values=values, unit="us", method=method)
+
+
+def _server_over_floor(every: Figure, floor: Figure) -> Figure:
+    """every_acquisition p50 / floor p50: what the server costs over moving an item."""
+    server_p50, floor_p50 = every.values["p50"], floor.values["p50"]
+    ratio = server_p50 / floor_p50 if floor_p50 > 0 else math.nan
+    values = {
+        "ratio": ratio,
+        "every_acquisition_p50": server_p50,
+        "floor_p50": floor_p50,
+        "every_acquisition_p99": every.values["p99"],
+        "floor_p99": floor.values["p99"],
+    }
+    return Figure(
+        key="latency_us.server_over_floor",
+        values=values,
+        unit="x",
+        method=(
+            "latency_us.every_acquisition p50 / latency_us.floor p50, both from this run: the "
+            "server's own cost as a multiple of the bare eventfd -> poll -> administrator -> "
+            "client hand-over (1 = the server adds nothing). The every_acquisition side also "
+            "carries the simulator's work in the same process. No target."
+        ),
+        note=(
+            f"Server's own cost: every_acquisition p50 {server_p50:.0f} us is {ratio:.1f}x the "
+            f"bare hand-over floor (p50 {floor_p50:.0f} us) measured in the same run "
+            "(latency_us.server_over_floor)."
+        ),
+    )
 
 
 def _pair(name: str, samples: list[float], method: str, extra: dict[str, float]) -> list[Figure]:

@@ -1,0 +1,230 @@
+"""The BIRIS server's interrupt service routines: physical levels 2 and 3 into the report's
+logical interrupts.
+
+Each routine is a :class:`~biris_hw.irq.Demultiplexer` (the generic thread, logical lines,
+counters and lifecycle); what is here is the report's protocol for deciding which logical
+interrupt a physical one was.
+
+**Level 2** (BIRIS and the Bit 3 coupler), per physical interrupt, in this order:
+
+1. The coupler's LOCAL_STATUS. PARITY_ERROR raises BIT3_PERR, REMOTE_BUS_ERROR raises BIT3_BERR.
+   Both bits are sticky until the driver writes CLR_ERROR, so only a bit that is newly set since
+   the routine last looked is an interrupt; a still-set bit is old news, and a bit that has been
+   cleared is forgotten, so that it counts again when it is next set.
+2. If an error was raised and the physical count is 1, that interrupt was the coupler's: done.
+3. Otherwise COMMAND in BIEXEC_COM: non-zero means a command is still running, so this is a
+   data interrupt and BIRIS_DATA_DEV is raised with the count; zero means BIRIS has cleared it on
+   completion, so BIRIS_CMD is raised.
+
+**Continuous mode** (Appendix D). While BIRIS acquires continuously, COMMAND stays zero during
+its data interrupts, so step 3 alone would take every one of them for a completion. The report
+foresees "a new flag to identify the continuous mode": :attr:`Level2Demux.continuous`, set by
+biris_cmd_transfer before it writes BI_START_CONTINUOUS and cleared by biris_cmd_notifier once
+BI_STOP_CONTINUOUS has completed. While it is set, an interrupt with COMMAND zero raises
+BIRIS_DATA_DEV (counted) *and* wakes BIRIS_CMD (not counted: most of these wakes are not
+completions). Neither wake can mislead: the data path catches up by ACQ_LINE, so a wake with
+nothing new reads nothing, and the command notifier completes a command only if one is
+outstanding and COMMAND reads zero, which is exactly the state after BIRIS has finished it. An
+interrupt with COMMAND non-zero is data, as before.
+
+Coalescing (a count above 1) must not lose data. With COMMAND zero, a burst may hold data
+interrupts as well as the completion, and the last of them is the one that announces the final
+acquisition (ACQ_LINE -128). So BIRIS_DATA_DEV is raised too, before BIRIS_CMD, even when the
+burst might have been an error plus the completion: the data path catches up by ACQ_LINE rather
+than by counting, so a spare wake finds nothing new, while a missed one would lose the end of a
+sequence. With COMMAND non-zero no completion can be hidden in the burst, because the driver
+never writes the next command before it has serviced BIRIS_CMD.
+
+A BusError while reading the coupler or COMMAND is itself a failed cycle across the coupler, so
+it raises BIT3_BERR and the routine keeps running.
+
+**biris_data_notifier shares the level-2 thread** (the server's task table says so, and why). A
+data notifier attached with :meth:`Level2Demux.attach_data_notifier` is run here in place of
+raising BIRIS_DATA_DEV: it reads the completed acquisitions and *posts* NEW_POINT one-way, so it
+never waits for the administrator, and the routine is back on the physical line as soon as the
+frames are read; BIRIS_CMD, BIT3_PERR and BIT3_BERR are never held up by the administrator. Run
+on a thread of its own instead, the notifier would cost every acquisition one more thread
+wake-up; measured, that added 50-100 us to the interrupt-to-client latency (p50) and did not
+make BIRIS_CMD's service any prompter (numbers: :mod:`biris_hw.server.task_table`). With no
+notifier attached the line is raised as for every other logical interrupt.
+
+**Level 3** (the Model 7600 board): IRQ_STATUS names the axes whose trapezoidal profile ended.
+Each set bit is written back (write 1 to acknowledge) *before* its logical interrupt is raised,
+so the acknowledgement can never clear the end of a move the woken notifier has already started:
+azimuth raises MOTOR_END_OF_SCAN, elevation ELEVATION_END_OF_SCAN. An interrupt with no bit set
+is spurious: counted, nothing raised.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections.abc import Callable
+
+from biris_hw.bus.base import BusWindow
+from biris_hw.errors import BusError
+from biris_hw.irq.base import InterruptLine
+from biris_hw.irq.demux import Demultiplexer
+from regs.biexec import OFF_COMMAND
+from regs.bit3 import Bit3Reg, LocalStatus
+from regs.tech80 import AxisBit, BoardReg
+
+__all__ = ["LEVEL2_LOGICALS", "LEVEL3_LOGICALS", "Level2Demux", "Level3Demux", "Logical"]
+
+log = logging.getLogger(__name__)
+
+
+class Logical(enum.IntEnum):
+    """The report's logical interrupts (device codes), plus the future elevation one."""
+
+    BIRIS_DATA_DEV = 1
+    BIRIS_CMD = 2
+    BIT3_PERR = 3
+    BIT3_BERR = 4
+    MOTOR_END_OF_SCAN = 5
+    ELEVATION_END_OF_SCAN = 6
+
+
+LEVEL2_LOGICALS = (
+    Logical.BIRIS_DATA_DEV,
+    Logical.BIRIS_CMD,
+    Logical.BIT3_PERR,
+    Logical.BIT3_BERR,
+)
+LEVEL3_LOGICALS = (Logical.MOTOR_END_OF_SCAN, Logical.ELEVATION_END_OF_SCAN)
+
+LEVEL2_THREAD = "level2_isr"
+"""The level-2 routine's thread name (a row of the task table)."""
+LEVEL3_THREAD = "level3_isr"
+"""The level-3 routine's thread name (a row of the task table)."""
+
+_PERR = int(LocalStatus.PARITY_ERROR)
+_BERR = int(LocalStatus.REMOTE_BUS_ERROR)
+
+
+class Level2Demux(Demultiplexer[Logical]):
+    """Level 2: BIRIS_DATA_DEV, BIRIS_CMD, BIT3_PERR, BIT3_BERR (decision order: module doc).
+
+    ``coupler`` is the Bit 3 register window, ``biris`` BIRIS memory, and ``biexec_offset``
+    where BIEXEC_COM sits in it.
+    """
+
+    def __init__(
+        self,
+        line: InterruptLine,
+        coupler: BusWindow,
+        biris: BusWindow,
+        biexec_offset: int,
+        name: str = LEVEL2_THREAD,
+    ) -> None:
+        super().__init__(line, LEVEL2_LOGICALS, name)
+        self._coupler = coupler
+        self._biris = biris
+        self._command_offset = biexec_offset + OFF_COMMAND
+        self._seen_errors = 0  # only the service thread touches it
+        self._continuous = False
+        self._data_notifier: Callable[[int], bool] | None = None
+
+    def attach_data_notifier(self, notifier: Callable[[int], bool] | None) -> None:
+        """Run ``notifier(count)`` in this thread for BIRIS_DATA_DEV instead of raising its line.
+
+        ``notifier`` must not block on another task (the server's posts one-way); it returns
+        False once its task has ended (the administrator stopped), and the line is raised again
+        from then on. None detaches. A plain store: safe at any time.
+        """
+        self._data_notifier = notifier
+
+    @property
+    def continuous(self) -> bool:
+        """Appendix D's continuous-mode flag (see the module notes)."""
+        return self._continuous
+
+    def set_continuous(self, on: bool) -> None:
+        """Set or clear the flag; a plain store, so a notifier may call it at any time."""
+        self._continuous = bool(on)
+
+    def _service(self, count: int) -> None:
+        error_raised = self._coupler_errors()
+        if error_raised and count == 1:
+            return  # the coupler's own interrupt
+        try:
+            command = self._biris.read16(self._command_offset)
+        except BusError as exc:
+            log.error("level 2: COMMAND unreadable (%s); raising BIT3_BERR", exc)
+            self._raise(Logical.BIT3_BERR)
+            return
+        biris_interrupts = count - 1 if error_raised else count
+        if command:
+            self._data(biris_interrupts)
+            return
+        if self._continuous:
+            self._data(max(1, biris_interrupts))
+            self._raise(Logical.BIRIS_CMD, counted=False)
+            return
+        if count > 1:
+            self._data(max(1, biris_interrupts - 1))
+        self._raise(Logical.BIRIS_CMD)
+
+    def _data(self, count: int) -> None:
+        """BIRIS_DATA_DEV: to the attached data notifier, run here, or else raised on its line.
+
+        Counted before the notifier runs, as a raise is counted before its notifier wakes. A
+        notifier's failure is logged and the routine goes on: the other logical interrupts of
+        the level must not die with it.
+        """
+        notifier = self._data_notifier
+        if notifier is None:
+            self._raise(Logical.BIRIS_DATA_DEV, count)
+            return
+        self._count(Logical.BIRIS_DATA_DEV, count)
+        try:
+            if not notifier(count):
+                self._data_notifier = None
+        except Exception:
+            log.exception("level 2: the data notifier failed; it stays attached")
+
+    def _coupler_errors(self) -> bool:
+        """Raise the error interrupts newly shown in LOCAL_STATUS; True if any was raised."""
+        try:
+            status = self._coupler.read8(Bit3Reg.LOCAL_STATUS)
+        except BusError as exc:
+            log.error("level 2: coupler status unreadable (%s); raising BIT3_BERR", exc)
+            self._raise(Logical.BIT3_BERR)
+            return True
+        errors = status & (_PERR | _BERR)
+        new = errors & ~self._seen_errors
+        self._seen_errors = errors  # a cleared bit is forgotten, so its next setting is new
+        if new & _PERR:
+            self._raise(Logical.BIT3_PERR)
+        if new & _BERR:
+            self._raise(Logical.BIT3_BERR)
+        return bool(new)
+
+
+_AXES = (
+    (int(AxisBit.AZIMUTH), Logical.MOTOR_END_OF_SCAN),
+    (int(AxisBit.ELEVATION), Logical.ELEVATION_END_OF_SCAN),
+)
+
+
+class Level3Demux(Demultiplexer[Logical]):
+    """Level 3: the Model 7600's end-of-profile interrupts, one logical line per axis."""
+
+    def __init__(self, line: InterruptLine, motion: BusWindow, name: str = LEVEL3_THREAD) -> None:
+        super().__init__(line, LEVEL3_LOGICALS, name)
+        self._motion = motion
+
+    def _service(self, count: int) -> None:
+        try:
+            status = self._motion.read8(BoardReg.IRQ_STATUS)
+            ended = [(bit, logical) for bit, logical in _AXES if status & bit]
+            if not ended:
+                self._count_spurious(count)
+                return
+            for bit, logical in ended:
+                self._motion.write8(BoardReg.IRQ_STATUS, bit)
+                self._raise(logical)
+        except BusError as exc:
+            # The board sits on the host's own bus: this is not a coupler fault, and the motor
+            # notifier's stall detection will report the missing end of scan.
+            log.error("level 3: Model 7600 IRQ_STATUS not serviced: %s", exc)
