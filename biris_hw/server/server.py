@@ -21,7 +21,7 @@ from biris_hw.affinity import check_cpus, pinned
 from biris_hw.client import Connection
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
 from biris_hw.devices import AxisDriver
-from biris_hw.errors import BirisError, ConnectionClosed
+from biris_hw.errors import BirisError, ConnectionClosed, RequestError
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
 from biris_hw.protocol import OpenRequest, ResetRequest, StatusRequest
@@ -44,9 +44,12 @@ log = logging.getLogger(__name__)
 class BirisServer:
     """The BIRIS server of the report, on a :class:`BirisHardware` bundle.
 
-    Construction creates every task and runs initialisation (homing, boot); it raises
-    :class:`HardwareFault` if that fails, after stopping what it started. Use it as a context
+    Construction creates every task and runs initialisation (homing, boot). Use it as a context
     manager, or call :meth:`close`.
+
+    Raises:
+        HardwareFault: initialisation failed (everything started is stopped first).
+        RequestError: the record asks for CPUs the process cannot use (nothing is started).
     """
 
     def __init__(self, hardware: BirisHardware, record: BirisInitRecord | None = None) -> None:
@@ -225,14 +228,23 @@ class BirisServer:
         """OPEN_REQUEST: a NORMAL connection, or a DATA one that is sent data as they come.
 
         ``policy`` (DATA connections only) says what READY_FOR_DATA delivers and what a slow
-        client loses; ``depth`` how much waits for it (default: the policy's). A bad choice is a
-        RequestError. The connection belongs to the calling thread and is released when that
-        thread ends.
+        client loses; ``depth`` how much waits for it (default: the policy's). The connection
+        belongs to the calling thread and is released when that thread ends.
+
+        Raises:
+            ConnectionClosed: the server has stopped.
+            RequestError: an unknown kind, policy or depth.
         """
         if self._closed:
             raise ConnectionClosed("the BIRIS server has stopped")
+        try:
+            kind = ConnectionKind(kind)
+        except ValueError:
+            raise RequestError(
+                f"no connection kind {kind!r}; use ConnectionKind.NORMAL or DATA"
+            ) from None
         owner = threading.current_thread()
-        answer = self.inbox.send(OpenRequest(ConnectionKind(kind), owner, policy, depth))
+        answer = self.inbox.send(OpenRequest(kind, owner, policy, depth))
         assert isinstance(answer, tuple)
         number, chosen, used = answer
         if chosen is DeliveryPolicy.EVERY_ACQUISITION:
@@ -281,7 +293,13 @@ class BirisServer:
             return None
 
     def reset(self) -> None:
-        """Re-run initialisation (the way back after a HardwareFault); raises if it fails."""
+        """Re-run initialisation (the way back after a HardwareFault).
+
+        Raises:
+            ConnectionClosed: the server has stopped.
+            HardwareFault: initialisation failed (the server stays in that fault).
+            RequestError: an initialisation is already running.
+        """
         if self._closed:
             raise ConnectionClosed("the BIRIS server has stopped")
         self.inbox.send(ResetRequest(0))
