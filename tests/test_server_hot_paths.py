@@ -10,9 +10,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import threading
-import time
 import weakref
-from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -28,19 +26,9 @@ from biris_hw.server.delivery import ClientConn, stamp
 from biris_hw.server.tasks import DeadlineTimer
 from regs.biexec import ACQ_LINE_END
 from regs.layout import AZIMUTH_DTYPE, FRAME_DTYPE, FrameAddressing
+from tests.conftest import until
 
 WAIT = 5.0
-
-
-def until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
-    """Wait for a state another thread reaches (not for a time): True once ``condition`` holds,
-    False if it still does not after ``timeout``, which only a failing test reaches."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.0005)
-    return True
 
 
 def _point(t: float = 1.0) -> Point:
@@ -217,7 +205,7 @@ def test_a_receiver_that_blocks_is_woken_by_a_later_send() -> None:
     got: list[object] = []
     receiver = threading.Thread(target=lambda: got.append(mailbox.receive(WAIT).message))
     receiver.start()
-    assert until(lambda: mailbox.receivers == 1)  # blocked in receive, with the queue empty
+    until(lambda: mailbox.receivers == 1, what="the receiver blocked with the queue empty")
     mailbox.post("late")
     receiver.join(WAIT)
     assert got == ["late"]
