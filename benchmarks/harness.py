@@ -49,6 +49,7 @@ SECTIONS: tuple[str, ...] = (
     "fanout",
     "registers",
     "sweep_gap_ms",
+    "soak",
 )
 """The report's sections, in report order; each is present in report.json whether it ran or not."""
 

@@ -112,7 +112,7 @@ def _measure(record: BirisInitRecord, sweeps: int) -> _Gaps:
         )
         conn = stack.enter_context(bench.server.open())
         data = stack.enter_context(bench.server.open(ConnectionKind.DATA))
-        starts0 = len(bench.rig.supervisor.sequence_starts)
+        starts0 = bench.rig.supervisor.sequences_started
         conn.continuous_scan(-SWEEP_DEG, SWEEP_DEG)
         try:
             while len(edges) < sweeps:
@@ -122,7 +122,7 @@ def _measure(record: BirisInitRecord, sweeps: int) -> _Gaps:
         finally:
             conn.stop_scan()
             conn.wait_idle(timeout=30.0)
-        out.sequences = len(bench.rig.supervisor.sequence_starts) - starts0
+        out.sequences = bench.rig.supervisor.sequences_started - starts0
         counters = bench.server.status()["counters"]
         out.counters = {name: float(counters[name]) for name in EXPLAINING_COUNTERS}
         times = bench.rig.supervisor.acquisition_times

@@ -233,7 +233,7 @@ def _trial(time_scale: float, window: float) -> Trial:
             trial.cpu = {k: v for k, v in cpu.values.items() if k.endswith("_percent")}
             server_s = cpu.values.get("server_cpu_percent", 0.0) / 100.0 * cpu.values["wall_s"]
             trial.server_us_per_acq = 1e6 * server_s / announced if announced else 0.0
-            made_times = bench.rig.supervisor.acquisition_times[made0:]
+            made_times = bench.rig.supervisor.acquisition_times_since(made0)
             lags = irq.lags_hw(made_times, period)
             trial.max_lag_s = max(lags) / time_scale if lags else math.inf
             if not spans:

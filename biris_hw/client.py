@@ -4,6 +4,15 @@ A connection is a handle on the server's administrator; every call is a Send tha
 the administrator replies. Angles are degrees in and counts out: each motion request returns the
 destination actually used after _Scan_limit clamping (and, for the tilt, the elevation limits).
 
+Refused means unchanged: every argument is checked here, in the caller's thread, before a message
+is sent, so a bad one is a :class:`~biris_hw.errors.RequestError` naming the argument and the
+server never hears of it. Numbers may be of any real type (``int``, ``float``, ``Fraction``,
+numpy scalars: any ``numbers.Real``, never a bool) and are converted exactly, so a huge finite angle
+clamps like any other (``1e308`` degrees is +0x1000 counts) instead of overflowing; NaN,
+infinite angles, None and strings are refused. A timeout is None (wait as long as it takes), 0
+(poll: the administrator answers at once) or a positive number of seconds (infinity, or more than
+``threading.TIMEOUT_MAX``, waits as long as it takes); a negative timeout is refused.
+
 A DATA connection is generic in what READY_FOR_DATA hands out: ``Connection[Scan]`` (the
 default, also what a bare ``Connection`` means) for the LATEST and EVERY_BUFFER policies,
 ``Connection[Point]`` for EVERY_ACQUISITION; ``BirisServer.open`` picks the right one from the
@@ -13,11 +22,13 @@ policy, so a type checker knows what ``ready_for_data`` returns.
 from __future__ import annotations
 
 import math
+import threading
+from fractions import Fraction
 from types import TracebackType
 from typing import TYPE_CHECKING, Generic, cast
 
 from biris_hw import protocol as m
-from biris_hw.angles import deg_to_counts
+from biris_hw.angles import RealLike, destination_counts, exact_real, is_real, shown
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import ConnectionClosed, RequestError
 from biris_hw.ipc import Mailbox
@@ -35,19 +46,48 @@ else:
 __all__ = ["Connection"]
 
 
-def _counts(value: float, what: str) -> int:
+POLL = 0.0
+"""What :func:`_timeout` returns for a poll (``timeout=0``)."""
+
+
+def _is_plus_infinity(value: object) -> bool:
+    """True for +inf of any real type; False for NaN, -inf and anything that will not compare."""
     try:
-        return deg_to_counts(value)
-    except ValueError as exc:
-        raise RequestError(f"{what}: {exc}") from None
+        return bool(value > 0) and bool(value == value)  # type: ignore[operator]
+    except (ArithmeticError, TypeError, ValueError):
+        return False
 
 
-def _timeout(value: float | None) -> float | None:
+def _timeout(value: object) -> float | None:
+    """A call's ``timeout`` argument, checked: None (no deadline), :data:`POLL`, or seconds.
+
+    Any real number type. A deadline no lock can wait for -- infinity, ``10**400``, or anything
+    beyond ``threading.TIMEOUT_MAX`` (some 292 years) -- is no deadline: that is what it means,
+    and a lock would raise OverflowError for it.
+
+    Raises:
+        RequestError: NaN, a negative number, or not a number. A negative timeout is refused
+            rather than taken as a poll: it is nearly always a deadline computed too late, and
+            the caller should learn that rather than silently get a different kind of call.
+    """
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
-        raise RequestError(f"timeout must be a number of seconds, not {value!r}")
-    return max(0.0, float(value))
+    wanted = "timeout: must be None, 0 (poll) or a positive number of seconds"
+    if not is_real(value):
+        raise RequestError(f"{wanted}, not {type(value).__name__}")
+    try:
+        seconds: Fraction = exact_real(value, "timeout")
+    except RequestError:
+        if _is_plus_infinity(value):
+            return None
+        raise RequestError(f"{wanted}, not {shown(value)}") from None
+    if seconds < 0:
+        raise RequestError(f"{wanted}, not {shown(value)}")
+    if seconds == 0:
+        return POLL
+    if seconds >= threading.TIMEOUT_MAX:
+        return None
+    return max(float(seconds), math.ulp(0.0))  # a positive deadline, however small, is not a poll
 
 
 class Connection(Generic[D]):
@@ -106,28 +146,41 @@ class Connection(Generic[D]):
             RequestError: no such direction, or the server is initialising.
         """
         try:
+            if isinstance(direction, bool):  # True is 1 to Python, but it names no direction
+                raise ValueError(direction)
             d = Direction(direction)
-        except ValueError:
-            raise RequestError(f"no direction {direction!r}; use Direction.CW or CCW") from None
+        except (ValueError, TypeError):
+            raise RequestError(
+                f"direction: no direction {direction!r}; use Direction.CW or CCW"
+            ) from None
         result = self._call(m.RequestScanData(self.ident, d))
         assert result is None or isinstance(result, Scan)
         return result
 
-    def ready_for_data(self, timeout: float | None = None) -> D:
+    def ready_for_data(self, timeout: RealLike | None = None) -> D:
         """READY_FOR_DATA: block until the next buffer (DATA connections only).
 
         A complete Scan under LATEST and EVERY_BUFFER; under EVERY_ACQUISITION the next Point,
         as soon as its acquisition has been read. Either carries ``t_delivered``. Updates
-        :attr:`dropped`. Raises TimeoutError when nothing comes within ``timeout`` seconds.
+        :attr:`dropped`.
+
+        Args:
+            timeout: seconds to wait (any real number type); None waits as long as it takes;
+                0 polls: what already waits for this connection, or TimeoutError at once,
+                answered by the server however busy it is (no deadline of the client's own).
 
         Raises:
             ConnectionClosed: this connection or the server is closed.
             HardwareFault: the server is in a fault state (until a reset).
-            RequestError: not a DATA connection, a bad timeout, or a newer READY_FOR_DATA
-                superseded this one.
-            TimeoutError: nothing came within ``timeout`` seconds.
+            RequestError: not a DATA connection, a timeout that is negative, NaN or not a
+                number, or a newer READY_FOR_DATA superseded this one.
+            TimeoutError: nothing came within ``timeout`` seconds (at once for a poll).
         """
-        result = self._call(m.ReadyForData(self.ident), _timeout(timeout))
+        seconds = _timeout(timeout)
+        if seconds == POLL:
+            result = self._call(m.ReadyForData(self.ident, poll=True))
+        else:
+            result = self._call(m.ReadyForData(self.ident), seconds)
         assert isinstance(result, tuple)
         item, dropped = result
         self.dropped = int(dropped)
@@ -135,50 +188,59 @@ class Connection(Generic[D]):
         return cast(D, item)  # the server sends what the policy says
 
     # -- control -----------------------------------------------------------------------------
-    def single_scan(self, to_deg: float) -> int:
+    def single_scan(self, to_deg: RealLike) -> int:
         """BIRIS_SINGLE_SCAN_RQST: scan to ``to_deg``; returns the destination used (counts).
+
+        Args:
+            to_deg: the destination in degrees, any real number type; clamped to +-360 degrees
+                (+-0x1000 counts), however large.
 
         Raises:
             ConnectionClosed: this connection or the server is closed.
             HardwareFault: the server is in a fault state (until a reset).
-            RequestError: a destination that is not a finite number, the head is already
+            RequestError: a destination that is not a finite real number, the head is already
                 there, or a scan or motion is under way.
         """
-        dest = _counts(to_deg, "scan destination")
+        dest = destination_counts(to_deg, "to_deg")
         result = self._call(m.SingleScanRqst(self.ident, dest))
         assert isinstance(result, int)
         return result
 
-    def continuous_scan(self, cw_deg: float, ccw_deg: float) -> tuple[int, int]:
+    def continuous_scan(self, cw_deg: RealLike, ccw_deg: RealLike) -> tuple[int, int]:
         """BIRIS_CONT_SCAN_RQST: sweep between the limits until stop_scan(); returns them in
         counts after clamping. CW is the lower (clockwise) limit.
+
+        Args:
+            cw_deg: the clockwise limit in degrees, any real number type; clamped to +-360.
+            ccw_deg: the counter-clockwise limit, likewise.
 
         Raises:
             ConnectionClosed: this connection or the server is closed.
             HardwareFault: the server is in a fault state (until a reset).
-            RequestError: limits that are not finite numbers or the wrong way round, or a
-                scan or motion is under way.
+            RequestError: limits that are not finite real numbers or, once clamped, not the
+                right way round (CW below CCW), or a scan or motion is under way.
         """
-        cw = _counts(cw_deg, "CW limit")
-        ccw = _counts(ccw_deg, "CCW limit")
+        cw = destination_counts(cw_deg, "cw_deg")
+        ccw = destination_counts(ccw_deg, "ccw_deg")
         result = self._call(m.ContScanRqst(self.ident, cw, ccw))
         assert isinstance(result, tuple)
         return int(result[0]), int(result[1])
 
-    def set_elevation(self, deg: float) -> int:
+    def set_elevation(self, deg: RealLike) -> int:
         """Tilt the head to ``deg`` (positive looks up); returns the destination used, counts.
 
-        Clamped to the init record's ``elevation_limits_counts``. Returns once accepted; the
-        tilt, and the loading of that elevation's calibration table into BIRIS, follow (at the
-        end of the sweep under way, if a scan runs), and no acquisition happens meanwhile: a
-        scan asked for during a tilt starts when it is over. ``wait_idle`` waits for the tilt.
+        Clamped to the init record's ``elevation_limits_counts`` (any real number type, however
+        large). Returns once accepted; the tilt, and the loading of that elevation's calibration
+        table into BIRIS, follow (at the end of the sweep under way, if a scan runs), and no
+        acquisition happens meanwhile: a scan asked for during a tilt starts when it is over.
+        ``wait_idle`` waits for the tilt.
 
         Raises:
             ConnectionClosed: this connection or the server is closed.
             HardwareFault: the server is in a fault state (until a reset).
-            RequestError: an elevation that is not a finite number.
+            RequestError: an elevation that is not a finite real number.
         """
-        dest = _counts(deg, "elevation")
+        dest = destination_counts(deg, "deg")
         result = self._call(m.SetElevation(self.ident, dest))
         assert isinstance(result, int)
         return result
@@ -206,13 +268,18 @@ class Connection(Generic[D]):
     def set_motor_params(self, params: MotorParams) -> None:
         """BIRIS_MOTOR_PARAMS: new sample timer, filter and profile limits for the pan motor.
 
+        ``params`` was checked when it was made: a MotorParams never holds a value outside its
+        register, nor a zero gain, max_vel or max_accel (a motor that can never move).
+
         Raises:
             ConnectionClosed: this connection or the server is closed.
             HardwareFault: the server is in a fault state (until a reset).
             RequestError: not a MotorParams, or the server is initialising.
         """
         if not isinstance(params, MotorParams):
-            raise RequestError("set_motor_params takes a MotorParams")
+            raise RequestError(
+                f"params: set_motor_params takes a MotorParams, not {type(params).__name__}"
+            )
         self._call(m.BirisMotorParams(self.ident, params))
 
     def timeout_enable(self) -> None:
@@ -235,16 +302,25 @@ class Connection(Generic[D]):
         """
         self._call(m.TimeoutDisable(self.ident))
 
-    def wait_idle(self, timeout: float | None = None) -> None:
+    def wait_idle(self, timeout: RealLike | None = None) -> None:
         """Block until the motor is stationary, no motion is pending and no acquisition runs.
 
-            Raises:
-        ConnectionClosed: this connection or the server is closed.
-        HardwareFault: the server is in a fault state (until a reset).
-        RequestError: a bad timeout.
-        TimeoutError: not idle within ``timeout`` seconds.
+        Args:
+            timeout: seconds to wait (any real number type); None waits as long as it takes;
+                0 polls: returns at once if the server is idle, TimeoutError at once if not,
+                answered by the server however busy it is (no deadline of the client's own).
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset).
+            RequestError: a timeout that is negative, NaN or not a number.
+            TimeoutError: not idle within ``timeout`` seconds (at once for a poll).
         """
-        self._call(m.WaitIdle(self.ident), _timeout(timeout))
+        seconds = _timeout(timeout)
+        if seconds == POLL:
+            self._call(m.WaitIdle(self.ident, poll=True))
+        else:
+            self._call(m.WaitIdle(self.ident), seconds)
 
     def reset(self) -> None:
         """Re-run the server's initialisation: the way back after a HardwareFault.

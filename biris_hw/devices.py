@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from biris_hw.angles import clamp_counts
 from biris_hw.bus.base import BusWindow
 from biris_hw.errors import HardwareFault
+from biris_hw.pan_reference import PanReference
 from biris_hw.records import MotorParams
 from regs import biexec
 from regs.bit3 import Bit3Reg, LocalCommand, LocalIntControl
@@ -83,6 +84,11 @@ class AxisDriver:
 
     ``clock`` is the hardware clock (seconds) and ``time_scale`` hardware seconds per real
     second: the settling polls are paced in hardware time, as the chip's sample timer is.
+
+    ``reference`` (the pan chip's only) is the bundle's :class:`PanReference`: every move is
+    recorded there *before* it is commanded, and cut so that the head stays within +-0x1000 of
+    TRUE zero; every settle position and parameter load is reported too, so that a reset or a
+    restarted driver knows where the head is and whether the chip kept its count.
     """
 
     def __init__(
@@ -91,9 +97,11 @@ class AxisDriver:
         axis: Axis,
         clock: Callable[[], float] = time.monotonic,
         time_scale: float = 1.0,
+        reference: PanReference | None = None,
     ) -> None:
         self.window = window
         self.axis = axis
+        self.reference = reference
         self._base = AXIS_BASE[axis]
         self._clock = clock
         self._scale = time_scale
@@ -134,7 +142,11 @@ class AxisDriver:
 
     # -- configuration -------------------------------------------------------------------------
     def configure(self, params: MotorParams) -> None:
-        """Sample timer, filter and profile limits: BIRIS_MOTOR_PARAMS' six values."""
+        """Sample timer, filter and profile limits: BIRIS_MOTOR_PARAMS' six values.
+
+        The pan chip's values are read back and reported to the reference: a chip that still
+        holds them later has not been reset or power-cycled, so its count is still good.
+        """
         with self._latch:
             self._wr(Reg.SAMPLE_TIMER, params.sample)
             self._wr(Reg.FILTER_ZERO, params.zero)
@@ -143,6 +155,9 @@ class AxisDriver:
             self._wr(Reg.MAX_VELOCITY, params.max_vel)
             self._wr(Reg.ACCEL_LSB, params.max_accel & 0xFF)
             self._wr(Reg.ACCEL_MSB, (params.max_accel >> 8) & 0x7F)
+            held = self._read_params() if self.reference is not None else {}
+        if self.reference is not None:
+            self.reference.configured(held)
 
     def read_params(self) -> dict[str, int]:
         """The six parameters as the chip holds them now, in Appendix B's order (the keys of
@@ -152,14 +167,17 @@ class AxisDriver:
         hold values no record would accept, and showing them is the point.
         """
         with self._latch:
-            return {
-                "sample": self._rd(Reg.SAMPLE_TIMER),
-                "zero": self._rd(Reg.FILTER_ZERO),
-                "pole": self._rd(Reg.FILTER_POLE),
-                "gain": self._rd(Reg.FILTER_GAIN),
-                "max_vel": self._rd(Reg.MAX_VELOCITY),
-                "max_accel": (self._rd(Reg.ACCEL_MSB) << 8) | self._rd(Reg.ACCEL_LSB),
-            }
+            return self._read_params()
+
+    def _read_params(self) -> dict[str, int]:
+        return {
+            "sample": self._rd(Reg.SAMPLE_TIMER),
+            "zero": self._rd(Reg.FILTER_ZERO),
+            "pole": self._rd(Reg.FILTER_POLE),
+            "gain": self._rd(Reg.FILTER_GAIN),
+            "max_vel": self._rd(Reg.MAX_VELOCITY),
+            "max_accel": (self._rd(Reg.ACCEL_MSB) << 8) | self._rd(Reg.ACCEL_LSB),
+        }
 
     def idle(self) -> None:
         """Init/idle: motor command held at zero, filter history cleared."""
@@ -190,13 +208,20 @@ class AxisDriver:
         """Start a trapezoidal move from the present command position; returns the destination.
 
         The destination is clamped to +-0x1000 here as well as in the server: the motor must never
-        be commanded beyond +-360 degrees whatever reaches this layer.
+        be commanded beyond +-360 degrees whatever reaches this layer. On the pan, that is
+        +-0x1000 of TRUE zero too (the reference's cut, which differs from the counter's own
+        only while the counter is not yet referenced, during initialisation), and the move is
+        recorded before F0 starts it: a driver that dies mid-move leaves its span behind.
         """
         dest = clamp_counts(destination)
+        if self.reference is not None:
+            dest = self.reference.safe_destination(dest)
         if dest != destination:
             log.warning("destination %d clamped to %d", destination, dest)
         if self.profile_active():
             raise HardwareFault("protocol", f"axis {self.axis.name}: profile already running")
+        if self.reference is not None:
+            self.reference.record_move(self.command_position(), dest)
         for reg, byte in zip(
             (Reg.FINAL_POS_LSB, Reg.FINAL_POS_MID, Reg.FINAL_POS_MSB),
             pos24_lsb_first(dest),
@@ -229,6 +254,8 @@ class AxisDriver:
             if abs(pos - target) <= 1 and pos == last:
                 steady += 1
                 if steady >= 3:
+                    if self.reference is not None:
+                        self.reference.settled(pos)
                     return True
             else:
                 steady = 0
@@ -352,11 +379,13 @@ class Devices:
         coupler: BusWindow,
         clock: Callable[[], float],
         time_scale: float,
+        pan_reference: PanReference | None = None,
     ) -> Devices:
-        """One driver per device over these windows. Touches no register."""
+        """One driver per device over these windows. Touches no register. The pan driver
+        reports to ``pan_reference`` (the bundle's)."""
         return cls(
             link=BirisLink(biris, biexec_offset),
-            azimuth=AxisDriver(motion, Axis.AZIMUTH, clock, time_scale),
+            azimuth=AxisDriver(motion, Axis.AZIMUTH, clock, time_scale, pan_reference),
             elevation=AxisDriver(motion, Axis.ELEVATION, clock, time_scale),
             board=MotionBoard(motion),
             coupler=Coupler(coupler),

@@ -21,7 +21,7 @@ __all__ = [
 import errno
 from typing import Literal
 
-FaultKind = Literal["timeout", "bus", "parity", "motor_stall", "protocol"]
+FaultKind = Literal["timeout", "bus", "parity", "motor_stall", "protocol", "internal"]
 """What broke: the four hardware faults of the report, plus ``protocol`` for a target that answers
 with garbage (a malformed PARAM reply, an impossible register value)."""
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from os import PathLike
 
 from biris_hw.bus.base import BusWindow
 from biris_hw.devices import Devices
 from biris_hw.irq.base import InterruptLine
+from biris_hw.pan_reference import PanReference
 
 __all__ = ["BirisHardware"]
 
@@ -26,6 +28,13 @@ class BirisHardware:
 
     ``devices`` is made with the bundle and is the only set of drivers over its windows: the
     server, its initialiser, ``status()`` and the CLI all use it (see :mod:`biris_hw.devices`).
+
+    ``pan_reference`` is made with it too, once: what is known about the pan counter's relation
+    to TRUE zero (:mod:`biris_hw.pan_reference`). Every server on this bundle shares it, so a
+    reset or a new server on the same bundle homes to true zero, never to the nearest index.
+    ``pan_journal`` is the file that carries it across driver *processes*: a target names one
+    (docs/targets.md); None keeps it in memory, which suits an in-process simulator whose head
+    dies with the process, and nothing else.
     """
 
     biris: BusWindow
@@ -39,10 +48,15 @@ class BirisHardware:
     time_scale: float = 1.0
     """Hardware seconds per real second: 1.0 on the target, the simulator's ``time_scale``
     otherwise. Timers (the 4 s BIRIS timeout, the motor watchdog) use it to wait in real time."""
+    pan_journal: str | PathLike[str] | None = None
+    """The pan reference journal's path, or None to keep the reference in memory only."""
+    pan_reference: PanReference = field(init=False, repr=False, compare=False)
+    """The pan counter's relation to true zero, built here once (reads the journal if any)."""
     devices: Devices = field(init=False, repr=False, compare=False)
     """One driver per device over these windows, built here once (no register is touched)."""
 
     def __post_init__(self) -> None:
+        self.pan_reference = PanReference(self.pan_journal)
         self.devices = Devices.over(
             biris=self.biris,
             biexec_offset=self.biexec_offset,
@@ -50,6 +64,7 @@ class BirisHardware:
             coupler=self.coupler,
             clock=self.clock,
             time_scale=self.time_scale,
+            pan_reference=self.pan_reference,
         )
 
     def to_offset(self, biris_address: int) -> int:

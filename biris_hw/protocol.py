@@ -4,14 +4,43 @@ Named after the report's client messages (OPEN_REQUEST, REQUEST_POINT, REQUEST_S
 READY_FOR_DATA, and SET_ELEVATION, the "new message" the report asks for to servo the elevation
 axis). It sits below both :mod:`biris_hw.client` and :mod:`biris_hw.server`, so neither imports
 the other for it. All messages are immutable.
+
+The messages that carry numbers check them when they are made, whoever makes them: a destination
+is a whole number of counts (any integer type, kept as a plain ``int``; the administrator clamps
+it), motor parameters are a :class:`MotorParams`, and ``poll`` is a bool. A malformed message
+thus fails in the sender's thread, with a :class:`~biris_hw.errors.RequestError`, before it
+reaches the administrator, and nothing changes. Converting degrees and seconds is the client's
+work (:mod:`biris_hw.client`).
 """
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass
 
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction
+from biris_hw.errors import RequestError
 from biris_hw.records import MotorParams
+
+
+def _counts(message: object, name: str) -> None:
+    """Normalise field ``name`` of a frozen message to a plain int of counts, or refuse it."""
+    value = getattr(message, name)
+    if isinstance(value, bool):
+        raise RequestError(f"{name}: must be a whole number of counts, not a bool")
+    try:
+        number = operator.index(value)
+    except TypeError:
+        raise RequestError(
+            f"{name}: must be a whole number of counts, not {type(value).__name__}"
+        ) from None
+    object.__setattr__(message, name, number)
+
+
+def _check_poll(poll: object) -> None:
+    """``poll`` must be a bool: a truthy number there is a bug in the sender, not a wish."""
+    if poll is not True and poll is not False:
+        raise RequestError(f"poll: must be True or False, not {poll!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,11 +84,19 @@ class BirisMotorParams:
     conn: int
     params: MotorParams
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.params, MotorParams):
+            raise RequestError(f"params: must be a MotorParams, not {type(self.params).__name__}")
+
 
 @dataclass(frozen=True, slots=True)
 class SingleScanRqst:
     conn: int
     destination: int
+    """Counts, before _Scan_limit (the administrator clamps)."""
+
+    def __post_init__(self) -> None:
+        _counts(self, "destination")
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,6 +104,10 @@ class ContScanRqst:
     conn: int
     cw_limit: int
     ccw_limit: int
+
+    def __post_init__(self) -> None:
+        _counts(self, "cw_limit")
+        _counts(self, "ccw_limit")
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,15 +128,32 @@ class SetElevation:
     conn: int
     destination: int
 
+    def __post_init__(self) -> None:
+        _counts(self, "destination")
+
 
 @dataclass(frozen=True, slots=True)
 class ReadyForData:
+    """READY_FOR_DATA. ``poll``: answer at once -- the oldest waiting buffer (or point), or a
+    TimeoutError when none waits -- instead of parking until one comes (``timeout=0``)."""
+
     conn: int
+    poll: bool = False
+
+    def __post_init__(self) -> None:
+        _check_poll(self.poll)
 
 
 @dataclass(frozen=True, slots=True)
 class WaitIdle:
+    """Reply once the server is idle. ``poll``: answer at once -- None when idle, a TimeoutError
+    when not -- instead of parking until it is (``timeout=0``)."""
+
     conn: int
+    poll: bool = False
+
+    def __post_init__(self) -> None:
+        _check_poll(self.poll)
 
 
 @dataclass(frozen=True, slots=True)

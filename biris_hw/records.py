@@ -11,7 +11,6 @@ configured, and the motor controller must never receive a register value that do
 
 from __future__ import annotations
 
-import math
 import operator
 import sys
 from collections.abc import Mapping
@@ -20,6 +19,7 @@ from os import PathLike
 from pathlib import Path
 from typing import Any, ClassVar
 
+from biris_hw.angles import exact_real, shown
 from biris_hw.errors import RequestError
 from biris_hw.geometry import Mount
 from regs.hctl1000 import F_CLK_HZ, MOTION_LIMIT_COUNTS, accel_from_reg, sample_period
@@ -39,29 +39,54 @@ __all__ = [
 MAX_CPU = 1023
 """The highest CPU number ``cpus`` accepts (Linux's default CPU set size is 1024)."""
 
+MAX_HOME_REVS = 2.0
+"""The most ``home_index_timeout_revs`` may be: homing searches half of it either way from where
+it starts, and more than one revolution either way could wind the cable."""
 
-def _int_field(key: str, value: object, lo: int, hi: int) -> int:
-    """A whole number in lo..hi; numpy integers pass, bools and floats do not (1.5 is no count)."""
+
+def _int_field(key: str, value: object, lo: int, hi: int, *, zero: str | None = None) -> int:
+    """A whole number in lo..hi; numpy integers pass, bools and floats do not (1.5 is no count).
+
+    ``zero`` says why 0 is refused, where it fits the register but can never work: that reason
+    is worth more to the caller than the bare range.
+    """
     if isinstance(value, bool):
         raise RequestError(f"{key}: must be an integer, not a bool")
     try:
         number = operator.index(value)  # type: ignore[arg-type]
     except TypeError:
         raise RequestError(f"{key}: must be an integer, not {type(value).__name__}") from None
+    if number == 0 and zero is not None:
+        raise RequestError(f"{key}: 0 {zero}; use {lo}..{hi}")
     if not lo <= number <= hi:
-        raise RequestError(f"{key}: must be in {lo}..{hi} (0x{hi:X} at most), not {number}")
+        raise RequestError(f"{key}: must be in {lo}..{hi} (0x{hi:X} at most), not {shown(number)}")
     return number
 
 
-def _float_field(key: str, value: object, *, positive: bool = False) -> float:
-    """A finite float (ints welcome: TOML writes ``4`` as readily as ``4.0``)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise RequestError(f"{key}: must be a number, not {type(value).__name__}")
-    number = float(value)
-    if not math.isfinite(number) or (positive and number <= 0.0):
-        wanted = "a positive finite number" if positive else "finite"
-        raise RequestError(f"{key}: must be {wanted}, not {value}")
+def _float_field(
+    key: str, value: object, *, positive: bool = False, at_most: float | None = None
+) -> float:
+    """A finite float from any real number type (TOML writes ``4`` as readily as ``4.0``, and
+    code may hand over a numpy scalar); a value beyond a float's range is refused, not rounded
+    to infinity."""
+    exact = exact_real(value, key)
+    try:
+        number = float(exact)
+    except OverflowError:
+        raise RequestError(f"{key}: must be a finite number, not {shown(value)}") from None
+    if positive and number <= 0.0:
+        raise RequestError(f"{key}: must be a positive finite number, not {shown(value)}")
+    if at_most is not None and number > at_most:
+        raise RequestError(f"{key}: must be {at_most:g} at most, not {shown(value)}")
     return number
+
+
+def _bool_field(key: str, value: object) -> bool:
+    """A switch: TOML's true/false or Python's bool; 0 and 1 are refused, since a number in a
+    switch's place is more likely a key put in the wrong place than a switch."""
+    if not isinstance(value, bool):
+        raise RequestError(f"{key}: must be true or false, not {type(value).__name__}")
+    return value
 
 
 def _name_field(key: str, value: object) -> str:
@@ -91,6 +116,16 @@ class MotorParams:
     and ``max_accel`` its acceleration in 8.8 fixed-point counts per sample squared (R26H/R27H).
     They are kept as the raw register values the chip takes, so what the server writes is exactly
     what the record says; the properties give the physical meaning.
+
+    Every field is a whole number of any integer type (numpy's too) within its register. A zero
+    ``gain``, ``max_vel`` or ``max_accel`` fits its register but can never move the head (no
+    torque; a profile that never leaves its start), and is refused here, up front: accepted, it
+    would surface only later, as a scan that "completes" with the head standing still or as a
+    motor stall.
+
+    Raises:
+        RequestError: a field that is not an integer (bools and floats included), outside its
+            register, or zero where zero never moves the head; the message names the field.
     """
 
     sample: int = 0xAF
@@ -109,9 +144,19 @@ class MotorParams:
         "max_accel": 0x7FFF,
     }
 
+    _CANNOT_MOVE: ClassVar[Mapping[str, str]] = {
+        "gain": "is no gain: the motor gets no torque, so the head can never move",
+        "max_vel": "counts per sample is a profile that never leaves its start, "
+        "so the head can never move",
+        "max_accel": "is a profile that never speeds up, so the head can never move",
+    }
+    """Why 0 is refused for these fields: each would leave the head standing still."""
+
     def __post_init__(self) -> None:
         for name, hi in self._LIMITS.items():
-            object.__setattr__(self, name, _int_field(name, getattr(self, name), 0, hi))
+            why = self._CANNOT_MOVE.get(name)
+            value = _int_field(name, getattr(self, name), 0 if why is None else 1, hi, zero=why)
+            object.__setattr__(self, name, value)
 
     @property
     def sample_period_s(self) -> float:
@@ -152,16 +197,24 @@ class BirisInitRecord:
     between acquisitions; ``max_range`` is BIRIS_MAX_RANGE, beyond which samples are discarded.
 
     Beyond the report (later features, harmless defaults): ``timeout_s`` is the BIRIS timeout in
-    hardware seconds; ``home_index_timeout_revs`` how far homing may turn looking for the zero
-    index before it gives up; ``continuous_acquisition`` selects Appendix D's continuous mode;
-    ``elevation_limits_counts`` bounds the tilt axis and ``elevation_motor`` tunes its HCTL-1000
-    (None: the pan's ``motor``, as the report's single set served both; a tilt carries another
-    load, so it may want its own filter and profile); ``mount_offset_m`` places the pan axis
-    in the vehicle frame (x, y, z); ``head_height_m`` is the optical centre's height up the pan
-    axis from that point and ``head_offset_m`` its distance out from the pan axis along the
-    azimuth (the simulator's head: 0.5 m and 0). :attr:`mount` gathers the three for
-    :mod:`biris_hw.geometry`. ``cpus`` (Linux) keeps every server thread on those CPUs; empty, the
-    default, leaves them to the scheduler (see :mod:`biris_hw.affinity` for why one might not).
+    hardware seconds, and ``timeout_enabled`` whether it runs from start-up (on by default, so a
+    BIRIS that hangs is a fault rather than a scan that never ends; BIRIS_TIMEOUT_ENABLE and
+    BIRIS_TIMEOUT_DISABLE still switch it at run time); ``home_index_timeout_revs`` how far homing
+    may turn looking for the zero index before it gives up (above 0, at most 2: a search beyond
+    one revolution either way from where it starts could wind the cable);
+    ``continuous_acquisition`` selects Appendix D's continuous mode; ``elevation_limits_counts``
+    bounds the tilt axis and ``elevation_motor`` tunes its HCTL-1000 (None: the pan's ``motor``,
+    as the report's single set served both; a tilt carries another load, so it may want its own
+    filter and profile); ``mount_offset_m`` places the pan axis in the vehicle frame (x, y, z);
+    ``head_height_m`` is the optical centre's height up the pan axis from that point and
+    ``head_offset_m`` its distance out from the pan axis along the azimuth (the simulator's head:
+    0.5 m and 0). :attr:`mount` gathers the three for :mod:`biris_hw.geometry`. ``cpus`` (Linux)
+    keeps every server thread on those CPUs; empty, the default, leaves them to the scheduler (see
+    :mod:`biris_hw.affinity` for why one might not).
+
+    Numbers may be of any real type (numpy's scalars too); whole-number fields take integers
+    only. A motor table holding a zero gain, max_vel or max_accel is refused (see
+    :class:`MotorParams`).
 
     The report's eight task indices are Harmony globals, not configuration: the record does not
     carry them.
@@ -173,6 +226,7 @@ class BirisInitRecord:
     data_rate_ms: int = 30
     max_range: int = 0x7FFF
     timeout_s: float = 4.0
+    timeout_enabled: bool = True
     home_index_timeout_revs: float = 1.0
     continuous_acquisition: bool = False
     elevation_limits_counts: tuple[int, int] = (-512, 512)
@@ -193,13 +247,14 @@ class BirisInitRecord:
         put("data_rate_ms", _int_field("data_rate_ms", self.data_rate_ms, 1, 0x7FFF))
         put("max_range", _int_field("max_range", self.max_range, 1, 0xFFFF))
         put("timeout_s", _float_field("timeout_s", self.timeout_s, positive=True))
-        revs = _float_field("home_index_timeout_revs", self.home_index_timeout_revs, positive=True)
-        put("home_index_timeout_revs", revs)
-        if not isinstance(self.continuous_acquisition, bool):
-            raise RequestError(
-                "continuous_acquisition: must be true or false, "
-                f"not {type(self.continuous_acquisition).__name__}"
-            )
+        put("timeout_enabled", _bool_field("timeout_enabled", self.timeout_enabled))
+        key = "home_index_timeout_revs"
+        revs = _float_field(key, self.home_index_timeout_revs, positive=True, at_most=MAX_HOME_REVS)
+        put(key, revs)
+        put(
+            "continuous_acquisition",
+            _bool_field("continuous_acquisition", self.continuous_acquisition),
+        )
         if self.elevation_motor is not None and not isinstance(self.elevation_motor, MotorParams):
             raise RequestError(
                 "elevation_motor: must be MotorParams or None, "
@@ -363,9 +418,7 @@ def acquisitions_for(scan_counts: int, record: BirisInitRecord) -> int:
     counts = abs(_int_field("scan_counts", scan_counts, -(1 << 62), 1 << 62))
     if counts == 0:
         return 0
-    motor = record.motor
-    if motor.max_vel == 0:
-        raise RequestError("motor.max_vel: is 0, so the head cannot scan")
+    motor = record.motor  # max_vel >= 1: MotorParams refuses a motor that cannot move
     # counts / (max_vel / (16 (T + 1) / f_clk) * rate_ms / 1000), kept as one integer fraction.
     numerator = counts * 16 * (motor.sample + 1) * 1000
     denominator = motor.max_vel * record.data_rate_ms * F_CLK_HZ

@@ -5,6 +5,17 @@ is: BIRIS memory is a window onto shared memory (as the coupler's window is onto
 are reached through windows whose accesses reach the devices (here over a Unix socket), the
 interrupt levels are descriptors the driver polls (eventfds received with ``SCM_RIGHTS``), and
 the clock is the target's. A driver cannot tell it from an in-process rig except by speed.
+
+**A simulator that dies is a bus fault, whether or not a register is being read.** The eventfds
+stay valid in this process after the simulator has gone; they simply never fire again. So each
+interrupt line of the bundle (:class:`LinkedLine`) also watches the socket to the simulator for
+its hang-up, and its ``wait()`` then raises :class:`BusError`. The server's interrupt service
+routine polls that line, so it is woken by the hang-up itself, and the supervisor reports a
+``bus`` fault. Detection bound: as soon as the kernel has closed the dead process's end of the
+socket. That is part of the process's exit, so it is no timer and no polling period; measured in
+``tests/test_lost_target.py``. A simulator that hangs without dying keeps its socket open. A
+register access then fails after the link's ``timeout`` (a bus fault too), and a hung BIRIS
+stops answering commands (the BIRIS timeout).
 """
 
 from __future__ import annotations
@@ -13,6 +24,7 @@ import array
 import contextlib
 import errno
 import os
+import select
 import socket
 import time
 from dataclasses import dataclass, field
@@ -32,11 +44,12 @@ from biris_hw.bus.remote import (
 from biris_hw.errors import BusError
 from biris_hw.hardware import BirisHardware
 from biris_hw.irq.eventfd import EventFdLine
+from biris_hw.pan_reference import default_journal_path
 from regs.bit3 import BIT3_SPACE
 from regs.layout import BirisMemoryMap, TargetImage
 from regs.tech80 import MOTION_WINDOW_SIZE
 
-__all__ = ["RemoteHardware", "SimulatorClock", "attach", "default_socket_path"]
+__all__ = ["LinkedLine", "RemoteHardware", "SimulatorClock", "attach", "default_socket_path"]
 
 
 @dataclass
@@ -56,6 +69,75 @@ class RemoteHardware(BirisHardware):
         finally:
             if self.link is not None:
                 self.link.close()
+
+
+_HANG_UP = select.EPOLLHUP | select.EPOLLRDHUP | select.EPOLLERR
+
+
+class LinkedLine(EventFdLine):
+    """An interrupt line of a target reached over a socket: its eventfd, and the socket's life.
+
+    ``fd`` is the eventfd the simulator passed. The line adopts it, even if the constructor
+    fails: it is closed either way, and the caller must not close it again. ``peer`` is the
+    socket to the simulator, which stays the link's: the line keeps its own duplicate of it,
+    watched only for hang-up (a pending reply never wakes it). Both are in one epoll set, whose
+    descriptor is :meth:`fileno`. A thread that polls the line (the interrupt service routine)
+    is therefore woken by an interrupt *or* by the simulator's end. Interrupts raised before
+    the end are still delivered. After that, every ``wait()`` raises :class:`BusError`
+    (``ECONNRESET``) until the line is closed: a lost simulator never comes back on the same
+    descriptors, so the line stays broken.
+
+    The hang-up shows as soon as the kernel closes the simulator's end of the socket. That
+    happens when the process exits or is killed, and when its owner shuts the link down.
+    """
+
+    kind = "linked-eventfd"
+
+    def __init__(self, fd: int, peer: socket.socket, label: str = "simulator") -> None:
+        self._label = label
+        self._peer_fd = -1
+        self._epoll: select.epoll | None = None
+        try:
+            super().__init__(fd)
+        except BaseException:
+            os.close(fd)
+            raise
+        try:
+            self._peer_fd = os.dup(peer.fileno())  # close-on-exec, as every dup in Python
+            self._epoll = select.epoll()
+            self._epoll.register(fd, select.EPOLLIN)
+            self._epoll.register(self._peer_fd, select.EPOLLRDHUP)
+        except BaseException:
+            self.close()  # releases the eventfd, the duplicate and the epoll set
+            raise
+
+    def _line_fd(self) -> int:
+        assert self._epoll is not None
+        return self._epoll.fileno()
+
+    def _consume(self) -> int:
+        count = super()._consume()
+        if count:
+            return count
+        if self._hung_up():
+            raise BusError(
+                f"{self._label}: connection lost (the simulator went away)", errno.ECONNRESET
+            )
+        return 0
+
+    def _hung_up(self) -> bool:
+        """Whether the socket has been hung up; a look, never a wait."""
+        assert self._epoll is not None
+        return any(fd == self._peer_fd and events & _HANG_UP for fd, events in self._epoll.poll(0))
+
+    def _release_line(self) -> None:
+        try:
+            if self._epoll is not None:
+                self._epoll.close()
+            if self._peer_fd >= 0:
+                os.close(self._peer_fd)
+        finally:
+            super()._release_line()
 
 
 class SimulatorClock:
@@ -199,8 +281,8 @@ def _assemble(
         pending = list(fds)
         undo.callback(_close_fds, pending)
         for fd in fds:
-            line = EventFdLine(fd=fd)
-            pending.remove(fd)
+            pending.remove(fd)  # the line adopts it, even if it cannot be made
+            line = LinkedLine(fd, sock, f"simulator {hello.shm!r}")
             undo.callback(line.close)
             lines.append(line)
         biris = _open_biris(hello)
@@ -221,6 +303,9 @@ def _assemble(
             time_scale=hello.time_scale,
             link=link,
             handshake=hello,
+            # the simulator process outlives its drivers: a restarted driver must know which
+            # revolution the head is in (the simulator forgets this file when it starts)
+            pan_journal=default_journal_path(f"sim-{hello.shm}"),
         )
         undo.pop_all()
     return hw

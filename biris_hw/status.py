@@ -5,6 +5,9 @@ Both are frozen dataclasses, so a caller gets attributes a type checker knows
 They also read as mappings, as ``status()`` did when it returned a dict, so existing callers keep
 working: ``status["state"]`` is the state's name, or ``"fault:<kind>"`` in the fault state, and
 every other key is the attribute of that name.
+
+:meth:`ServerStatus.accounts` reconciles the acquisition counters: where every acquisition BIRIS
+made has gone (:class:`Accounts`).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from typing import Any
 
 from biris_hw.errors import FaultKind
 
-__all__ = ["ConnectionStatus", "ServerState", "ServerStatus"]
+__all__ = ["Accounts", "ConnectionStatus", "ServerState", "ServerStatus"]
 
 
 class ServerState(enum.Enum):
@@ -64,6 +67,59 @@ class ConnectionStatus(_ReadsAsMapping):
     """Delivery latency: count, mean, max, p50, p99 (seconds) and a histogram."""
 
 
+@dataclass(frozen=True)
+class Accounts:
+    """Where every acquisition BIRIS made has gone, from one ``status()``.
+
+    Two identities hold::
+
+        accounted = read + idle + lost                                  (what BIRIS made)
+        read = in_scans + constant_azimuth + stale + aborted + in_progress   (what became of it)
+
+    The second holds at every ``status()``: :attr:`adds_up` says so, and anything else is a
+    server bug. The first is :attr:`accounted`, and it equals the number of acquisitions BIRIS
+    made once the server has looked at all of them: when no BI_ACQUIRE is under way (after
+    ``wait_idle()``), and in continuous acquisition once the ring has stopped (a reset or a tilt
+    stops it), because the frames a live ring makes while the head stands idle are counted when
+    the next sweep opens or when the ring stops, not as they are made. The simulator's
+    ``rig.supervisor.acquisitions_made`` is then exactly :attr:`accounted`.
+    """
+
+    read: int
+    """Read out of BIRIS memory and handed to the administrator (``acquisitions_read``)."""
+    in_scans: int
+    """In completed scans: what clients were given as Scans (``acquisitions_in_scans``)."""
+    constant_azimuth: int
+    """Dropped: made with the head standing at a continuous-acquisition sweep's start or end."""
+    stale: int
+    """Dropped: of a sequence or sweep the server no longer waited for."""
+    aborted: int
+    """Dropped: kept by a scan that a fault or reset abandoned (``aborted_acquisitions``)."""
+    idle: int
+    """Never read: ring frames made while no sweep wanted them (``idle_ring_frames``)."""
+    lost: int
+    """Never read: overwritten before they could be read (``lost_acquisitions``)."""
+    in_progress: int
+    """Read and held by the scan under way (and a finished sweep's turn-around tail, until the
+    next sweep takes it): settled when that scan completes or is abandoned."""
+
+    @property
+    def accounted(self) -> int:
+        """Acquisitions BIRIS made that the server has accounted for (read, idle or lost)."""
+        return self.read + self.idle + self.lost
+
+    @property
+    def settled(self) -> int:
+        """Read acquisitions whose fate is decided: in a scan, or dropped for a reason."""
+        return self.in_scans + self.constant_azimuth + self.stale + self.aborted
+
+    @property
+    def adds_up(self) -> bool:
+        """Every acquisition read is in a completed scan, dropped for a counted reason, or in
+        progress: none went missing between the reader and the clients."""
+        return self.read == self.settled + self.in_progress
+
+
 @dataclass(frozen=True, eq=False)
 class ServerStatus(_ReadsAsMapping):
     """What the server is doing and has done."""
@@ -90,6 +146,26 @@ class ServerStatus(_ReadsAsMapping):
     azimuth_live: int | None = None
     """Counts: the pan encoder now; None while initialising or if the board cannot be read."""
     elevation_live: int | None = None
+    acquisitions_in_progress: int = 0
+    """Acquisitions read and held by the scan under way (and a finished sweep's turn-around
+    tail), not yet in any counter: the in-progress term of :meth:`accounts`."""
+
+    def accounts(self) -> Accounts:
+        """The acquisition counters reconciled (:class:`Accounts`): ``accounts().adds_up``
+        always; ``accounts().accounted`` equals what BIRIS made once the server has drained
+        everything (for instance after ``stop_scan()`` and ``wait_idle()``; in continuous
+        acquisition, once the ring has stopped)."""
+        counters = self.counters
+        return Accounts(
+            read=counters.get("acquisitions_read", 0),
+            in_scans=counters.get("acquisitions_in_scans", 0),
+            constant_azimuth=counters.get("constant_azimuth", 0),
+            stale=counters.get("stale_acquisitions", 0),
+            aborted=counters.get("aborted_acquisitions", 0),
+            idle=counters.get("idle_ring_frames", 0),
+            lost=counters.get("lost_acquisitions", 0),
+            in_progress=self.acquisitions_in_progress,
+        )
 
     @property
     def state_name(self) -> str:

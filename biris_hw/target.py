@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import logging
 import math
 import re
 import sys
@@ -34,6 +35,7 @@ from biris_hw.hardware import BirisHardware
 from biris_hw.irq.base import InterruptLine
 from biris_hw.irq.poll import PollLine
 from biris_hw.irq.registry import open_line
+from biris_hw.pan_reference import default_journal_path
 from regs.biexec import BIEXEC_COM_SIZE
 from regs.bit3 import BIT3_SPACE
 from regs.tech80 import MOTION_WINDOW_SIZE
@@ -44,6 +46,8 @@ else:  # tomli is a declared dependency below 3.11
     import tomli as tomllib  # type: ignore[import-not-found, unused-ignore]
 
 __all__ = ["CLOCKS", "TARGET_KEYS", "WINDOW_MINIMUM", "load_target", "target_from_dict"]
+
+log = logging.getLogger(__name__)
 
 WINDOW_MINIMUM: dict[str, int] = {
     "biris": BIEXEC_COM_SIZE,
@@ -66,6 +70,7 @@ TARGET_KEYS = (
     "biexec_offset",
     "biris_base",
     "clock",
+    "pan_journal",
 )
 
 _WIDTHS = (8, 16, 32)
@@ -244,12 +249,35 @@ def _open_line(key: str, spec: object, windows: Mapping[str, BusWindow]) -> Inte
         raise _opening_error(key, kind, exc) from exc
 
 
+def _pan_journal(value: object, base: Path | None) -> Path | None:
+    """The journal's path: the key's (relative to the target file's directory), the default
+    when absent, None for "" (memory only, with a warning: a restart then forgets the pan)."""
+    if value is None:
+        return default_journal_path()
+    if not isinstance(value, str):
+        raise RequestError(f"pan_journal: must be a path (a string), not {_type(value)}")
+    if value == "":
+        log.warning(
+            "pan_journal is empty: the pan reference is kept in memory only, so a restarted "
+            "driver cannot tell which revolution the head is in"
+        )
+        return None
+    path = Path(value).expanduser()
+    if not path.is_absolute() and base is not None:
+        path = base / path
+    return path
+
+
 # -- the whole description -------------------------------------------------------------------------
 
 
-def target_from_dict(data: Mapping[str, Any]) -> BirisHardware:
+def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> BirisHardware:
     """Open every window and line a parsed description names; on any error, close what was
-    opened and raise (RequestError for the description, BusError for the machine)."""
+    opened and raise (RequestError for the description, BusError for the machine).
+
+    ``base`` is the directory a relative ``pan_journal`` is taken from (the target file's);
+    None takes it from the working directory.
+    """
     if not isinstance(data, Mapping):
         raise RequestError(f"a target description must be a table, not {_type(data)}")
     for key in data:
@@ -269,6 +297,7 @@ def target_from_dict(data: Mapping[str, Any]) -> BirisHardware:
     clock_name = data.get("clock", "monotonic")
     if clock_name not in CLOCKS:
         raise RequestError(f"clock: must be one of {', '.join(CLOCKS)}, not {clock_name!r}")
+    pan_journal = _pan_journal(data.get("pan_journal"), base)
     minimum = dict(WINDOW_MINIMUM, biris=biexec_offset + BIEXEC_COM_SIZE)
     with contextlib.ExitStack() as opened:
         windows: dict[str, BusWindow] = {}
@@ -289,6 +318,7 @@ def target_from_dict(data: Mapping[str, Any]) -> BirisHardware:
             biris_base=biris_base,
             clock=CLOCKS[clock_name],
             time_scale=1.0,
+            pan_journal=pan_journal,
         )
         opened.pop_all()
     return hardware
@@ -306,7 +336,7 @@ def load_target(path: str | PathLike[str]) -> BirisHardware:
     except tomllib.TOMLDecodeError as exc:
         raise RequestError(f"{path}: not valid TOML: {exc}") from None
     try:
-        return target_from_dict(data)
+        return target_from_dict(data, Path(path).resolve().parent)
     except RequestError as exc:
         raise RequestError(f"{path}: {exc}") from None
     except BusError as exc:

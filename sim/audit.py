@@ -22,6 +22,10 @@ class Rule(str, enum.Enum):
     """COMMAND written before the previous command completed."""
     MOTOR_BEYOND_LIMIT = "MOTOR_BEYOND_LIMIT"
     """A destination outside +-0x1000 counts reached the chip."""
+    HEAD_BEYOND_LIMIT = "HEAD_BEYOND_LIMIT"
+    """The true pan head went beyond +-0x1000 counts (plus the filter's overshoot) from true
+    azimuth 0: the cable is being wound, whatever the chip's counter says (beyond the report).
+    Recorded once per excursion."""
     POSITION_MODE_WHILE_MOVING = "POSITION_MODE_WHILE_MOVING"
     """A mode switch that would make the motor jump (position control while moving)."""
     MOTION_WHILE_UNINITIALISED = "MOTION_WHILE_UNINITIALISED"

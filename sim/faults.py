@@ -15,8 +15,9 @@ __all__ = ["FaultPanel"]
 
 
 class FaultPanel:
-    """``rig.faults``: parity and bus errors, a hung supervisor, a stalled motor, and
-    interrupt troubles (coalesced, spurious, dropped), plus a malformed PARAM answer."""
+    """``rig.faults``: parity and bus errors, a hung supervisor, a locked pan shaft, a dead pan
+    amplifier, and interrupt troubles (coalesced, spurious, dropped), plus a malformed PARAM
+    answer."""
 
     def __init__(
         self,
@@ -59,15 +60,38 @@ class FaultPanel:
 
     # -- motor -----------------------------------------------------------------------------------
     def stall_motor(self) -> None:
-        """The pan shaft locks: the head stops and the profile never ends (no end of scan)."""
+        """The pan shaft locks: the head stops dead where it is.
+
+        As on the real HCTL-1000 the chip does not notice: a running profile goes on and ends
+        on time, MOTOR_END_OF_SCAN fires, and the encoder stays where the shaft locked, so only
+        a driver that compares the encoder with the destination sees the failure.
+        """
         with self._board.lock:
             self._board.catch_up()
             self._board.plants[0].stalled = True
 
     def clear_stall(self) -> None:
+        """The shaft turns again; the head then runs to wherever the chip commands it."""
         with self._board.lock:
             self._board.catch_up()
             self._board.plants[0].stalled = False
+
+    def dead_amplifier(self) -> None:
+        """The pan amplifier dies: its output stays at 0 V, so no torque reaches the shaft.
+
+        The chip's profile and the end-of-scan interrupt behave normally; a head in motion
+        coasts to rest (friction and the back emf brake it) and then stays put. The failure a
+        real target shows for a blown fuse or an amplifier left disabled.
+        """
+        with self._board.lock:
+            self._board.catch_up()
+            self._board.plants[0].amplifier_dead = True
+
+    def clear_dead_amplifier(self) -> None:
+        """The amplifier drives again; the head runs to wherever the chip commands it."""
+        with self._board.lock:
+            self._board.catch_up()
+            self._board.plants[0].amplifier_dead = False
 
     # -- interrupts ------------------------------------------------------------------------------
     def coalesce_interrupts(self, enabled: bool = True, burst: int = 3) -> None:
@@ -84,4 +108,5 @@ class FaultPanel:
         """Undo every fault that persists (the coupler's sticky bits are the driver's to clear)."""
         self.clear_hang()
         self.clear_stall()
+        self.clear_dead_amplifier()
         self.coalesce_interrupts(False)

@@ -44,8 +44,12 @@ Interpretations where the datasheets found say nothing (docs/design.md):
   move and never exceed the maximum velocity. F0 set in init/idle waits for 03H. With no
   acceleration or no maximum velocity programmed the profile never progresses (presumably what
   the chip does).
-* A stalled plant (a locked shaft, a fault) freezes the profile generator too: F0 stays set and
-  the profile does not end until the stall clears, so the driver never sees its end of scan.
+* The profile generator knows nothing of the shaft. A stalled plant (a locked shaft) or a dead
+  amplifier leaves it running: the trapezoid ends on time, F0 clears and the board signals the
+  end of scan, while the position stays where the shaft stopped -- the real chip's failure mode,
+  which a driver can only catch by comparing the encoder with the destination. (An earlier
+  model froze the profile of a stalled plant, so a driver's end-of-scan watchdog caught every
+  stall and nothing showed a move "completed" away from its destination.)
 
 Audit rules (recorded with the register values involved; a violation is a driver bug):
 
@@ -59,6 +63,11 @@ Audit rules (recorded with the register values involved; a violation is a driver
 * ``MOTION_WHILE_UNINITIALISED``: a trapezoid or velocity mode starts before both the filter gain
   (R22H) and the sample timer (R0FH) have been written since the last reset.
 * ``WRITE_TO_READ_ONLY``: any write to R12H, R14H, R34H or R35H (the write is ignored).
+* ``HEAD_BEYOND_LIMIT`` (a chip made with ``head_limit``; the board passes
+  :data:`HEAD_LIMIT_COUNTS` for the pan axis): after a sample, the plant's *true* azimuth is
+  beyond +-``head_limit`` counts from true zero, whatever the chip's counter reads (a counter
+  zeroed a revolution away still reads inside the envelope). Once per excursion: recorded when
+  the head leaves, re-armed only when it is back within +-0x1000. One comparison per sample.
 
 The model is not thread-safe; :class:`sim.tech80.Model7600` serialises it under its lock.
 """
@@ -82,6 +91,8 @@ from sim.audit import Audit, Rule
 from sim.motor import MotorPlant
 
 __all__ = [
+    "HEAD_LIMIT_COUNTS",
+    "HEAD_OVERSHOOT_COUNTS",
     "HISTORY",
     "JUMP_COUNTS",
     "MOVING_COUNTS_PER_SAMPLE",
@@ -100,6 +111,18 @@ MOVING_COUNTS_PER_SAMPLE = 0.5
 
 JUMP_COUNTS = 16
 """A committed command further than this from the actual position makes the head jump."""
+
+HEAD_OVERSHOOT_COUNTS = 48
+"""How far past +-0x1000 the true pan head may go before ``HEAD_BEYOND_LIMIT``.
+
+A driver that keeps its destinations within +-0x1000 still sees the head pass them by the
+filter's overshoot: at most 2 counts with Appendix B's filter, at most 21 counts over 450 random
+filters and profiles (a limit cycle of K = 0xFF, A = 0x00; the reliability review's random
+runs reached 4114.7, 18.7 past). 48 counts (4.2 degrees) is over twice that, so no legal filter
+trips it, yet far short of the stops (256 counts) and of a revolution's wind-up (4096)."""
+
+HEAD_LIMIT_COUNTS = MOTION_LIMIT_COUNTS + HEAD_OVERSHOOT_COUNTS
+"""Beyond +-this many counts from true azimuth 0 the true pan head is audited."""
 
 POWER_UP: dict[int, int] = {
     Reg.SAMPLE_TIMER: 0x40,
@@ -242,7 +265,9 @@ class Hctl1000:
     ``clock`` (hardware seconds), when given, makes every bus access first catch the chip up to
     the present; the board passes the simulator clock. ``on_profile_end`` is called once each time
     the chip issues the last setpoint of a trapezoid and clears F0 -- which does not mean the head
-    has stopped.
+    has stopped. ``head_limit`` (counts from true zero) turns on the ``HEAD_BEYOND_LIMIT`` audit
+    of the plant's true position; it is a property of the axis's cable, not of the chip, so
+    only the pan axis has one.
     """
 
     def __init__(
@@ -253,6 +278,7 @@ class Hctl1000:
         audit: Audit | None = None,
         clock: Callable[[], float] | None = None,
         f_clk: float = F_CLK_HZ,
+        head_limit: float | None = None,
     ) -> None:
         self.name = name
         self.plant = plant
@@ -260,6 +286,14 @@ class Hctl1000:
         self._clock = clock
         self._f_clk = float(f_clk)
         self.on_profile_end: Callable[[], None] | None = None
+        if head_limit is not None and not head_limit > 0.0:
+            raise ValueError("head_limit must be positive")
+        self._head_limit = math.inf if head_limit is None else float(head_limit)
+        self._head_rearm = min(float(MOTION_LIMIT_COUNTS), self._head_limit)
+        # the true head outside (low, high) calls _head_crossed: +-limit while it is inside;
+        # while it is out, the side of the envelope it must come back to
+        self._head_low, self._head_high = -self._head_limit, self._head_limit
+        self._head_out = False
         self._next_sample = clock() if clock is not None else 0.0
         self._regs = bytearray(HCTL_SPACE)
         # the encoder reading at each of the last HISTORY samples, for position_at()
@@ -355,6 +389,32 @@ class Hctl1000:
         }
         registers.update(extra)
         self._audit.record(rule, f"{self.name}: {detail}", **registers)
+
+    def _head_crossed(self, theta: float) -> None:
+        """The true head left the window :meth:`step` watches: an excursion begins or ends.
+
+        The window is narrowed to the side the head left by, so that a head hunting around the
+        limit, or wound a whole revolution and held there, is one record, not one per sample.
+        """
+        limit, rearm = self._head_limit, self._head_rearm
+        if not self._head_out:  # it was inside: beyond the limit now
+            self._head_out = True
+            if theta > 0.0:
+                self._head_low, self._head_high = rearm, math.inf
+            else:
+                self._head_low, self._head_high = -math.inf, -rearm
+            self._record(
+                Rule.HEAD_BEYOND_LIMIT,
+                f"the true head is {theta:+.1f} counts from true zero (sample ending at "
+                f"t={self._next_sample:.6f} s), beyond +-{limit:g} = 0x{MOTION_LIMIT_COUNTS:X} + "
+                f"{limit - MOTION_LIMIT_COUNTS:g} of overshoot, while the counter reads "
+                f"{self._actual}: the cable is being wound",
+                TRUE_POS=round(theta),
+                HEAD_LIMIT=round(limit),
+            )
+        else:  # back within the envelope: the next excursion is a new one
+            self._head_out = False
+            self._head_low, self._head_high = -limit, limit
 
     def _check_start(self, old: Mode, new: Mode) -> None:
         """Audit a mode change caused by the host (R00H or R05H)."""
@@ -651,11 +711,11 @@ class Hctl1000:
     def profile_end_eta(self) -> float | None:
         """Hardware time of the sample that will issue the last setpoint, or None.
 
-        None when no profile runs, when it can never end (no acceleration) or while the plant is
-        stalled (the profile generator is frozen).
+        None when no profile runs or when it can never end (no acceleration). The shaft plays no
+        part: a stalled plant's profile ends on time.
         """
         trap = self._trap
-        if trap is None or trap.n_samples is None or self.plant.stalled:
+        if trap is None or trap.n_samples is None:
             return None
         if self.mode is not Mode.TRAPEZOID:
             return None
@@ -733,7 +793,7 @@ class Hctl1000:
             else:
                 if flags & _F0:
                     trap = self._trap
-                    if trap is not None and not plant.stalled and trap.n_samples is not None:
+                    if trap is not None and trap.n_samples is not None:
                         k = self._trap_k = self._trap_k + 1
                         self._cmd = trap.setpoint(k)
                         if k >= trap.n_samples:
@@ -762,6 +822,9 @@ class Hctl1000:
             mc = regs[_R_MOTOR_COMMAND] - 0x80
         plant.step(mc, period)
         self._next_sample += period
+        theta = plant.true_azimuth_counts
+        if theta < self._head_low or theta > self._head_high:
+            self._head_crossed(theta)
         if plant.holds_at_rest(mc):
             self._note_rest(mc)
         elif self._sig_new is not None:

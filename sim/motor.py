@@ -46,7 +46,28 @@ Bad filters oscillate for ever (a limit cycle bounded by the amplifier's saturat
 over the second half-second after the same move: ``K = 0xFF, A = 0x00`` hunts +-19 counts around
 the target, the error changing sign 19 times (about 19 Hz); ``K = 0xFF, B = 0x00`` hunts
 +-16 counts with 25 sign changes. The tests require at least 10 sign changes and an amplitude of
-at least 10 counts.
+at least 10 counts. Over 450 random filters and profiles (any sample timer, A, B, K, maximum
+velocity and acceleration), a move to +4096 from rest followed by a hold of 1.5 to 5 s took the
+head at most 21 counts past it (``K = 0xFF, A = 0x00``, a limit cycle; the reliability review's
+random runs saw 18.7): the audit's allowance for overshoot
+(:data:`sim.hctl1000.HEAD_OVERSHOOT_COUNTS`) rests on this.
+
+Hard stops (beyond the report): the pan head's cable allows a little more than the +-0x1000
+counts (+-360 degrees) the driver must keep to, and mechanical stops end the travel at
+``PlantParams.stop_counts`` (+-(4096 + 256) counts from true zero by default, ``None`` for a
+head that turns freely). A head that reaches a stop stops dead there: velocity 0, position held
+at the stop for as long as the drive pushes into it (the winding current then settles as in a
+held shaft), free to move away again when the drive reverses. Each impact counts in
+:attr:`MotorPlant.stop_hits` (a head that arrives faster than its steady speed carries a
+reversed winding current, which pulls it off the stop once more: a bounce is a second impact).
+256 counts (22.5 degrees) is far beyond anything a driver that keeps to its envelope can
+produce (21 counts, above), so touching a stop always means the head has been wound round,
+which on the robot tears the cable.
+
+Dead amplifier (a fault): the amplifier's output stays at 0 V whatever the command, so no
+torque reaches the shaft; a moving head coasts to rest, braked by friction and by the back emf
+through the winding, and then stays put. The chip cannot tell: its profile runs and ends as
+usual.
 """
 
 from __future__ import annotations
@@ -84,6 +105,12 @@ class PlantParams:
     counts_per_rev: int = COUNTS_PER_REV
     substeps: int = 4
     """Integration sub-steps per ``step`` call (friction stops and index crossings)."""
+    stop_counts: float | None = COUNTS_PER_REV + 256
+    """Mechanical stops at +-this many counts from true azimuth 0; None turns freely.
+
+    The default lets the cable 256 counts (22.5 degrees) beyond the driver's +-0x1000 envelope:
+    an axis that keeps to its envelope never gets there (the worst overshoot measured is 21
+    counts, see the module docstring), one wound round by a revolution always does."""
 
     def __post_init__(self) -> None:
         positive = ("full_scale_volts", "resistance_ohm", "inductance_h", "torque_constant")
@@ -94,6 +121,8 @@ class PlantParams:
             raise ValueError("friction cannot be negative")
         if self.counts_per_rev < 1 or self.substeps < 1:
             raise ValueError("counts_per_rev and substeps must be at least 1")
+        if self.stop_counts is not None and not self.stop_counts > 0.0:
+            raise ValueError("stop_counts must be positive (or None for no stops)")
 
 
 def _expm(m: np.ndarray) -> np.ndarray:
@@ -141,6 +170,14 @@ class MotorPlant:
         cpr = params.counts_per_rev
         if initial_azimuth_counts is None:
             initial_azimuth_counts = float(rng.uniform(-cpr / 2, cpr / 2))
+        stop = math.inf if params.stop_counts is None else float(params.stop_counts)
+        if not -stop <= initial_azimuth_counts <= stop:
+            raise ValueError(
+                f"initial azimuth {initial_azimuth_counts} counts lies beyond the stops at +-{stop}"
+            )
+        # (low, high): where the stops are, +-inf without them
+        self._stops = (-stop, stop)
+        self._stop_hits = 0
         self._theta = float(initial_azimuth_counts)
         self._omega = 0.0
         self._current = 0.0
@@ -149,6 +186,9 @@ class MotorPlant:
         self._stalled = False
         self._counts_per_rad = cpr / (2.0 * math.pi)
         self._volts_per_unit = params.full_scale_volts / 128.0
+        # volts per command unit reaching the winding: _volts_per_unit, or 0.0 with a dead
+        # amplifier (so the fault costs the hot path nothing)
+        self._drive = self._volts_per_unit
         self._disc: _Discrete | None = None
         self._disc_dt = -1.0
         # constants of the hot paths, looked up once (every value is exactly what the
@@ -202,12 +242,33 @@ class MotorPlant:
         if self._stalled:
             self._omega = 0.0
 
+    @property
+    def amplifier_dead(self) -> bool:
+        """The amplifier outputs 0 V whatever the command (a fault): no torque reaches the shaft."""
+        return self._drive == 0.0
+
+    @amplifier_dead.setter
+    def amplifier_dead(self, value: bool) -> None:
+        self._drive = 0.0 if value else self._volts_per_unit
+
+    @property
+    def stop_hits(self) -> int:
+        """How many times the head has struck a mechanical stop, bounces included (backdoor)."""
+        return self._stop_hits
+
+    @property
+    def at_stop(self) -> bool:
+        """The head stands at one of its mechanical stops (backdoor)."""
+        low, high = self._stops
+        return self._theta <= low or self._theta >= high
+
     def holds_at_rest(self, motor_command_signed: int) -> bool:
         """True if the head is still and would stay still under this command for ever.
 
         While stuck the current moves monotonically from its present value towards V/R, so if
-        neither end can beat friction nothing will ever move. The chip uses this to skip idle
-        sample periods without changing what happens.
+        neither end can beat friction nothing will ever move. At a stop, torque into the stop
+        moves nothing either: there only torque away from it counts. The chip uses this to skip
+        idle sample periods without changing what happens.
         """
         if self._stalled:
             return True
@@ -215,9 +276,14 @@ class MotorPlant:
             return False
         limit = self._rest_limit
         current = self._current
+        drive = motor_command_signed * self._drive / self.params.resistance_ohm
+        low, high = self._stops
+        if self._theta >= high:  # pressed into the upper stop: only pulling back can move it
+            return current >= -limit and drive >= -limit
+        if self._theta <= low:
+            return current <= limit and drive <= limit
         if not -limit <= current <= limit:
             return False
-        drive = motor_command_signed * self._volts_per_unit / self.params.resistance_ohm
         return -limit <= drive <= limit
 
     # -- integration -----------------------------------------------------------------------------
@@ -248,7 +314,13 @@ class MotorPlant:
         return _Discrete(h, phi, volt, fric, math.exp(-r * h / ind))
 
     def step(self, motor_command_signed: int, dt: float) -> None:
-        """Apply a constant motor command for ``dt`` seconds."""
+        """Apply a constant motor command for ``dt`` seconds.
+
+        The hot path of the simulator (every sample of both axes). The stops cost nothing per
+        sub-step: the bounds the index check compares against are narrowed to them, so only a
+        sub-step that crosses an index or reaches a stop does any more work; holding against a
+        stop is tested only when a still head's torque beats friction.
+        """
         if dt != self._disc_dt or self._disc is None:
             d = self._disc = self._discretise(dt)
             self._disc_dt = dt
@@ -259,7 +331,7 @@ class MotorPlant:
             self._coef = (p0w, p0i, p1w, p1i, p2w, p2i, *d.volt, *friction, d.stuck_decay)
         p0w, p0i, p1w, p1i, p2w, p2i, u0, u1, u2, c0, c1, c2, decay = self._coef
         substeps, resistance, k, coulomb, cpr = self._consts
-        volts = motor_command_signed * self._volts_per_unit
+        volts = motor_command_signed * self._drive
         target = volts / resistance
         cur = self._current
         if self._stalled:
@@ -272,6 +344,11 @@ class MotorPlant:
         v0, v1, v2 = u0 * volts, u1 * volts, u2 * volts
         low = math.floor(theta / cpr) * cpr  # the revolution the head is in: [low, low + cpr)
         high = low + cpr
+        stop_low, stop_high = self._stops
+        # one comparison per sub-step covers both: leaving [edge_low, edge_high) means an index
+        # crossing or a stop
+        edge_low = low if low > stop_low else stop_low
+        edge_high = high if high < stop_high else stop_high
         for _ in range(substeps):
             if omega == 0.0:
                 torque = k * cur
@@ -279,6 +356,9 @@ class MotorPlant:
                     cur = target + (cur - target) * decay  # stiction holds the head
                     continue
                 forward = torque > 0.0
+                if theta >= stop_high if forward else theta <= stop_low:
+                    cur = target + (cur - target) * decay  # pushed into a stop: held there
+                    continue
             else:
                 forward = omega > 0.0
             # kinetic friction opposes the motion; the head stops (it cannot reverse) when the
@@ -296,8 +376,15 @@ class MotorPlant:
                 if new_omega > 0.0 and -coulomb <= k * cur <= coulomb:
                     new_omega = 0.0
             omega = new_omega
-            if theta < low or theta >= high:  # crossed a multiple of one revolution: index
-                self._index_seen = True
-                low = math.floor(theta / cpr) * cpr
-                high = low + cpr
+            if theta < edge_low or theta >= edge_high:
+                if theta >= stop_high or theta <= stop_low:  # ran into a stop: dead still
+                    theta = stop_high if theta >= stop_high else stop_low
+                    omega = 0.0
+                    self._stop_hits += 1
+                if theta < low or theta >= high:  # crossed a multiple of one revolution: index
+                    self._index_seen = True
+                    low = math.floor(theta / cpr) * cpr
+                    high = low + cpr
+                edge_low = low if low > stop_low else stop_low
+                edge_high = high if high < stop_high else stop_high
         self._theta, self._omega, self._current = theta, omega, cur

@@ -45,6 +45,7 @@ from biris_hw.bus.remote import (
 )
 from biris_hw.commands.argtypes import add_simulator_arguments, seconds
 from biris_hw.errors import BirisError
+from biris_hw.pan_reference import default_journal_path, forget_journal
 from regs.layout import BirisMemoryMap, ImageRegion, TargetImage
 from sim.rig import SimulatedBiris
 from sim.scene import Scene
@@ -380,6 +381,9 @@ def _serve(args: argparse.Namespace, stop_fd: int) -> int:
         listener = stack.enter_context(_socket_file(path))
         segment = _Segment(args.shm, image.size)
         stack.callback(segment.close)
+        # a new plant wakes within half a revolution of true zero: what a driver journalled
+        # about the previous simulator of this name no longer holds
+        forget_journal(default_journal_path(f"sim-{args.shm}"))
         rig = SimulatedBiris(
             Scene.from_spec(args.scene),
             samples=args.samples,

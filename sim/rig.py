@@ -107,6 +107,9 @@ class SimulatedBiris:
     driver in another process can reach it); by default it is private to the rig.
     ``initial_elevation_counts`` is where the tilt axis wakes (0, level, by default): the tilt's
     zero index is at level, so a driver that homes it must find it from there.
+    ``initial_azimuth_counts`` (true counts from the zero index; seeded within half a revolution
+    by default) must lie within the pan head's stops, +-(4096 + 256): start it near +-4096 to
+    play a head left wound round by a previous driver.
     """
 
     def __init__(

@@ -7,7 +7,9 @@ that axis is enabled in IRQ_ENABLE at that moment, ``raise_irq()`` is called (th
 the level-3 line). The interrupt is edge-like: enabling an axis whose status bit is already set
 does not raise it again. INDEX_STATUS shows each plant's index-seen latch (write 1 to clear);
 CHIP_RESET resets a chip (write 1); IRQ_LEVEL reads 3 (jumpered); IRQ_STATUS bits are cleared by
-writing 1.
+writing 1. The azimuth chip also audits the pan head's *true* position after every sample
+(``HEAD_BEYOND_LIMIT``, see :mod:`sim.hctl1000`): the cable allows +-0x1000 counts from true zero
+plus the filter's overshoot, whatever the chip's counter reads.
 
 Time: both chips are caught up to ``clock.now()`` on every bus access (whole sample periods, each
 chip at its own period), and a background thread (:meth:`Model7600.start`) keeps them moving so
@@ -32,7 +34,7 @@ from regs.tech80 import MOTION_WINDOW_SIZE, MOTOR_IRQ_LEVEL, AxisBit, BoardReg
 from sim.audit import Audit, Rule
 from sim.clock import SimClock
 from sim.device import DeviceWindow
-from sim.hctl1000 import Hctl1000
+from sim.hctl1000 import HEAD_LIMIT_COUNTS, Hctl1000
 from sim.motor import MotorPlant
 
 __all__ = ["Model7600"]
@@ -65,7 +67,10 @@ class Model7600:
         az = azimuth_plant if azimuth_plant is not None else MotorPlant(rng)
         el = elevation_plant if elevation_plant is not None else MotorPlant(rng)
         self.plants: tuple[MotorPlant, MotorPlant] = (az, el)
-        self.azimuth = Hctl1000("azimuth", az, audit=audit, clock=clock.now)
+        # the pan head's cable is audited (HEAD_BEYOND_LIMIT); the tilt's travel is not a cable's
+        self.azimuth = Hctl1000(
+            "azimuth", az, audit=audit, clock=clock.now, head_limit=HEAD_LIMIT_COUNTS
+        )
         self.elevation = Hctl1000("elevation", el, audit=audit, clock=clock.now)
         self.chips: tuple[Hctl1000, Hctl1000] = (self.azimuth, self.elevation)
         for axis, chip in enumerate(self.chips):

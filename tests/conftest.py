@@ -26,6 +26,16 @@ from sim.scene import Scene
 if TYPE_CHECKING:
     from biris_hw.server import BirisServer
 
+if "BIRIS_STATE_DIR" not in os.environ:
+    # a target's pan journal (biris_hw.pan_reference) goes to a directory of this run's own,
+    # never the user's ~/.local/state, and the subprocesses tests start inherit it
+    import atexit
+    import shutil
+    import tempfile
+
+    os.environ["BIRIS_STATE_DIR"] = tempfile.mkdtemp(prefix="biris-test-state-")
+    atexit.register(shutil.rmtree, os.environ["BIRIS_STATE_DIR"], True)
+
 WAIT = 5.0
 """Timeout for things that should happen almost at once; only reached when a test fails."""
 

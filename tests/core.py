@@ -121,11 +121,16 @@ class Core:
     def initialise(self) -> Ticket:
         """RESET_REQUEST and a successful INIT_DONE, as the server's start does."""
         reset = self.send(p.ResetRequest(0))
+        result = self.init_done()
+        assert reset.done and reset.wait(0) is result
+        return reset
+
+    def init_done(self) -> InitResult:
+        """A successful INIT_DONE from the initialiser (after a RESET_REQUEST); its result."""
         addressing = FrameAddressing(range_offset=0x1000, frame_size=130, azimuth_offset=0x8000)
         result = InitResult(addressing, self.SAMPLES, 2 / 59.94)
         self.send(m.InitDone(None, result))
-        assert reset.done and reset.wait(0) is result
-        return reset
+        return result
 
     def open(
         self, kind: ConnectionKind = ConnectionKind.NORMAL, policy: DeliveryPolicy | None = None
@@ -161,9 +166,18 @@ class Core:
         self.workers[axis] = self.send(ready)
         return order
 
-    def arrive(self, axis: Axis = Axis.AZIMUTH) -> None:
-        """AZ_SCAN_DONE / EL_SCAN_DONE: the move ended and the head came to rest."""
-        self.send(m.AzScanDone() if axis is Axis.AZIMUTH else m.ElScanDone())
+    def arrive(
+        self,
+        axis: Axis = Axis.AZIMUTH,
+        *,
+        position: int | None = None,
+        settled: bool = True,
+        token: int | None = None,
+    ) -> None:
+        """AZ_SCAN_DONE / EL_SCAN_DONE: the move ended and the head came to rest (at
+        ``position`` as the notifier read it; None: not read, so not verified)."""
+        done = m.AzScanDone if axis is Axis.AZIMUTH else m.ElScanDone
+        self.send(done(position=position, settled=settled, token=token))
 
     # -- data --------------------------------------------------------------------------------
     def acquisitions(

@@ -425,7 +425,7 @@ def test_motor_params_set_and_saved(biris: Run, tmp_path: Path) -> None:
 
 def test_motor_params_out_of_range_is_refused_before_starting(biris: Run) -> None:
     line = _error(biris("motor-params", "--gain", "300", *SIM), 2, "biris motor-params: ")
-    assert line == "biris motor-params: --gain: must be in 0..255 (0xFF at most), not 300"
+    assert line == "biris motor-params: --gain: must be in 1..255 (0xFF at most), not 300"
 
 
 # -- a simulator in another process ---------------------------------------------------------------
@@ -538,7 +538,7 @@ def faulty_rig(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Callable[[Simul
 def test_a_hardware_fault_is_exit_1(biris: Run, faulty_rig: list[Callable[..., None]]) -> None:
     faulty_rig.append(lambda rig: rig.faults.stall_motor())
     line = _error(biris("home", *SIM), 1, "biris home: hardware fault (motor_stall): ")
-    assert "did not reach its destination" in line
+    assert "the shaft did not follow" in line
 
 
 @pytest.mark.audit_violations_expected

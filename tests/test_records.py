@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,7 @@ def test_defaults_are_appendix_b() -> None:
 def test_later_fields_have_safe_defaults() -> None:
     record = BirisInitRecord()
     assert record.timeout_s == 4.0
+    assert record.timeout_enabled is True  # a hung BIRIS is a fault unless the record says not
     assert record.home_index_timeout_revs == 1.0
     assert record.continuous_acquisition is False
     assert record.elevation_limits_counts == (-512, 512)
@@ -73,6 +75,9 @@ def test_motor_physical_units_at_2_mhz() -> None:
         ("gain", 1.5),
         ("gain", True),
         ("gain", "0x3F"),
+        ("gain", None),
+        ("gain", np.float32(63)),
+        ("max_vel", 10**400),
     ],
 )
 def test_motor_validation_names_the_field(key: str, value: Any) -> None:
@@ -80,9 +85,25 @@ def test_motor_validation_names_the_field(key: str, value: Any) -> None:
         MotorParams(**{key: value})
 
 
+@pytest.mark.parametrize(
+    ("key", "why"),
+    [("gain", "no torque"), ("max_vel", "never leaves its start"), ("max_accel", "never speeds")],
+)
+def test_a_motor_that_can_never_move_is_refused_up_front(key: str, why: str) -> None:
+    for zero in (0, np.int64(0)):
+        with pytest.raises(RequestError, match=rf"{key}: 0 .*{why}.*can never move; use 1\.\."):
+            MotorParams(**{key: zero})
+    with pytest.raises(RequestError, match=f"motor.{key}: 0"):
+        BirisInitRecord.from_dict({"motor": {key: 0}})
+    with pytest.raises(RequestError, match=f"elevation_motor.{key}: 0"):
+        BirisInitRecord.from_toml(f"[elevation_motor]\n{key} = 0\n")
+
+
 def test_motor_limits_inclusive_and_numpy_ints_accepted() -> None:
     motor = MotorParams(sample=0, zero=255, pole=255, gain=255, max_vel=127, max_accel=0x7FFF)
     assert motor.max_accel == 0x7FFF
+    lowest = MotorParams(sample=0, zero=0, pole=0, gain=1, max_vel=1, max_accel=1)
+    assert (lowest.gain, lowest.max_vel, lowest.max_accel) == (1, 1, 1)
     from_numpy = MotorParams(gain=np.uint8(0x3F))
     assert from_numpy.gain == 0x3F and type(from_numpy.gain) is int
     assert from_numpy == MotorParams()
@@ -107,7 +128,17 @@ def test_motor_limits_inclusive_and_numpy_ints_accepted() -> None:
         ("timeout_s", math.inf),
         ("timeout_s", math.nan),
         ("timeout_s", "4"),
+        ("timeout_s", 10**400),  # finite, but no float holds it
+        ("timeout_s", None),
+        ("timeout_enabled", 1),
+        ("timeout_enabled", "false"),
+        ("timeout_enabled", None),
         ("home_index_timeout_revs", -1.0),
+        ("home_index_timeout_revs", 0),
+        ("home_index_timeout_revs", math.nan),
+        ("home_index_timeout_revs", math.inf),
+        ("home_index_timeout_revs", 2.5),  # more than a revolution either way winds the cable
+        ("home_index_timeout_revs", True),
         ("continuous_acquisition", 1),
         ("elevation_limits_counts", (10, -10)),
         ("elevation_limits_counts", (0, 0x1001)),
@@ -136,6 +167,41 @@ def test_record_limits_inclusive_and_sequences_normalised() -> None:
     assert record.mount_offset_m == (1.0, 2.0, 3.0)
     assert isinstance(record.timeout_s, float)
     assert record == BirisInitRecord.from_dict(record.to_dict())
+
+
+def test_record_numbers_of_any_real_type() -> None:
+    numbers: dict[str, Any] = {  # what the record's annotations call float and int
+        "timeout_s": np.float32(2.5),
+        "home_index_timeout_revs": np.float64(2.0),  # the most it may be
+        "head_height_m": Fraction(1, 4),
+        "mount_offset_m": (np.float16(0.5), np.int64(1), Fraction(1, 4)),
+        "data_rate_ms": np.int32(33),
+        "elevation_limits_counts": (np.int16(-100), np.uint16(300)),
+    }
+    record = BirisInitRecord(**numbers)
+    assert (record.timeout_s, record.home_index_timeout_revs, record.head_height_m) == (
+        2.5,
+        2.0,
+        0.25,
+    )
+    assert record.mount_offset_m == (0.5, 1.0, 0.25)
+    assert record.data_rate_ms == 33 and type(record.data_rate_ms) is int
+    assert record.elevation_limits_counts == (-100, 300)
+    for value in (*record.mount_offset_m, record.timeout_s, *record.elevation_limits_counts):
+        assert type(value) in (int, float)  # plain types: TOML and the server see no numpy
+    assert record == BirisInitRecord.from_dict(record.to_dict())
+
+
+def test_the_biris_timeout_switch_round_trips(tmp_path: Path) -> None:
+    record = BirisInitRecord(timeout_enabled=False)
+    assert record.to_dict()["timeout_enabled"] is False
+    assert BirisInitRecord.from_dict(record.to_dict()) == record
+    assert "timeout_enabled = false" in record.to_toml()
+    record.save(tmp_path / "init.toml")
+    assert BirisInitRecord.load(tmp_path / "init.toml").timeout_enabled is False
+    assert BirisInitRecord.from_toml("timeout_enabled = true\n") == BirisInitRecord()
+    with pytest.raises(RequestError, match="timeout_enabled: must be true or false"):
+        BirisInitRecord.from_toml('timeout_enabled = "off"\n')
 
 
 def test_dict_round_trip_and_plain_types() -> None:
@@ -306,11 +372,11 @@ def test_acquisitions_cover_the_scan(scan: int, sample: int, max_vel: int, rate_
     assert n == 1 or (n - 1) * rate < scan * (1 + 1e-12)  # and not one more than that
 
 
-def test_acquisitions_for_a_motor_that_cannot_move() -> None:
-    record = BirisInitRecord(motor=MotorParams(max_vel=0))
+def test_acquisitions_for_the_slowest_motor_there_can_be() -> None:
+    # max_vel 0 cannot be asked for any more (MotorParams refuses it), so 1 is the slowest.
+    record = BirisInitRecord(motor=MotorParams(max_vel=1))
     assert acquisitions_for(0, record) == 0
-    with pytest.raises(RequestError, match="max_vel"):
-        acquisitions_for(100, record)
+    assert acquisitions_for(100, record) == 5  # 21.3 counts per acquisition
 
 
 def test_acquisitions_for_rejects_non_integers() -> None:

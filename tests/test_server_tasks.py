@@ -17,7 +17,13 @@ from biris_hw.irq import EventFdLine
 from biris_hw.server import BirisServer, tasks
 from biris_hw.server.acquisition import Drained
 from biris_hw.server.isr import Level2Demux, Logical
-from biris_hw.server.messages import Acquisition, BirisCmdComplete, NewPoint, TransferOrder
+from biris_hw.server.messages import (
+    Acquisition,
+    AzScanDone,
+    BirisCmdComplete,
+    NewPoint,
+    TransferOrder,
+)
 from biris_hw.server.task_table import TASKS, Starts, TaskKind, task, threads
 from regs.biexec import OFF_COMMAND, BiCommand
 from regs.bit3 import BIT3_SPACE, Bit3Reg, LocalStatus
@@ -232,3 +238,50 @@ def test_the_command_notifier_never_waits_on_the_administrator_holding_the_reade
         notifier.join(WAIT)
         assert not notifier.is_alive()
     assert flags == []
+
+
+# -- the axis notifier reports where the move ended ------------------------------------------------
+
+
+class FakeAxis:
+    """An axis that stops where it is told, settled or not; while it settles, the next move is
+    recorded, as az_scan_start would once the administrator had ordered it."""
+
+    def __init__(self, position: int, settles: bool, moves: tasks.MoveLedger) -> None:
+        self.position = position
+        self.settles = settles
+        self.moves = moves
+
+    def wait_settled(self, stop: threading.Event) -> bool:
+        self.moves.token = 5  # a move started meanwhile must not lend the ended one its name
+        return self.settles
+
+    def actual_position(self) -> int:
+        return self.position
+
+
+@pytest.mark.parametrize("settles", [True, False])
+def test_the_end_of_a_move_says_where_the_head_stands_whether_it_settled_and_which_move(
+    settles: bool,
+) -> None:
+    inbox = Mailbox("BIRISSERV")
+    moves = tasks.MoveLedger()
+    axis = FakeAxis(position=37, settles=settles, moves=moves)
+    stop = threading.Event()
+    with EventFdLine() as line:
+        notifier = threading.Thread(
+            target=tasks.biris_az_notifier,
+            args=(line, inbox, axis, stop, None, moves),
+        )
+        notifier.start()
+        moves.token = 4  # az_scan_start records the move it starts
+        line.trigger()  # its end of profile
+        done = inbox.receive(timeout=WAIT)
+        # never "done" alone: where the head stands and whether it settled, for the
+        # administrator to compare with the destination (review defect 2)
+        assert done.message == AzScanDone(position=37, settled=settles, token=4)
+        done.reply(None)
+        inbox.close()
+        line.close()
+        notifier.join(WAIT)
+        assert not notifier.is_alive()

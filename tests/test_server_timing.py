@@ -8,6 +8,8 @@ re-time them from the tightest bound: CI once saw a continuous sweep whose times
 
 from __future__ import annotations
 
+import ctypes
+
 import numpy as np
 import pytest
 
@@ -16,20 +18,27 @@ from biris_hw.data import Direction
 from biris_hw.server.acquisition import AcquisitionReader, RingState
 from biris_hw.server.messages import Acquisition
 from biris_hw.server.scan_assembly import ActiveScan, build_scan
-from regs.biexec import ACQ_LINE_END
+from regs.biexec import ACQ_LINE_END, OFF_CURRENT_FRAME, BiexecCom
 from regs.layout import FrameAddressing
 
 SAMPLES = 64
 PERIOD = 2 / 59.94
 RING = 8
+BIEXEC_COM_SIZE = ctypes.sizeof(BiexecCom)
 
 
 class _Link:
-    """ACQ_LINE as the test sets it; data-interrupt flags recorded."""
+    """ACQ_LINE as the test sets it; data-interrupt flags recorded; CURRENT_FRAME (which the
+    reader reads once BIRIS has stopped a ring) in a small BIEXEC_COM window."""
 
     def __init__(self) -> None:
         self.line = -1
         self.flags: list[bool] = []
+        self.window = MemoryWindow(BIEXEC_COM_SIZE)
+        self.base = 0
+
+    def set_current_frame(self, slot: int) -> None:
+        self.window.write16(self.base + OFF_CURRENT_FRAME, slot & 0xFFFF)
 
     def acq_line(self) -> int:
         return self.line
@@ -194,6 +203,7 @@ def test_a_sweep_cut_short_is_not_followed() -> None:
     link.line, clock.t = 10 % RING, 1.0 + 10 * PERIOD
     reader.open_sweep(1)
     _wake(reader, link, clock, 11 % RING, 1.0 + 11 * PERIOD)
+    link.set_current_frame(11 % RING)  # its last completed frame
     _wake(reader, link, clock, -128, 1.0 + 12 * PERIOD)  # BIRIS stopped under the sweep
     assert reader.ring_state is RingState.IDLE
     assert _sweep(reader, link, clock, 2, 14, 15, follows=True) == [14, 15, 16]

@@ -141,10 +141,12 @@ def test_catching_up_in_small_steps_equals_stepping(catch_up: float) -> None:
     assert len(ends) == 10
 
 
-def test_a_stall_cleared_in_a_fixed_point_resumes_the_profile() -> None:
-    """A trapezoid frozen by a stalled shaft sits in a fixed point; clearing the stall through
-    the backdoor (no bus access, no note to the chip) must let the next sample move again."""
+def test_a_stall_cleared_in_a_fixed_point_lets_the_head_move() -> None:
+    """A locked shaft whose profile has ended sits in a fixed point (the drive pushing against
+    the lock); clearing the stall through the backdoor (no bus access, no note to the chip)
+    must let the next sample move again, in the skipping chip as in the stepped one."""
     stepped, caught = _ready(), _ready()
+    start = stepped.actual_position
     for chip in (stepped, caught):
         chip.plant.stalled = True
         _start(chip, chip.command_position + 2)
@@ -156,6 +158,7 @@ def test_a_stall_cleared_in_a_fixed_point_resumes_the_profile() -> None:
             while stepped.next_sample_time < caught.next_sample_time - PERIOD_B / 2:
                 stepped.step()
             assert _state(stepped) == _state(caught)
-        assert caught.profile_active is (phase == 0)
+        assert not caught.profile_active
+        assert caught.actual_position == start + 2 * phase  # locked, then arrived
         for chip in (stepped, caught):
             chip.plant.stalled = False

@@ -431,25 +431,31 @@ def test_profile_end_eta_predicts_the_last_sample() -> None:
     assert chip.profile_end_eta() is None
 
 
-def test_stall_freezes_the_profile_and_release_resumes_it() -> None:
+def test_a_locked_shaft_does_not_stop_the_profile() -> None:
+    """The profile generator knows nothing of the shaft: it ends on time, F0 clears and the end
+    is signalled, while the position stays where the shaft locked; released, the head runs in."""
     chip, plant, _ = ready()
     start = chip.command_position
     ended = []
     chip.on_profile_end = lambda: ended.append(True)
     start_trapezoid(chip, start + 400)
+    eta = chip.profile_end_eta()
     for _ in range(50):
         chip.step()
     plant.stalled = True
-    frozen = chip.command_position
+    locked = plant.true_azimuth_counts
+    assert chip.profile_end_eta() == eta  # a locked shaft does not move the end
     chip.advance_to(chip.next_sample_time + 5.0)  # five seconds of a locked shaft
-    assert chip.profile_active
-    assert chip.command_position == frozen
-    assert chip.profile_end_eta() is None
-    assert ended == []
-    plant.stalled = False
-    run_profile(chip)
     assert ended == [True]
+    assert not chip.profile_active
     assert chip.command_position == start + 400
+    assert plant.true_azimuth_counts == locked
+    assert chip.actual_position < start + 100  # the counter stopped where the shaft did
+    assert chip.motor_command == 127  # the filter pushes with everything it has
+    plant.stalled = False
+    chip.advance_to(chip.next_sample_time + 2.0)
+    assert chip.actual_position == start + 400
+    assert ended == [True]
 
 
 # -- velocity modes ------------------------------------------------------------------------------

@@ -12,29 +12,37 @@ the devices' status registers) and raises logical ones with :meth:`Demultiplexer
 The BIRIS server's two routines (level 2: BIRIS and the Bit 3 coupler; level 3: the Model 7600)
 decode the report's protocol, so they live with the server: :mod:`biris_hw.server.isr`.
 
-A demultiplexer does not own the physical line (the hardware bundle does). If the line is closed
-under it, it closes its logical lines, so every notifier raises ``LineClosed``; so does any
-unexpected failure of ``_service``, after logging it, so that no notifier waits forever on a dead
-routine.
+A demultiplexer does not own the physical line (the hardware bundle does). It runs in one of two
+ways, for two kinds of owner:
 
-Its thread is either made by :meth:`Demultiplexer.start`, or by an owner that runs
-:meth:`Demultiplexer.run` in a thread of its own making (the server starts every thread from its
-task table). Either way :meth:`Demultiplexer.close` stops and joins it, and only then closes the
-stop eventfd and the logical lines.
+* :meth:`Demultiplexer.run` (and :meth:`Demultiplexer.start`, which runs it in a thread of its
+  own) stands alone. If the physical line is closed under it, it closes its logical lines, so
+  every notifier raises ``LineClosed``. It does the same after logging any unexpected failure of
+  ``_service`` or of the line, so that no notifier waits forever on a dead routine.
+* :meth:`Demultiplexer.serve` is the same routine for a supervisor (the BIRIS server runs every
+  task under one). It *raises* instead: :class:`~biris_hw.errors.BusError` when the physical line
+  is closed under it or fails (the target is gone, which is a bus fault, not a quiet end), or
+  whatever ``_service`` raised. It leaves the logical lines open, so the notifiers keep waiting
+  and the supervisor can report the failure and run the routine again later.
+
+Either way :meth:`Demultiplexer.close` stops and joins the thread, and only then closes the stop
+eventfd and the logical lines.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import logging
 import os
 import select
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Hashable, Iterable
+from collections.abc import Hashable, Iterable, Iterator
 from types import TracebackType
 from typing import Any, Generic, TypeVar
 
-from biris_hw.errors import LineClosed
+from biris_hw.errors import BusError, LineClosed
 from biris_hw.irq.base import InterruptLine
 from biris_hw.irq.eventfd import EventFdLine
 
@@ -77,6 +85,8 @@ class Demultiplexer(ABC, Generic[K]):
         self._thread: threading.Thread | None = None
         self._closed = False
         self._shut = threading.Event()  # set once close() has finished
+        self._serving = False  # the service thread is inside _serve (under _lifecycle)
+        self._release_on_exit = False  # close() ran in that thread: it releases the stop fd
 
     # -- what notifiers and status reports use ---------------------------------------------------
     @property
@@ -123,24 +133,73 @@ class Demultiplexer(ABC, Generic[K]):
             self._thread.start()
 
     def run(self) -> None:
-        """The service thread's body: serve the physical line until closed.
+        """The service thread's body, standing alone: serve the physical line until closed.
 
         For an owner that makes the thread itself; :meth:`start` runs it too. Returns at once if
         the demultiplexer was closed before the thread got here; RuntimeError if another thread
-        already serves it.
+        already serves it. When the physical line is closed under it, or anything fails, the
+        logical lines are closed (see the module notes).
         """
-        with self._lifecycle:
+        if not self._enter():
+            return
+        try:
+            with self._serving_scope():
+                self._serve()
+        except LineClosed:
+            log.info("%s: physical line closed; closing its logical lines", self.name)
+            self._close_logical()
+        except Exception:
+            log.exception("%s failed; closing its logical lines", self.name)
+            self._close_logical()
+
+    def serve(self) -> None:
+        """The service thread's body, under a supervisor: serve until :meth:`close`, or raise.
+
+        Raises :class:`BusError` when the physical line is closed under the routine or fails
+        (both mean the target is gone), and whatever ``_service`` raised. The logical lines stay
+        open, so the notifiers go on waiting on them. The same thread may call it again after a
+        failure (a supervisor restarting the routine); RuntimeError if another thread serves it.
+        Returns at once once the demultiplexer is closed.
+        """
+        if not self._enter():
+            return
+        try:
+            with self._serving_scope():
+                self._serve()
+        except LineClosed as exc:
             if self._closed:
                 return
+            raise BusError(
+                f"{self.name}: its physical interrupt line was closed under it ({exc}); "
+                "the target is gone",
+                errno.ENODEV,
+            ) from exc
+
+    @contextlib.contextmanager
+    def _serving_scope(self) -> Iterator[None]:
+        """Mark the thread as inside the routine; on the way out, release the stop descriptor
+        if :meth:`close` was called from inside (it could not: the routine still polled it)."""
+        with self._lifecycle:
+            self._serving = True
+        try:
+            yield
+        finally:
+            with self._lifecycle:
+                self._serving = False
+                release, self._release_on_exit = self._release_on_exit, False
+            if release:
+                os.close(self._stop_fd)
+
+    def _enter(self) -> bool:
+        """Claim the routine for the calling thread; False if it is closed already."""
+        with self._lifecycle:
+            if self._closed:
+                return False
             me = threading.current_thread()
             if self._thread is not me:
                 self._check_startable()
                 self._thread = me
-        try:
-            self._serve()
-        except Exception:
-            log.exception("%s failed; closing its logical lines", self.name)
-            self._close_logical()
+        return True
 
     def _check_startable(self) -> None:
         if self._closed:
@@ -169,8 +228,13 @@ class Demultiplexer(ABC, Generic[K]):
         if thread is not None and thread is not me:
             thread.join()
         self._close_logical()
-        if thread is None or thread is not me:
-            os.close(self._stop_fd)  # nobody polls it any more
+        with self._lifecycle:
+            # From inside the routine (a callback that closes it), the routine still polls the
+            # stop descriptor, so it releases it on its way out; anywhere else nobody polls it.
+            inside = thread is me and self._serving
+            self._release_on_exit = inside
+        if not inside:
+            os.close(self._stop_fd)
         self._shut.set()
 
     def __enter__(self: _D) -> _D:
@@ -189,13 +253,11 @@ class Demultiplexer(ABC, Generic[K]):
 
     # -- the service thread ----------------------------------------------------------------------
     def _serve(self) -> None:
+        """Serve until the stop descriptor is written; LineClosed once the physical line is
+        closed, and whatever the line's wait or ``_service`` raised."""
         poller = select.poll()
         poller.register(self._stop_fd, select.POLLIN)
-        try:
-            line_fd = self._line.fileno()
-        except LineClosed:
-            self._physical_closed()
-            return
+        line_fd = self._line.fileno()  # LineClosed if it is closed already
         poller.register(line_fd, select.POLLIN | select.POLLERR)
         while True:
             ready = dict(poller.poll())
@@ -203,17 +265,9 @@ class Demultiplexer(ABC, Generic[K]):
                 return
             if line_fd not in ready:
                 continue
-            try:
-                count = self._line.wait(0)
-            except LineClosed:
-                self._physical_closed()
-                return
+            count = self._line.wait(0)
             if count:
                 self._service(count)
-
-    def _physical_closed(self) -> None:
-        log.info("%s: physical line closed; closing its logical lines", self.name)
-        self._close_logical()
 
     def _close_logical(self) -> None:
         for logical_line in self._lines.values():

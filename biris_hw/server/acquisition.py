@@ -42,10 +42,33 @@ hands them over, and the administrator decides: a sweep ends with its first acqu
 destination; those after it are the start of the next sweep when one follows straight on, and
 are dropped (counted) otherwise, as are those made before the head left a start it had stood
 at.
+
+**Accounts.** Every acquisition BIRIS completes leaves the reader exactly once, in a
+:class:`Drained`: read (``acquisitions``), known lost (``lost``: overwritten in the ring before it
+could be read), or, in continuous mode, passed over unread because no sweep wanted it (``idle``).
+Idle ring frames are those BIRIS completes between the ring going live and the first sweep,
+between sweeps that do not follow straight on, and after the last sweep until the ring stops.
+The reader does not read the ring while idle, so it counts them when it next looks at it:
+
+* when a sweep opens without following -- it resynchronises on ACQ_LINE, and every frame from
+  the first not yet accounted for up to the one now in exposure is idle;
+* when the ring stops (BI_STOP_CONTINUOUS completed, or ACQ_LINE reads -128 under a sweep):
+  BIRIS then names in CURRENT_FRAME the last frame it completed (the one in exposure is
+  abandoned), and every frame up to it not yet accounted for is read -- if it belongs to a
+  sweep still open, whose acquisitions the administrator will find stale -- or counted idle.
+
+So nothing is counted as the ring goes live (the frames before the first sweep are counted when
+it opens). The reader numbers the frames of a ring's life continuously (frame k sits in slot
+``k % ring``), and what it learns at each look is a slot; the frames passed since the previous
+look are the slot advance plus whole laps, and the laps come from the hardware clock: see
+:func:`frames_between`. Counts found where the reader cannot post (a sweep opening, the ring
+stopping) are handed over with the next drain, which follows at once: the sweep's first data
+interrupt, or the command notifier's drain after the stop.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 import threading
@@ -57,10 +80,22 @@ import numpy as np
 from biris_hw.bus.base import BusWindow
 from biris_hw.devices import BirisLink
 from biris_hw.server.messages import Acquisition
-from regs.biexec import ACQ_LINE_END, ACQ_LINE_STARTUP, decode_param
+from regs.biexec import ACQ_LINE_END, ACQ_LINE_STARTUP, OFF_CURRENT_FRAME, decode_param
 from regs.layout import AZIMUTH_DTYPE, FRAME_DTYPE, FrameAddressing
 
-__all__ = ["AcquisitionReader", "Drained", "RingState", "ring_length"]
+__all__ = [
+    "STARTUP_S",
+    "AcquisitionReader",
+    "Drained",
+    "RingState",
+    "frames_between",
+    "ring_length",
+]
+
+STARTUP_S = 0.240
+"""The report's start-up of an acquisition sequence: BIRIS acquires nothing for this long after
+BI_ACQUIRE or BI_START_CONTINUOUS (the simulator rounds it up to whole video fields). A ring's
+first frame therefore begins no sooner than this after it was started."""
 
 
 def ring_length(param: bytes) -> int:
@@ -75,6 +110,26 @@ def ring_length(param: bytes) -> int:
         return 0
 
 
+def frames_between(advance: int, elapsed: float, ring: int) -> int:
+    """How many frames a ring of ``ring`` slots began between two looks at it.
+
+    ``advance`` is how far the slot moved, ``(slot_now - slot_then) % ring``; ``elapsed`` the
+    hardware time between the looks in acquisition periods. The true count is ``advance`` plus
+    a whole number of laps, ``advance + ring * m``; ``elapsed`` estimates it with an error ``e``
+    that is only the looks' jitter: each look falls somewhere within the period of the frame it
+    sees (under one period either way), plus how stale a register read is against the clock
+    read beside it, plus any drift of the host clock against BIRIS's video clock. Then
+    ``(elapsed - advance) / ring = m + e / ring``, which rounds to ``m`` exactly while ``|e|`` is
+    below half a lap (512 frames, 17 s, for the 1024-frame ring at 2 fields an acquisition).
+    The result may be ``advance - ring`` when the estimate says the slot did not move forward at
+    all (the caller bounds it).
+    """
+    if ring <= 0:
+        return 0
+    laps = math.floor((elapsed - advance) / ring + 0.5)
+    return advance + ring * laps
+
+
 class RingState(enum.Enum):
     """Where continuous acquisition stands, as the reader sees it (module notes)."""
 
@@ -87,13 +142,22 @@ class RingState(enum.Enum):
 
 @dataclass(frozen=True)
 class Drained:
+    """What one look at BIRIS memory found; every acquisition made leaves the reader in
+    exactly one of ``acquisitions``, ``lost`` and ``idle`` (module notes, "Accounts")."""
+
     acquisitions: tuple[Acquisition, ...]
     lost: int
+    """Acquisitions known to be gone: overwritten in the ring before they could be read, or a
+    sequence's that BIRIS finished without announcing."""
     finished: bool
     live: bool = False
     """Continuous mode: the ring has just become live (first acquisition begun)."""
     sweep_done: int = 0
     """Continuous mode: the seq_id of the sweep whose last acquisition this drain read."""
+    idle: int = 0
+    """Continuous mode: ring frames BIRIS completed while no sweep wanted them, skipped unread
+    (before the first sweep, between sweeps that do not follow straight on, after the last one
+    until the ring stopped)."""
 
 
 _NOTHING = Drained((), 0, False)
@@ -121,15 +185,25 @@ class AcquisitionReader:
         self._seq_id = 0
         self._n = 0
         self._next = 0
+        """The next acquisition to read; in continuous mode, the first ring frame (numbered
+        over the ring's life) not yet accounted for."""
         self._t0 = math.inf
         # continuous mode
         self._ring_state = RingState.OFF
         self._ring = 0
         self._exposing = 0
+        """The ring frame (numbered over the ring's life) seen in exposure at ``_seen``."""
         self._end: int | None = None
         self._index = 0
         self._followable = False
         self._seen = -math.inf
+        self._primed_at = -math.inf
+        self._halted = False
+        """BIRIS was seen to have stopped the ring and every frame it made is accounted for."""
+        # accounted for, not handed over yet (module notes)
+        self._owed_acqs: list[Acquisition] = []
+        self._owed_lost = 0
+        self._owed_idle = 0
 
     def configure(self, addressing: FrameAddressing, samples: int, period_s: float) -> None:
         """Where the frames are, as learned from BIRIS at initialisation."""
@@ -145,6 +219,20 @@ class AcquisitionReader:
     @property
     def ring_state(self) -> RingState:
         return self._ring_state
+
+    def _hand(self, drained: Drained) -> Drained:
+        """``drained`` with what was accounted for where nothing could be posted (a sweep
+        opening, the ring stopping): each such count is handed over exactly once."""
+        if not (self._owed_acqs or self._owed_lost or self._owed_idle):
+            return drained
+        handed = dataclasses.replace(
+            drained,
+            acquisitions=(*self._owed_acqs, *drained.acquisitions),
+            lost=drained.lost + self._owed_lost,
+            idle=drained.idle + self._owed_idle,
+        )
+        self._owed_acqs, self._owed_lost, self._owed_idle = [], 0, 0
+        return handed
 
     # -- single sequences (BI_ACQUIRE) ----------------------------------------------------------
     def begin(self, seq_id: int, n: int) -> None:
@@ -163,15 +251,19 @@ class AcquisitionReader:
         :meth:`drain_sequence`).
         """
         if self._ring_state is not RingState.OFF:
-            return self._drain_ring()
+            return self._hand(self._drain_ring())
         return self.drain_sequence(final)
 
     def drain_sequence(self, final: bool = False) -> Drained:
         """The BI_ACQUIRE sequence's drain. Hold ``self.lock``.
 
         ``final`` is set by the command notifier: BIRIS has finished the sequence, so whatever
-        ACQ_LINE says, nothing more will complete.
+        ACQ_LINE says, nothing more will complete. It also hands over what a ring's stop
+        accounted for (the command notifier drains so right after :meth:`stop_ring`).
         """
+        return self._hand(self._drain_sequence(final))
+
+    def _drain_sequence(self, final: bool) -> Drained:
         if not self._active or self._addr is None:
             return _NOTHING  # no sequence: a spurious or late wake
         line = self._link.acq_line()
@@ -214,6 +306,11 @@ class AcquisitionReader:
             self._ring_state = RingState.PRIMING
             self._ring = 0
             self._followable = False
+            self._halted = False
+            self._exposing = self._next = 0  # a new ring: its frames are numbered from 0
+            self._end = None
+            self._t0 = math.inf
+            self._primed_at = self._seen = self._clock()
             self._link.set_flags(data_int=True)
 
     def ring_started(self, ring: int) -> None:
@@ -222,12 +319,25 @@ class AcquisitionReader:
             self._ring = max(0, ring)
 
     def stop_ring(self) -> None:
-        """BI_STOP_CONTINUOUS completed (or the start failed): back to sequences."""
+        """BI_STOP_CONTINUOUS completed (or the start failed): back to sequences.
+
+        BIRIS has stopped: every frame it completed and the reader has not accounted for yet is
+        accounted for now (module notes), and handed over by the next drain.
+        """
         with self.lock:
-            self._ring_state = RingState.OFF
-            self._ring = 0
-            self._end = None
-            self._followable = False
+            state = self._ring_state
+            try:
+                if state is not RingState.OFF:
+                    out, lost = self._stopped(
+                        self._clock(), read=state in (RingState.SWEEP, RingState.ENDING)
+                    )
+                    self._owed_acqs += out
+                    self._owed_lost += lost
+            finally:  # a bus error reading the ring must not leave the reader in it
+                self._ring_state = RingState.OFF
+                self._ring = 0
+                self._end = None
+                self._followable = False
             self._link.set_flags(data_int=True)  # single sequences announce every frame
 
     def open_sweep(self, seq_id: int, follows: bool = False) -> None:
@@ -237,8 +347,8 @@ class AcquisitionReader:
         last, so that the turn-around loses no acquisition.
 
         Following needs the previous sweep to have ended cleanly and less than a lap of the
-        ring ago (ACQ_LINE is a ring slot: beyond a lap, how far the ring went is ambiguous);
-        otherwise the sweep resynchronises as a new one does.
+        ring ago (beyond a lap its frames after the last are overwritten); otherwise the sweep
+        resynchronises as a new one does, and the frames it skips are idle (module notes).
         """
         with self.lock:
             if self._ring_state is not RingState.IDLE:
@@ -246,22 +356,23 @@ class AcquisitionReader:
             line = self._link.acq_line()
             now = self._clock()
             ring = self._ring
-            if (
-                follows
-                and self._followable
-                and 0 <= line < ring
-                and now - self._seen < (ring - 1) * self._period
-            ):
-                self._exposing += (line - self._exposing) % ring
+            seen = 0 <= line < ring
+            if seen and follows and self._followable:
+                following = now - self._seen < (ring - 1) * self._period
             else:
-                self._exposing = max(0, line)
+                following = False
+            if seen:
+                self._exposing = self._advance(line, now)
+            if not following:
+                self._owed_idle += max(0, self._exposing - self._next)
                 self._next = self._exposing
                 self._t0 = math.inf
+            if seen:
+                self._observe(now, self._exposing)
             self._followable = False
             self._seq_id = seq_id
             self._index = 0
             self._end = None
-            self._observe(now, self._exposing)
             self._ring_state = RingState.SWEEP
             self._link.set_flags(data_int=True)
 
@@ -269,53 +380,131 @@ class AcquisitionReader:
         """The motor has come to rest: what is complete now, and mark the frame after the one
         in exposure as the sweep's last (module notes). Hold ``self.lock``."""
         if self._ring_state is not RingState.SWEEP:
-            return _NOTHING
+            return self._hand(_NOTHING)
         line = self._link.acq_line()
+        now = self._clock()
         if line < 0:
-            return self._close_sweep([], 0)
-        out, lost = self._read_ring_to(line)
+            return self._hand(self._cut_short(line, now))
+        out, lost = self._read_ring_to(line, now)
         self._end = self._exposing + 1
         self._ring_state = RingState.ENDING
-        return Drained(tuple(out), lost, False)
+        return self._hand(Drained(tuple(out), lost, False))
 
     def _drain_ring(self) -> Drained:
         state = self._ring_state
         if self._addr is None or state is RingState.IDLE:
             return _NOTHING  # a completion's wake, or an interrupt from before the gate shut
         line = self._link.acq_line()
+        now = self._clock()
         if state is RingState.PRIMING:
-            if line >= 0 and self._ring > 0:
-                self._ring_state = RingState.IDLE
-                self._link.set_flags(data_int=False)
+            if 0 <= line < self._ring:
+                self._go_live(line, now)
                 return Drained((), 0, False, live=True)
             return _NOTHING
         if line == ACQ_LINE_STARTUP:
             return _NOTHING
-        if line < 0:  # BIRIS stopped under the sweep: nothing more will come
-            return self._close_sweep([], 0)
-        out, lost = self._read_ring_to(line)
+        if line < 0:
+            return self._cut_short(line, now)
+        out, lost = self._read_ring_to(line, now)
         if state is RingState.ENDING and self._end is not None and self._next > self._end:
             return self._close_sweep(out, lost, clean=True)
         return Drained(tuple(out), lost, False)
 
-    def _read_ring_to(self, line: int) -> tuple[list[Acquisition], int]:
+    def _go_live(self, line: int, now: float) -> None:
+        """The ring's first look: slot ``line`` in exposure. Frame 0 began no sooner than the
+        start-up after priming, which resolves the laps; nothing is accounted for yet."""
+        self._ring_state = RingState.IDLE
+        self._link.set_flags(data_int=False)
+        begun = (now - self._primed_at - STARTUP_S) / self._period if self._period > 0 else 0.0
+        self._exposing = max(line, frames_between(line, begun, self._ring))
+        self._seen = now
+        self._next = 0
+
+    def _advance(self, line: int, now: float) -> int:
+        """The ring frame in exposure now, seen as slot ``line``: the frame seen last, plus
+        the frames begun since (:func:`frames_between`; the ring never goes back)."""
+        ring = self._ring
+        advance = (line - self._exposing) % ring
+        elapsed = (now - self._seen) / self._period if self._period > 0 else float(advance)
+        self._halted = False  # BIRIS is acquiring into the ring
+        return self._exposing + max(0, frames_between(advance, elapsed, ring))
+
+    def _read_ring_to(self, line: int, now: float) -> tuple[list[Acquisition], int]:
         """Read every frame completed before slot ``line`` (now in exposure)."""
         ring = self._ring
-        if ring <= 0 or line >= ring:
+        if not 0 <= line < ring:
             return [], 0
-        self._exposing += (line - self._exposing) % ring
-        self._observe(self._clock(), self._exposing)
-        last = self._exposing - 1
+        self._exposing = self._advance(line, now)
+        self._observe(now, self._exposing)
+        return self._read_frames(self._exposing, self._exposing - ring + 1)
+
+    def _read_frames(self, upto: int, oldest: int) -> tuple[list[Acquisition], int]:
+        """Read the sweep's frames from ``_next`` to ``upto - 1`` (to its last, once known);
+        those older than ``oldest``, the oldest the ring still holds, are counted lost."""
+        last = upto - 1
         if self._end is not None:
             last = min(last, self._end)
-        lost = max(0, (self._exposing - ring + 1) - self._next)  # overwritten by a later lap
+        lost = max(0, min(oldest, last + 1) - self._next)  # overwritten by a later lap
         self._next += lost
+        ring = self._ring
         out: list[Acquisition] = []
         for k in range(self._next, last + 1):
             out.append(self._read(k % ring, self._index, self._time_of(k)))
             self._index += 1
         self._next = max(self._next, last + 1)
         return out, lost
+
+    def _cut_short(self, line: int, now: float) -> Drained:
+        """ACQ_LINE negative under a sweep: BIRIS stopped (-128), or worse; the sweep ends with
+        what BIRIS completed for it (module notes) and cannot be followed."""
+        out, lost = self._stopped(now, read=True) if line == ACQ_LINE_END else ([], 0)
+        return self._close_sweep(out, lost)
+
+    def _stopped(self, now: float, *, read: bool) -> tuple[list[Acquisition], int]:
+        """BIRIS has stopped the ring: account for every frame it completed, once. ``read``:
+        a sweep is open, and its frames are read (the rest, after its last, are idle)."""
+        if self._halted:
+            return [], 0
+        done = self._frames_done(now)
+        out, lost = self._read_frames(done, done - self._ring) if read else ([], 0)
+        self._owed_idle += max(0, done - self._next)
+        self._next = max(self._next, done)
+        self._exposing, self._seen = self._next, now
+        self._halted = True
+        return out, lost
+
+    def _frames_done(self, now: float) -> int:
+        """How many frames the stopped ring completed in its life.
+
+        CURRENT_FRAME names the last completed slot; the frames after the one last seen in
+        exposure resolve into laps as :func:`frames_between` says, ``now`` standing for the stop
+        (it came before, by the command's completion). Before the report's start-up and one
+        period have passed since priming, no frame can have completed. Within the ring's first
+        period after that, CURRENT_FRAME cannot tell "frame 0 abandoned" (it still names the
+        slot set when frame 0 began) from "frame 0 completed": counted as completed.
+        """
+        ring, period = self._ring, self._period
+        if ring <= 0 or period <= 0:
+            return self._next  # no ring ever started
+        since_first = (now - self._primed_at - STARTUP_S) / period
+        if since_first < 1:
+            return self._next
+        if self._ring_state is RingState.PRIMING:
+            index, elapsed = 0, since_first  # never seen live: from frame 0's earliest start
+        else:
+            index, elapsed = self._exposing, (now - self._seen) / period
+        last = self._current_frame()
+        if not 0 <= last < ring:
+            return max(self._next, index)  # unreadable: nothing beyond what was seen
+        return max(self._next, index + frames_between((last + 1 - index) % ring, elapsed, ring))
+
+    def _current_frame(self) -> int:
+        """CURRENT_FRAME, signed: once BIRIS has stopped a ring, the slot of the last frame it
+        completed (Appendix D: BIEXEC_COM "would be used to point to the most recent
+        acquisition"). Read through the link's window: BirisLink has no accessor for it."""
+        link = self._link
+        raw = link.window.read16(link.base + OFF_CURRENT_FRAME)
+        return raw - 0x10000 if raw & 0x8000 else raw
 
     def _close_sweep(self, out: list[Acquisition], lost: int, clean: bool = False) -> Drained:
         """Back to idle; ``clean`` when every frame up to the sweep's last was read, so that a

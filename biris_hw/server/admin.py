@@ -36,7 +36,15 @@ from typing import Any
 from biris_hw import protocol as p
 from biris_hw.angles import clamp_counts
 from biris_hw.data import ConnectionKind, Direction
-from biris_hw.errors import BirisError, ConnectionClosed, FaultKind, HardwareFault, RequestError
+from biris_hw.devices import SETTLE_LIMIT_S
+from biris_hw.errors import (
+    BirisError,
+    BusError,
+    ConnectionClosed,
+    FaultKind,
+    HardwareFault,
+    RequestError,
+)
 from biris_hw.ipc import Envelope, Mailbox, TaskStopped
 from biris_hw.records import BirisInitRecord, MotorParams, acquisitions_for
 from biris_hw.server import messages as m
@@ -50,7 +58,7 @@ from biris_hw.server.delivery import ClientConn
 from biris_hw.server.elevation import Tilt, TiltControl, TiltPhase
 from biris_hw.server.faults import Lifecycle, Phase, fail_quietly, log
 from biris_hw.server.initialiser import InitResult
-from biris_hw.server.motion import AxisState, Motion, MotionPurpose
+from biris_hw.server.motion import ARRIVAL_TOLERANCE_COUNTS, AxisState, Motion, MotionPurpose
 from biris_hw.server.motor_control import MotorRequests
 from biris_hw.server.scan_assembly import ActiveScan
 from biris_hw.server.scanning import AcquisitionFate, ScanSequencer
@@ -82,7 +90,7 @@ class Administrator:
         self._start_initialiser = start_initialiser
         self.counters = Counters()
         self.life = Lifecycle()
-        self.commands = CommandChannel(biris_timeout, record.timeout_s)
+        self.commands = CommandChannel(biris_timeout, record.timeout_s, record.timeout_enabled)
         # one record per axis (the tilt's watchdog is the pan's if none is given)
         self.az = AxisState(Axis.AZIMUTH, motor_watchdog, record.motor)
         self.el = AxisState(Axis.ELEVATION, elevation_watchdog or motor_watchdog, record.tilt_motor)
@@ -101,14 +109,15 @@ class Administrator:
             m.NewPoint: self._on_new_point,  # NEW_POINT
             m.CmdTransferRdy: self._on_cmd_transfer_rdy,  # CMD_TRANSFER_RDY
             m.BirisCmdComplete: self._on_cmd_complete,  # BIRIS_CMD_COMPLETE
-            m.AzReady: lambda env, msg: self._on_axis_ready(az, env, msg.error),  # AZ_READY
-            m.AzScanDone: lambda env, msg: self._on_axis_done(az, env),  # AZ_SCAN_DONE
-            m.ElReady: lambda env, msg: self._on_axis_ready(el, env, msg.error),  # EL_READY
-            m.ElScanDone: lambda env, msg: self._on_axis_done(el, env),  # EL_SCAN_DONE
+            m.AzReady: lambda env, msg: self._on_axis_ready(az, env, msg),  # AZ_READY
+            m.AzScanDone: lambda env, msg: self._on_axis_done(az, env, msg),  # AZ_SCAN_DONE
+            m.ElReady: lambda env, msg: self._on_axis_ready(el, env, msg),  # EL_READY
+            m.ElScanDone: lambda env, msg: self._on_axis_done(el, env, msg),  # EL_SCAN_DONE
             m.ContinuousLive: self._on_continuous_live,  # CONTINUOUS_LIVE (Appendix D)
             m.SweepDataDone: self._on_sweep_data_done,  # SWEEP_DATA_DONE (Appendix D)
             m.BirisTimeoutErr: self._on_timeout_err,  # BIRIS_TIMEOUT_ERR
-            m.MotorWatchdogErr: self._on_watchdog_err,  # beyond the report
+            m.MotorWatchdogErr: self._on_watchdog_err,  # beyond the report, as is the next
+            m.TaskFailed: self._on_task_failed,
             m.BirisBusErr: lambda env, msg: self._task_fault(  # BIRIS_BUS_ERR
                 env, "bus", "bus error on the BIRIS VMEbus"
             ),
@@ -149,7 +158,13 @@ class Administrator:
             self.handle(env)
 
     def handle(self, env: Envelope) -> None:
-        """One message: its case runs; an error it raises goes back to the sender."""
+        """One message: its case runs; an error it raises goes back to the sender.
+
+        A RequestError, HardwareFault or ConnectionClosed is the caller's answer. Anything else
+        is a bug met half-way through a case, which may have left the components disagreeing:
+        the server enters the fault state of kind ``internal`` (logged with its traceback,
+        every caller told, the sender too), and reset starts from a clean slate.
+        """
         handler = self._handlers.get(type(env.message))
         if handler is None:
             env.fail(RequestError(f"unknown message {type(env.message).__name__}"))
@@ -159,8 +174,15 @@ class Administrator:
         except BirisError as exc:  # RequestError, HardwareFault, ConnectionClosed: the caller's
             fail_quietly(env, exc)
         except Exception as exc:  # a bug must not kill the server silently
-            log.exception("administrator: %s failed", type(env.message).__name__)
-            fail_quietly(env, exc)
+            name = type(env.message).__name__
+            log.exception("administrator: %s failed", name)
+            fault = HardwareFault("internal", f"the server's {name} case failed: {exc!r}")
+            fail_quietly(env, fault)
+            try:
+                self._fault(fault.kind, fault.message)
+            except Exception:  # the fault path itself is broken: the phase still says so
+                log.exception("administrator: could not enter the internal fault")
+                self.life.enter_fault(fault.kind, fault.message)
 
     def shutdown(self) -> None:
         """Called by the server after this thread has ended: nobody may stay blocked."""
@@ -235,12 +257,14 @@ class Administrator:
 
     def _on_ready_for_data(self, env: Envelope, msg: p.ReadyForData) -> None:
         conn = self._usable_conn(msg.conn, data=True)
-        self.clients.ready(env, conn)
+        self.clients.ready(env, conn, poll=msg.poll)
 
     def _on_wait_idle(self, env: Envelope, msg: p.WaitIdle) -> None:
         self._usable_conn(msg.conn)
         if self.is_idle():
             env.reply(None)
+        elif msg.poll:  # timeout=0: answered now, never parked
+            env.fail(TimeoutError("the server is not idle"))
         else:
             self.life.idle_waiters.append(env)
 
@@ -275,6 +299,7 @@ class Administrator:
             acquisition="continuous" if self.ring.mode else "single",
             ring=self.ring.state.value,
             counters=counters,
+            acquisitions_in_progress=self.scans.in_progress(),
             connections=self.clients.summaries(),
         )
 
@@ -306,7 +331,11 @@ class Administrator:
                 f"the CW limit ({cw} counts) must lie clockwise of the CCW limit ({ccw})"
             )
         self.scans.start_continuous(cw, ccw)
-        self._when_ready(None)
+        try:
+            self._when_ready(None)
+        except BaseException:  # refused means unchanged: no continuous scan stays behind
+            self.scans.forget()
+            raise
         env.reply((cw, ccw))
 
     def _on_stop_scan(self, env: Envelope, msg: p.StopScanRqst) -> None:
@@ -390,6 +419,8 @@ class Administrator:
         env.reply(None)
         scan = self.scans.scan
         self._note_biris_alive()
+        self.counters.lost_acquisitions += msg.lost
+        self.counters.idle_ring_frames += msg.idle
         points = []
         for acq in msg.acquisitions:
             fate = self.scans.classify(acq)
@@ -532,14 +563,20 @@ class Administrator:
         if self.life.fault is None:
             axis.dispatch()
 
-    def _on_axis_ready(self, axis: AxisState, env: Envelope, error: str | None) -> None:
-        """AZ_READY / EL_READY: the worker is parked again; a parameter load is then done."""
+    def _on_axis_ready(self, axis: AxisState, env: Envelope, msg: m.AzReady | m.ElReady) -> None:
+        """AZ_READY / EL_READY: the worker is parked again; a parameter load is then done.
+
+        A READY that carries an error reports the order the chip refused: a profile still
+        running (the previous move never ended: motor_stall), or the fault kind the driver
+        raised (a pan journal that cannot be written is ``internal``)."""
         axis.env = env
         job = axis.current
+        error = msg.error
         if job is not None:
             if error is not None:
                 axis.finish_current()
-                self._fault("motor_stall" if "profile" in error else "bus", error)
+                kind: FaultKind = "motor_stall" if "profile" in error else _fault_kind(msg.kind)
+                self._fault(kind, error)
                 if self.life.fault is not None:
                     self._motion_failed(job, self.life.fault)
                 return
@@ -549,13 +586,35 @@ class Administrator:
         self._pump_motion(axis)
         self._check_idle_waiters()
 
-    def _on_axis_done(self, axis: AxisState, env: Envelope) -> None:
-        """AZ_SCAN_DONE / EL_SCAN_DONE: the move has ended and the axis has come to rest."""
+    def _on_axis_done(
+        self, axis: AxisState, env: Envelope, msg: m.AzScanDone | m.ElScanDone
+    ) -> None:
+        """AZ_SCAN_DONE / EL_SCAN_DONE: the profile has ended and the notifier has read where
+        the axis came to rest. The chip ends its profile whatever the shaft does, so the move is
+        done only if the head stands at the destination (within ARRIVAL_TOLERANCE_COUNTS);
+        otherwise it is a motor_stall fault, never a completed scan."""
         env.reply(None)
         job = axis.current
-        if job is None or not isinstance(job.order, m.MoveOrder):
+        if not axis.ends_current(msg.token) or job is None:
             self.counters.spurious_motor_end += 1
             return
+        dest = axis.destination
+        if not msg.settled:  # judged by where it stands; a busy host may have polled late
+            log.warning(
+                "%s: the head had not come to rest %g s after its profile",
+                axis.name,
+                SETTLE_LIMIT_S,
+            )
+        if msg.position is not None and dest is not None:
+            miss = msg.position - dest
+            if abs(miss) > ARRIVAL_TOLERANCE_COUNTS:
+                self._fault(
+                    "motor_stall",
+                    f"the {axis.name} motor ended its profile at {msg.position} counts, "
+                    f"{miss:+d} from its destination {dest} (tolerance "
+                    f"{ARRIVAL_TOLERANCE_COUNTS}): the shaft did not follow",
+                )
+                return
         axis.finish_current()
         self._motion_done(job)
         self._pump_motion(axis)
@@ -589,6 +648,12 @@ class Administrator:
         axis = self._axis(msg.axis)
         if msg.generation == axis.watchdog_gen and axis.current is not None:
             self._fault("motor_stall", f"the {axis.name} motor did not reach its destination")
+
+    def _on_task_failed(self, env: Envelope, msg: m.TaskFailed) -> None:
+        """A task hit a bus error (the target is gone) or an unexpected exception: a fault of
+        that kind; the task waits for the next reset, which restarts it."""
+        env.reply(None)
+        self._fault("bus" if msg.kind == "bus" else "internal", f"{msg.task}: {msg.text}")
 
     # -- BIRIS_HOME and BIRIS_MOTOR_PARAMS ---------------------------------------------------
     def _on_motor_params(self, env: Envelope, msg: p.BirisMotorParams) -> None:
@@ -777,6 +842,13 @@ class Administrator:
         self.life.begin_reset(env)
         self._clear_activity()
         self.ring.forget()
+        # Abort what runs: the command in flight is given up (its completion will be stale; the
+        # initialiser waits, bounded, until BIRIS has finished it before its first command), and
+        # no timer stays armed for it -- nothing is owed to this server any more.
+        for cmd in self.commands.abandon():
+            if cmd.purpose is CommandPurpose.INIT and cmd.requester is not None:
+                fail_quietly(cmd.requester, RequestError("a reset has begun"))
+        self.commands.stop_timer()
         self._start_initialiser()
 
     def _on_init_command(self, env: Envelope, msg: m.InitCommand) -> None:
@@ -792,12 +864,7 @@ class Administrator:
         # commands the initialiser gave up on must not be issued later
         self.commands.discard(keep=lambda c: c.purpose is not CommandPurpose.INIT)
         if msg.error is not None:
-            exc = msg.error
-            fault = (
-                exc
-                if isinstance(exc, HardwareFault)
-                else HardwareFault("protocol", f"initialisation failed: {exc}")
-            )
+            fault = _init_fault(msg.error)
             self._fault(fault.kind, fault.message)
             for w in waiters:
                 fail_quietly(w, fault)
@@ -807,8 +874,34 @@ class Administrator:
         self.scans.samples = result.samples
         self.az.position = 0
         self.el.position = 0
+        # the chips now run the init record's parameters: so does the server (a reset undoes
+        # BIRIS_MOTOR_PARAMS; a client that wants its own set sends it again)
+        self.az.motor = self.record.motor
+        self.el.motor = self.record.tilt_motor
         self.tilt.homed()  # the initialiser stood the tilt level and loaded its table
         for w in waiters:
             w.reply(result)
         self._start_ring()
         self._check_idle_waiters()
+
+
+def _init_fault(exc: BaseException) -> HardwareFault:
+    """What an initialisation that failed with ``exc`` is, as a fault: a bus error means the
+    target is gone (``bus``), an exception nobody expected a bug (``internal``), anything else
+    BIRIS or the board answering what they should not (``protocol``)."""
+    if isinstance(exc, HardwareFault):
+        return exc
+    if isinstance(exc, BusError):
+        return HardwareFault("bus", f"initialisation failed: {exc}")
+    if isinstance(exc, BirisError):
+        return HardwareFault("protocol", f"initialisation failed: {exc}")
+    return HardwareFault("internal", f"initialisation failed: {exc!r}")
+
+
+def _fault_kind(kind: str | None) -> FaultKind:
+    """A task's reported kind as a FaultKind (anything unknown is the server's own bug)."""
+    known: tuple[FaultKind, ...] = ("timeout", "bus", "parity", "motor_stall", "protocol")
+    for k in known:
+        if kind == k:
+            return k
+    return "internal"

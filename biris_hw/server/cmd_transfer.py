@@ -37,6 +37,16 @@ if TYPE_CHECKING:
 __all__ = ["BirisCommand", "CommandChannel", "CommandPurpose", "Timer", "status_name"]
 
 
+TIMEOUT_REAL_SLACK_S = 0.1
+"""Real seconds the BIRIS timeout allows on top of its hardware seconds.
+
+The countdown is the report's 4 s per command on the hardware clock, restarted by every
+acquisition, so a sequence longer than 4 s never times out while data arrive. But the evidence
+of life reaches the administrator through threads the host schedules: on a simulator clock 30
+times fast, 100 ms of starvation is 3 hardware seconds. The slack keeps a busy host from
+faking a hang; at x1 it adds 0.1 s to the 4 s bound."""
+
+
 class Timer(Protocol):
     """What the administrator needs of a deadline timer (the real one is a task; tests fake it)."""
 
@@ -84,7 +94,7 @@ def status_name(status: int) -> str:
 class CommandChannel:
     """The queue of BIRIS commands, the one in flight, the parked workers and the timeout."""
 
-    def __init__(self, timer: Timer, timeout_s: float) -> None:
+    def __init__(self, timer: Timer, timeout_s: float, timeout_enabled: bool = True) -> None:
         self._timer = timer
         self._timeout_s = timeout_s
         self._queue: deque[BirisCommand] = deque()
@@ -95,7 +105,8 @@ class CommandChannel:
         self._notifier_env: Envelope | None = None
         """_Biris_cmd_notifier, parked on its last BIRIS_CMD_COMPLETE."""
         self._token = 0
-        self.timeout_enabled = False
+        self.timeout_enabled = timeout_enabled
+        """On unless the init record turns it off; BIRIS_TIMEOUT_ENABLE/DISABLE toggle it."""
         self._timeout_gen = -1
 
     @property
@@ -117,9 +128,7 @@ class CommandChannel:
             return None
         cmd = self._queue.popleft()
         self.current = cmd
-        if self._notifier_env is not None:  # put the notifier back on its interrupt first
-            self._notifier_env.reply(None)
-            self._notifier_env = None
+        self.release_notifier()  # put the notifier back on its interrupt first
         env, self._transfer_env = self._transfer_env, None
         self._token += 1
         cmd.token = self._token
@@ -135,11 +144,19 @@ class CommandChannel:
 
         The notifier stays parked (replied just before the next command is issued).
         """
-        self._notifier_env = env
         if self.current is None or token != self.current.token:
+            env.reply(None)  # stale: nothing will follow it, so the notifier goes straight back
             return None
+        self._notifier_env = env
         cmd, self.current = self.current, None
         return cmd
+
+    def release_notifier(self) -> None:
+        """Reply to the parked notifier, if it still waits (a case that failed after parking
+        it has answered it already, with the error)."""
+        env, self._notifier_env = self._notifier_env, None
+        if env is not None and env.waiting:
+            env.reply(None)
 
     def discard(self, keep: Callable[[BirisCommand], bool] | None = None) -> list[BirisCommand]:
         """Take waiting commands out of the queue (those ``keep`` refuses, or all); returns them.
@@ -154,6 +171,18 @@ class CommandChannel:
         self._queue = deque(c for c in self._queue if keep(c))
         return dropped
 
+    def abandon(self) -> list[BirisCommand]:
+        """A reset: every command, waiting or in flight, is given up; returns them.
+
+        BIRIS may still be executing the one in flight: its completion arrives with a token
+        nobody waits for and is counted stale; whoever issues the next command (the
+        initialiser) first waits until BIRIS has finished it.
+        """
+        dropped = [*([self.current] if self.current is not None else []), *self._queue]
+        self._queue.clear()
+        self.current = None
+        return dropped
+
     def waiting(self) -> Iterable[BirisCommand]:
         return tuple(self._queue)
 
@@ -164,14 +193,14 @@ class CommandChannel:
         Also how life from BIRIS (an acquisition) restarts the countdown.
         """
         if self.timeout_enabled and owed:
-            self._timeout_gen = self._timer.arm(self._timeout_s)
+            self._timeout_gen = self._timer.arm(self._timeout_s, TIMEOUT_REAL_SLACK_S)
         else:
             self._timer.disarm()
 
     def note_alive(self, owed: bool) -> None:
         """BIRIS has shown life: the countdown starts over if it runs (never disarms)."""
         if self.timeout_enabled and owed:
-            self._timeout_gen = self._timer.arm(self._timeout_s)
+            self._timeout_gen = self._timer.arm(self._timeout_s, TIMEOUT_REAL_SLACK_S)
 
     def timed_out(self, generation: int, owed: bool) -> bool:
         """BIRIS_TIMEOUT_ERR: True if it is the latest arming and BIRIS still owes."""

@@ -104,10 +104,15 @@ class Connections:
                 conn.offer(point, now)
             self._counters.deliveries += conn.delivered - before
 
-    def ready(self, env: Envelope, conn: ClientConn) -> None:
-        """READY_FOR_DATA: answered from the connection's queue, or parked until data come."""
+    def ready(self, env: Envelope, conn: ClientConn, poll: bool = False) -> None:
+        """READY_FOR_DATA: answered from the connection's queue, or parked until data come.
+
+        ``poll`` (the message's, for ``ready_for_data(timeout=0)``): answered at once either way,
+        with the oldest waiting buffer (or point) or, when none waits, a TimeoutError; never
+        parked, so the client's poll needs no deadline of its own.
+        """
         before = conn.delivered
-        conn.ready(env, self._clock())
+        conn.ready(env, self._clock(), poll=poll)
         self._counters.deliveries += conn.delivered - before
 
     def hand_over(self, env: Envelope, conn: ClientConn, item: Scan | Point | None) -> None:

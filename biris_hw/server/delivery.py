@@ -12,12 +12,14 @@ connection's :class:`LatencyHistogram`. Only the administrator thread touches th
 
 from __future__ import annotations
 
+import operator
 import threading
 import weakref
 from collections import deque
 from dataclasses import dataclass, field
 from typing import TypeVar
 
+from biris_hw.angles import shown
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
 from biris_hw.errors import RequestError
 from biris_hw.ipc import Envelope
@@ -33,7 +35,15 @@ MAX_DEPTH = 1 << 16
 
 
 def check_policy(kind: ConnectionKind, policy: object, depth: object) -> tuple[DeliveryPolicy, int]:
-    """The policy and queue depth an OPEN_REQUEST asks for, checked; RequestError if bad."""
+    """The policy and queue depth an OPEN_REQUEST asks for, checked.
+
+    ``depth`` may be any integer type (a numpy ``int64`` from a computed size passes) and comes
+    back a plain int; None means the policy's default.
+
+    Raises:
+        RequestError: an unknown policy, a policy on a NORMAL connection, or a depth that is not
+            a whole number in 1..MAX_DEPTH (1 under LATEST).
+    """
     try:
         chosen = DeliveryPolicy(policy)
     except ValueError:
@@ -42,11 +52,18 @@ def check_policy(kind: ConnectionKind, policy: object, depth: object) -> tuple[D
         raise RequestError("a delivery policy is for DATA connections")
     if depth is None:
         return chosen, chosen.default_depth
-    if isinstance(depth, bool) or not isinstance(depth, int) or not 1 <= depth <= MAX_DEPTH:
-        raise RequestError(f"depth must be a whole number in 1..{MAX_DEPTH}, not {depth!r}")
-    if chosen is DeliveryPolicy.LATEST and depth != 1:
-        raise RequestError("LATEST keeps only the newest scan: its depth is 1")
-    return chosen, depth
+    wanted = f"depth: must be a whole number in 1..{MAX_DEPTH}"
+    if isinstance(depth, bool):
+        raise RequestError(f"{wanted}, not a bool")
+    try:
+        number = operator.index(depth)  # type: ignore[arg-type]  # any integer type
+    except TypeError:
+        raise RequestError(f"{wanted}, not {type(depth).__name__}") from None
+    if not 1 <= number <= MAX_DEPTH:
+        raise RequestError(f"{wanted}, not {shown(number)}")
+    if chosen is DeliveryPolicy.LATEST and number != 1:
+        raise RequestError("depth: LATEST keeps only the newest scan: its depth is 1")
+    return chosen, number
 
 
 def stamp(item: _Data, now: float) -> _Data:
@@ -144,14 +161,22 @@ class ClientConn:
         """Acquisitions the server never had (a point stream would have carried them)."""
         self.dropped += count
 
-    def ready(self, env: Envelope, now: float) -> bool:
-        """READY_FOR_DATA: reply at once from the queue (True), or park the request (False)."""
+    def ready(self, env: Envelope, now: float, *, poll: bool = False) -> bool:
+        """READY_FOR_DATA: reply at once from the queue (True), or park the request (False).
+
+        With ``poll`` (``ready_for_data(timeout=0)``) the request is never parked: an empty
+        queue fails it at once with TimeoutError (True). A poll that finds nothing leaves a
+        READY_FOR_DATA parked by another thread where it is: it asked for nothing to change.
+        """
         if self.queue:
             item = self.queue[0]
             sent = stamp(item, now)
             if env.reply((sent, self.dropped)) is not False:
                 self.queue.popleft()
                 self.record(sent)
+            return True
+        if poll:
+            env.fail(TimeoutError(f"no data waiting for connection {self.ident}"))
             return True
         if self.waiting is not None:
             self.waiting.fail(RequestError("superseded by a newer READY_FOR_DATA"))

@@ -6,17 +6,36 @@ board's index latch ("the zero index of each drive is found by polling") and sta
 both, boots BIRIS with the record's boot file, asks BIRIS where its range array, azimuth table
 and frame size are, and loads the calibration table for elevation 0.
 
+**Which index.** The pan's index fires once per revolution, so the one nearest the head is true
+zero's only if the head is within half a revolution of true zero. The hardware bundle's
+:class:`~biris_hw.pan_reference.PanReference` says what is known (issue 11, defect 1): before
+the pan chip is reset its counter is read with the head standing still, and the reference turns
+that into an interval of possible offsets to true zero -- exact after an in-process reset or a
+restart with a consistent journal, +-180 degrees around the head at a fresh start (the
+operator's precondition), the last recorded move's span when the chip lost its count. The
+index is then looked for only where the head stays within +-0x1000 of true zero whichever
+offset is the true one, and where an index found can only be true zero's
+(:func:`~biris_hw.pan_reference.index_search_range`): a narrow window around true zero when
+the reference is exact, never more than half a revolution either side of where the head woke
+when it is not. An index missing from that window means the position is lost: a
+HardwareFault("motor_stall") telling the operator what to check, and the reference is dropped.
+
 The tilt axis is homed like the pan axis but within its own reach: a tilt head cannot turn a
 revolution looking for its index, so the search stays within the widest of the record's
 elevation limits either side of where the head woke up (the head is assumed to power up within
 its limits, as a tilt head resting on its stops does). Its index marks the level head.
 
-A BI_STOP_CONTINUOUS goes first, before anything moves: a server that stopped (or faulted)
-during Appendix D's continuous mode leaves BIRIS acquiring, homing the tilt under a running
-acquisition is exactly what must not happen, and BIRIS refuses to boot meanwhile; when BIRIS is
-not acquiring the stop simply completes. Moves and BIRIS commands go through the
-administrator (InitMove, InitCommand) so that they use the same workers and notifiers as scans.
-Every step is bounded: no index within the configured revolutions, a command BIRIS never
+**A busy BIRIS first.** A driver that died (or a reset that abandoned a scan) may leave BIRIS
+executing a command, typically a long BI_ACQUIRE; a command written meanwhile is lost
+(CMD_WHILE_BUSY, defect 8). So before its first command the initialiser polls COMMAND until
+BIRIS clears it, bounded by what can be running: for BI_ACQUIRE the count its PARAM still holds
+times the longest acquisition period, plus the start-up and the record's BIRIS timeout;
+otherwise the timeout alone. Then a BI_STOP_CONTINUOUS goes first, before anything moves: a
+server that stopped (or faulted) during Appendix D's continuous mode leaves BIRIS acquiring,
+homing the tilt under a running acquisition is exactly what must not happen, and BIRIS refuses
+to boot meanwhile; when BIRIS is not acquiring the stop simply completes. Moves and BIRIS
+commands go through the administrator (InitMove, InitCommand) so that they use the same workers
+and notifiers as scans. Every step is bounded: no index where it may be, a command BIRIS never
 completes, or a move that never ends is a HardwareFault, never a hang.
 
 The registers are reached through the hardware bundle's one set of drivers
@@ -30,15 +49,25 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from biris_hw.angles import counts_to_deg
+from biris_hw.devices import AxisDriver
 from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
+from biris_hw.pan_reference import NARROW_WINDOW, index_search_range
 from biris_hw.records import BirisInitRecord
 from biris_hw.server.cmd_transfer import status_name
 from biris_hw.server.messages import InitCommand, InitMove
 from regs.biexec import BiCommand, BiStatus, decode_param
-from regs.hctl1000 import COUNTS_PER_REV
-from regs.layout import FrameAddressing, acquisition_period_s, samples_for_frame_size
+from regs.hctl1000 import COUNTS_PER_REV, MOTION_LIMIT_COUNTS
+from regs.layout import (
+    FIELD_PERIOD_S,
+    SAMPLES_CHOICES,
+    STARTUP_LATENCY_S,
+    FrameAddressing,
+    acquisition_period_s,
+    samples_for_frame_size,
+)
 from regs.tech80 import DEFAULT_IRQ_VECTOR, Axis
 
 __all__ = ["InitResult", "Initialiser", "run_initialiser"]
@@ -55,6 +84,21 @@ cover a revolution in a few moves."""
 TILT_HOMING_CHUNK = 64
 """The tilt's first coarse move (5.6 degrees): a tilt head wakes near level, so its index is
 near, and every count searched costs a bisection step."""
+
+LONGEST_ACQUISITION_S = max(acquisition_period_s(samples) for samples in SAMPLES_CHOICES)
+"""One acquisition at the slowest rate BIRIS runs (3 fields, 128 samples): before BI_BOOT's
+answers the driver cannot know which rate the previous driver booted."""
+
+UNREADABLE_ACQUIRE_COUNT = 1024
+"""Acquisitions assumed when a running BI_ACQUIRE's PARAM is no longer readable: the most BIRIS
+memory holds (``BirisMemoryMap.max_acquisitions``)."""
+
+BUSY_POLL_S = FIELD_PERIOD_S
+"""How often COMMAND is read while waiting for BIRIS: it completes commands at vertical sync."""
+
+REBASE_ATTEMPTS = 3
+"""Re-zeroings of the pan counter allowed to bring the search window within the chip's own
++-0x1000 (one is always enough for a head within a revolution of true zero)."""
 
 
 @dataclass(frozen=True)
@@ -84,6 +128,7 @@ class Initialiser:
         self.elevation = hw.devices.elevation
         self.coupler = hw.devices.coupler
         self.link = hw.devices.link
+        self.reference = hw.pan_reference
         self._position = {Axis.AZIMUTH: 0, Axis.ELEVATION: 0}
 
     # -- steps ---------------------------------------------------------------------------------
@@ -97,20 +142,78 @@ class Initialiser:
         return self.boot_biris()
 
     def stop_acquisition(self) -> None:
-        """Quiet BIRIS before anything moves: interrupts as the server wants them, and
-        BI_STOP_CONTINUOUS, since a tilt must never happen under a running acquisition."""
+        """Quiet BIRIS before anything moves: interrupts as the server wants them, wait for a
+        command still running, and BI_STOP_CONTINUOUS, since a tilt must never happen under a
+        running acquisition."""
         self.link.set_flags(cmd_int=True, data_int=False, motor_access=True)
+        self.wait_biris_idle()
         self._command(BiCommand.BI_STOP_CONTINUOUS)
+
+    def wait_biris_idle(self) -> None:
+        """Poll COMMAND until BIRIS has cleared it, on the hardware clock, bounded by what runs.
+
+        A BI_ACQUIRE of n acquisitions takes BIRIS's start-up plus n acquisition periods; the
+        record's BIRIS timeout comes on top (it is how long any command may take), and is the
+        whole bound for any other command. The poll waits on the server's stop event, so a
+        closing server is never held up; expiry is HardwareFault("timeout"), since a BIRIS that
+        never clears COMMAND is hung and a command written now would be lost.
+        """
+        code = self.link.command()
+        if code == 0:
+            return
+        name = _command_name(code)
+        limit = self.record.timeout_s
+        if code == BiCommand.BI_ACQUIRE:
+            count = self._running_acquisitions()
+            limit += STARTUP_LATENCY_S + count * LONGEST_ACQUISITION_S
+            name = f"{name} of {count} acquisitions"
+        clock, scale = self.hw.clock, self.hw.time_scale
+        started = clock()
+        deadline = started + limit
+        log.info("BIRIS still busy with %s: waiting up to %.1f s for it to finish", name, limit)
+        while True:
+            if self.stop.wait(BUSY_POLL_S / scale):
+                return  # the server is closing: the next step finds the administrator gone
+            code = self.link.command()
+            if code == 0:
+                log.info("BIRIS finished %s after %.2f s", name, clock() - started)
+                return
+            if clock() >= deadline:
+                raise HardwareFault(
+                    "timeout",
+                    f"BIRIS still busy with {name} after {limit:.1f} s (COMMAND {code}): it "
+                    f"does not answer; check BIRIS, then reset",
+                )
+
+    def _running_acquisitions(self) -> int:
+        """The count a running BI_ACQUIRE was given: PARAM still holds the old driver's text
+        until BIRIS answers in it. Unreadable, the most BIRIS memory could hold."""
+        try:
+            count = int(decode_param(self.link.param_raw()).strip())
+        except ValueError:
+            return UNREADABLE_ACQUIRE_COUNT
+        return max(0, min(count, UNREADABLE_ACQUIRE_COUNT))
 
     def configure_axes(self) -> None:
         """Reset both chips, load the motor parameters, hold each axis where it stands, and
-        enable both end-of-scan interrupts (MOTOR_END_OF_SCAN, ELEVATION_END_OF_SCAN)."""
+        enable both end-of-scan interrupts (MOTOR_END_OF_SCAN, ELEVATION_END_OF_SCAN).
+
+        The pan is first stopped (init/idle: a scan may have been running) and, once it stands
+        still, its counter and parameters are read and handed to the pan reference
+        (:meth:`~biris_hw.pan_reference.PanReference.locate`): the reset is about to zero the
+        counter where the head stands, and that reading is what ties the new count to true
+        zero. A position already lost (see ``locate``) is a fault before anything moves.
+        """
         self.board.disable_all()
+        counter = self._locate_pan()
         for axis, params in (
             (self.azimuth, self.record.motor),
             (self.elevation, self.record.tilt_motor),
         ):
             self.board.reset_chip(axis.axis)
+            if axis is self.azimuth:
+                # after the reset (a crash between them reads as a chip reset, see pan_reference)
+                self.reference.chip_reset(counter)
             axis.configure(params)
             axis.wait_still(self.stop)  # after a reset the motor coasts
             axis.hold_here()
@@ -118,6 +221,22 @@ class Initialiser:
             self._position[axis.axis] = axis.command_position()
         self.board.enable_end_of_scan(Axis.AZIMUTH, DEFAULT_IRQ_VECTOR)
         self.board.enable_end_of_scan(Axis.ELEVATION, DEFAULT_IRQ_VECTOR)
+
+    def _locate_pan(self) -> int:
+        """Stop the pan, let it come to rest, and ask the reference what its counter means;
+        returns the counter (where the head stands). Raises the "position lost" fault."""
+        pan = self.azimuth
+        pan.idle()
+        pan.wait_still(self.stop)
+        counter = pan.actual_position()
+        where = self.reference.locate(counter, pan.read_params())
+        if where.lost:
+            self.reference.lose(where.reason)
+            raise _position_lost(f"{where.reason}. Nothing was moved")
+        log.info(
+            "pan: %s (%s); offset to true zero %s counts", where.how, where.reason, where.offset
+        )
+        return counter
 
     def _move(self, destination: int, axis: Axis = Axis.AZIMUTH) -> None:
         if destination == self._position[axis]:
@@ -133,51 +252,140 @@ class Initialiser:
             raise HardwareFault("timeout", f"initialisation step {message} timed out") from exc
 
     def find_zero_index(self, axis: Axis = Axis.AZIMUTH) -> None:
-        """Find the index nearest the power-up position, then stand on it as encoder count 0.
+        """Find the axis's zero index and stand on it as encoder count 0.
 
-        Coarse: sweep alternately counter-clockwise and clockwise, each sweep reaching further
-        (256, 512, 1024 ... counts either side, up to half the configured revolutions), clearing
-        the board's index latch before each; the first sweep that sets it found the index in the
-        territory that sweep added. Searching outwards keeps the head within half a revolution
-        of where it woke up, so the cable is never wound further than it has to be. Fine: bisect
-        that territory, crossing the index again for each half, to one count.
-
-        The tilt searches the same way from 64 counts, within the widest elevation limit.
+        The pan looks only where the reference allows (:meth:`_home_pan`); the tilt searches
+        outward from where it woke, within the widest elevation limit. Either way: coarse
+        sweeps alternately each way, reaching further each time, clearing the board's index
+        latch before each, until one sets it; then a bisection of the territory that sweep
+        added, crossing the index again for each half, to one count.
         """
-        board = self.board
-        start = self._position[axis]
         if axis is Axis.AZIMUTH:
-            half = max(1, round(self.record.home_index_timeout_revs * COUNTS_PER_REV / 2))
-            chunk, driver, what = HOMING_CHUNK, self.azimuth, "revolution(s)"
-        else:
-            half = max(1, *(abs(v) for v in self.record.elevation_limits_counts))
-            chunk, driver, what = TILT_HOMING_CHUNK, self.elevation, "counts of tilt"
-        reach, targets = min(chunk, half), []
-        while True:
-            targets += [start + reach, start - reach]
-            if reach >= half:
-                break
-            reach = min(reach * 2, half)
-        covered_lo = covered_hi = start
-        bracket: tuple[int, int] | None = None
-        for target in targets:
-            board.clear_index(axis)
-            self._move(target, axis)
-            if board.index_seen(axis):
-                if target > covered_hi:
-                    bracket = (covered_hi - 2, target)
-                else:
-                    bracket = (target, covered_lo + 2)
-                break
-            covered_lo, covered_hi = min(covered_lo, target), max(covered_hi, target)
+            self._home_pan()
+            return
+        start = self._position[axis]
+        half = max(1, *(abs(v) for v in self.record.elevation_limits_counts))
+        bracket = self._sweep(axis, start - half, start + half, start, TILT_HOMING_CHUNK)
         if bracket is None:
-            reach_text = (
-                f"{self.record.home_index_timeout_revs:g}" if axis is Axis.AZIMUTH else f"{half}"
-            )
             raise HardwareFault(
                 "motor_stall",
-                f"{driver.axis.name.lower()}: no zero index within {reach_text} {what}",
+                f"{axis.name.lower()}: no zero index within {half} counts of tilt",
             )
+        self._stand_on_index(axis, self.elevation, bracket)
+
+    def _home_pan(self) -> None:
+        """Home the pan on TRUE zero's index, never further than the reference allows.
+
+        The window is :func:`~biris_hw.pan_reference.index_search_range` of the reference's
+        interval: +-:data:`NARROW_WINDOW` around true zero when the counter is referenced (the
+        head first goes to true zero, then sweeps to either edge), +-180 degrees around where
+        the head woke at a fresh start (also never beyond half the record's
+        ``home_index_timeout_revs`` either side), the span of the last recorded move when the
+        chip lost its count. The chip's own counter may not reach that window (its +-0x1000 are
+        counted from where the reset found the head, a revolution round perhaps): the head then
+        goes to where the search starts, and the counter is re-zeroed there (the reference
+        shifts with it).
+        """
+        referenced = self.reference.referenced
+        for _ in range(REBASE_ATTEMPTS):
+            low, high = self._pan_window(referenced)
+            if low > high:
+                raise self._pan_lost(referenced, "no safe search window")
+            start = self._pan_start(referenced, low, high)
+            if low >= -MOTION_LIMIT_COUNTS and high <= MOTION_LIMIT_COUNTS:
+                break
+            self._move(max(-MOTION_LIMIT_COUNTS, min(MOTION_LIMIT_COUNTS, start)))
+            self._rezero_pan()
+        else:
+            raise self._pan_lost(referenced, "the counter cannot reach the search window")
+        self._move(start)
+        bracket = self._sweep(Axis.AZIMUTH, low, high, start, HOMING_CHUNK)
+        if bracket is None:
+            span = f"{counts_to_deg(high - low):.0f} deg searched, encoder counts {low}..{high}"
+            raise self._pan_lost(referenced, f"no zero index ({span})")
+        self._stand_on_index(Axis.AZIMUTH, self.azimuth, bracket)
+        self.reference.homed()
+
+    def _pan_start(self, referenced: bool, low: int, high: int) -> int:
+        """Where the pan search starts: on true zero itself when the counter is referenced (the
+        window is centred there, and the sweeps reach its edges), else the window's point
+        nearest the head, from which the search goes outward."""
+        if referenced:
+            offset = self.reference.offset
+            assert offset is not None
+            return min(max(-offset[0], low), high)
+        return min(max(self._position[Axis.AZIMUTH], low), high)
+
+    def _pan_window(self, referenced: bool) -> tuple[int, int]:
+        """Counters (now) where the pan may look for true zero's index; empty if low > high."""
+        offset = self.reference.offset
+        if offset is None:  # dropped meanwhile (a journal that could not be written)
+            return (1, 0)
+        low, high = index_search_range(offset, NARROW_WINDOW)
+        if not referenced:
+            half = max(1, round(self.record.home_index_timeout_revs * COUNTS_PER_REV / 2))
+            centre = min(max(self._position[Axis.AZIMUTH], low), high)
+            low, high = max(low, centre - half), min(high, centre + half)
+        return (low, high)
+
+    def _pan_lost(self, referenced: bool, what: str) -> HardwareFault:
+        """Drop the reference and build the fault that says what happened; the head stays
+        where the search left it, inside the window (safe whichever offset was the true one)."""
+        offset = self.reference.offset or (0, 0)
+        if referenced:
+            text = (
+                f"{what} within {counts_to_deg(NARROW_WINDOW):.1f} deg of where true zero must "
+                f"be (encoder count {-offset[0]}): the head has moved without the driver "
+                f"(turned by hand while the driver was down, a slipping coupling) or the "
+                f"encoder lost counts"
+            )
+        else:
+            text = (
+                f"{what} where true zero may be (or the index sensor, the amplifier or the "
+                f"motor does not work)"
+            )
+        self.reference.lose(text)
+        return _position_lost(text)
+
+    def _rezero_pan(self) -> None:
+        """Re-zero the pan counter where the head stands (after a move): the reference keeps
+        its relation to true zero, since the counter is read first."""
+        pan = self.azimuth
+        pan.idle()
+        pan.wait_still(self.stop)
+        counter = pan.actual_position()
+        pan.hold_here(zero_counter=True)
+        self.reference.rezeroed(counter)
+        self._position[Axis.AZIMUTH] = 0
+
+    def _sweep(
+        self, axis: Axis, low: int, high: int, start: int, chunk: int
+    ) -> tuple[int, int] | None:
+        """Coarse search within [low, high] outward from ``start`` (where the head stands):
+        the (low, high) bracket of the first sweep that set the index latch, or None."""
+        board = self.board
+        covered_lo = covered_hi = start
+        reach = chunk
+        while covered_lo > low or covered_hi < high:
+            for target in (min(start + reach, high), max(start - reach, low)):
+                if covered_lo <= target <= covered_hi:
+                    continue  # that side is searched to its end already
+                board.clear_index(axis)
+                self._move(target, axis)
+                if board.index_seen(axis):
+                    # 2 counts of margin at both ends: the head may have stopped on the index
+                    # (it overshot it and came back), and the bisection must start below it
+                    if target > covered_hi:
+                        return (max(covered_hi - 2, low), min(target + 2, high))
+                    return (max(target - 2, low), min(covered_lo + 2, high))
+                covered_lo, covered_hi = min(covered_lo, target), max(covered_hi, target)
+            reach *= 2
+        return None
+
+    def _stand_on_index(self, axis: Axis, driver: AxisDriver, bracket: tuple[int, int]) -> None:
+        """Bisect the bracket to one count, always crossing from below, then stand there as
+        encoder count 0."""
+        board = self.board
         low, high = bracket
         while high - low > 1:
             mid = (low + high) // 2
@@ -228,6 +436,23 @@ class Initialiser:
             raise HardwareFault("protocol", f"frame size {frame_size}: {exc}") from exc
         self.link.set_flags(data_int=True)
         return InitResult(FrameAddressing(range_off, frame_size, azim_off), samples, period)
+
+
+def _position_lost(detail: str) -> HardwareFault:
+    """The "position lost" fault: what happened, and what the operator must do about it."""
+    return HardwareFault(
+        "motor_stall",
+        f"pan position lost: {detail}. The head's revolution is no longer known, so it is not "
+        f"homed. Check the head and its cable; turn it by hand to within +-180 deg of dead "
+        f"ahead, unwinding the cable, then reset: homing then searches afresh around it",
+    )
+
+
+def _command_name(code: int) -> str:
+    try:
+        return BiCommand(code).name
+    except ValueError:
+        return f"command {code}"
 
 
 def _parse_int(text: str, base: int, what: str) -> int:

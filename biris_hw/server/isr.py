@@ -38,6 +38,13 @@ never writes the next command before it has serviced BIRIS_CMD.
 A BusError while reading the coupler or COMMAND is itself a failed cycle across the coupler, so
 it raises BIT3_BERR and the routine keeps running.
 
+**Failure.** The server runs both routines under its supervisor
+(:meth:`~biris_hw.irq.Demultiplexer.serve`). A physical line that is closed under a routine, or
+that fails, means the target has gone: the supervisor reports a ``bus`` fault. Anything else a
+routine raises is an ``internal`` one. Either way the routine then waits for the next reset and
+runs again. The data notifier that shares the level-2 thread reports its own failures and is
+detached until that reset re-attaches it (:meth:`Level2Demux.attach_data_notifier`).
+
 **biris_data_notifier shares the level-2 thread** (the server's task table says so, and why). A
 data notifier attached with :meth:`Level2Demux.attach_data_notifier` is run here in place of
 raising BIRIS_DATA_DEV: it reads the completed acquisitions and *posts* NEW_POINT one-way, so it
@@ -59,6 +66,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import threading
 from collections.abc import Callable
 
 from biris_hw.bus.base import BusWindow
@@ -124,15 +132,19 @@ class Level2Demux(Demultiplexer[Logical]):
         self._seen_errors = 0  # only the service thread touches it
         self._continuous = False
         self._data_notifier: Callable[[int], bool] | None = None
+        self._attach_lock = threading.Lock()
 
     def attach_data_notifier(self, notifier: Callable[[int], bool] | None) -> None:
         """Run ``notifier(count)`` in this thread for BIRIS_DATA_DEV instead of raising its line.
 
-        ``notifier`` must not block on another task (the server's posts one-way); it returns
-        False once its task has ended (the administrator stopped), and the line is raised again
-        from then on. None detaches. A plain store: safe at any time.
+        ``notifier`` must not block on another task (the server's posts one-way). It returns
+        False once its task has ended (the administrator stopped, or it failed and reported
+        so); it is then detached and the line is raised again, until a notifier is attached
+        anew. None detaches. Safe at any time, from any thread: a notifier attached while the
+        previous one is ending is never detached in its place.
         """
-        self._data_notifier = notifier
+        with self._attach_lock:
+            self._data_notifier = notifier
 
     @property
     def continuous(self) -> bool:
@@ -168,9 +180,11 @@ class Level2Demux(Demultiplexer[Logical]):
     def _data(self, count: int) -> None:
         """BIRIS_DATA_DEV: to the attached data notifier, run here, or else raised on its line.
 
-        Counted before the notifier runs, as a raise is counted before its notifier wakes. A
-        notifier's failure is logged and the routine goes on: the other logical interrupts of
-        the level must not die with it.
+        Counted before the notifier runs, as a raise is counted before its notifier wakes. The
+        routine goes on whatever the notifier does, because the other logical interrupts of the
+        level must not die with it. The server's notifier reports its own failure and returns
+        False, which detaches it until a reset attaches a new one. A notifier that raises
+        instead is logged and stays attached.
         """
         notifier = self._data_notifier
         if notifier is None:
@@ -178,10 +192,14 @@ class Level2Demux(Demultiplexer[Logical]):
             return
         self._count(Logical.BIRIS_DATA_DEV, count)
         try:
-            if not notifier(count):
-                self._data_notifier = None
-        except Exception:
+            ended = not notifier(count)
+        except Exception:  # a notifier that does not report its own failures
             log.exception("level 2: the data notifier failed; it stays attached")
+            return
+        if ended:
+            with self._attach_lock:
+                if self._data_notifier is notifier:  # not one attached since it was called
+                    self._data_notifier = None
 
     def _coupler_errors(self) -> bool:
         """Raise the error interrupts newly shown in LOCAL_STATUS; True if any was raised."""
@@ -215,16 +233,18 @@ class Level3Demux(Demultiplexer[Logical]):
         self._motion = motion
 
     def _service(self, count: int) -> None:
-        try:
-            status = self._motion.read8(BoardReg.IRQ_STATUS)
-            ended = [(bit, logical) for bit, logical in _AXES if status & bit]
-            if not ended:
-                self._count_spurious(count)
-                return
-            for bit, logical in ended:
-                self._motion.write8(BoardReg.IRQ_STATUS, bit)
-                self._raise(logical)
-        except BusError as exc:
-            # The board sits on the host's own bus: this is not a coupler fault, and the motor
-            # notifier's stall detection will report the missing end of scan.
-            log.error("level 3: Model 7600 IRQ_STATUS not serviced: %s", exc)
+        """Acknowledge and raise each axis that ended its profile.
+
+        A BusError on IRQ_STATUS is raised on: the board sits on the host's own bus, so this is
+        not a coupler fault that BIT3_BERR could carry, and waiting for the motor watchdog would
+        report a lost board as a stalled motor. Under the server's supervisor it is a ``bus``
+        fault at once.
+        """
+        status = self._motion.read8(BoardReg.IRQ_STATUS)
+        ended = [(bit, logical) for bit, logical in _AXES if status & bit]
+        if not ended:
+            self._count_spurious(count)
+            return
+        for bit, logical in ended:
+            self._motion.write8(BoardReg.IRQ_STATUS, bit)
+            self._raise(logical)

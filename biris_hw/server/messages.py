@@ -49,6 +49,9 @@ class NewPoint:
     acquisitions: tuple[Acquisition, ...]
     lost: int = 0
     """Acquisitions known to be gone (overwritten before they could be read)."""
+    idle: int = 0
+    """Continuous acquisition: ring frames BIRIS completed while no sweep wanted them, which the
+    reader skipped unread (Drained.idle); counted in idle_ring_frames."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,11 +65,21 @@ class AzReady:
 
     error: str | None = None
     """Why the previous order failed, if it did."""
+    kind: str | None = None
+    """The failure's fault kind (a :data:`biris_hw.errors.FaultKind`), if it failed."""
 
 
 @dataclass(frozen=True, slots=True)
 class AzScanDone:
-    """AZ_SCAN_DONE: MOTOR_END_OF_SCAN arrived (the profile's last setpoint was issued)."""
+    """AZ_SCAN_DONE: MOTOR_END_OF_SCAN arrived (the profile's last setpoint was issued), and
+    the notifier has waited for the head to come to rest and read where it stands."""
+
+    position: int | None = None
+    """The encoder after settling (counts), None if it could not be read."""
+    settled: bool = True
+    """False if the head did not come to rest within the settling limit."""
+    token: int | None = None
+    """The MoveOrder.token of the move that ended (None: unknown, taken as the current one)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,11 +88,20 @@ class ElReady:
 
     error: str | None = None
     """Why the previous order failed, if it did."""
+    kind: str | None = None
+    """The failure's fault kind (a :data:`biris_hw.errors.FaultKind`), if it failed."""
 
 
 @dataclass(frozen=True, slots=True)
 class ElScanDone:
     """EL_SCAN_DONE: ELEVATION_END_OF_SCAN arrived and the tilt has come to rest."""
+
+    position: int | None = None
+    """The encoder after settling (counts), None if it could not be read."""
+    settled: bool = True
+    """False if the tilt did not come to rest within the settling limit."""
+    token: int | None = None
+    """The MoveOrder.token of the move that ended (None: unknown, taken as the current one)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -135,6 +157,19 @@ class BirisParityErr:
 
 
 @dataclass(frozen=True, slots=True)
+class TaskFailed:
+    """A task met what it cannot carry on from (beyond the report): a bus error reading the
+    target -- the link is gone -- or an exception nobody expected. Posted one-way; the
+    administrator turns it into a fault of ``kind`` ("bus" or "internal") that every caller is
+    told about, and a reset restarts the task."""
+
+    task: str
+    kind: str
+    """"bus" or "internal" (a :data:`biris_hw.errors.FaultKind`)."""
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
 class InitCommand:
     """The initialiser asks for a BIRIS command; replied with (status, PARAM) on completion."""
 
@@ -186,6 +221,10 @@ class MoveOrder:
     destination: int
     sweep: int = 0
     follows: bool = False
+    token: int = 0
+    """Names this move (the administrator numbers every move it dispatches); the axis notifier
+    reports it back in AZ_SCAN_DONE / EL_SCAN_DONE, so the end of a move abandoned by a reset is
+    never taken for the end of the next one."""
 
 
 @dataclass(frozen=True, slots=True)

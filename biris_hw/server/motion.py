@@ -32,8 +32,17 @@ if TYPE_CHECKING:
     from biris_hw.server.elevation import Tilt
     from biris_hw.server.scan_assembly import ActiveScan
 
-__all__ = ["AxisState", "Motion", "MotionPurpose", "expected_move_s"]
+__all__ = ["ARRIVAL_TOLERANCE_COUNTS", "AxisState", "Motion", "MotionPurpose", "expected_move_s"]
 
+
+ARRIVAL_TOLERANCE_COUNTS = 8
+"""How far from its destination an axis may stand once its move has ended (counts, 0.7 degree).
+
+The HCTL-1000 ends its profile whatever the shaft does, so the end of a move proves nothing: the
+notifier reads the encoder once the head has settled, and a miss beyond this is a motor_stall
+fault, never a completed scan. Appendix B's filter settles to 0 counts with at most 2 of
+overshoot; 8 leaves room for a softer user filter while any real failure (a locked shaft, a dead
+amplifier, a gain of 0) misses by the whole move."""
 
 WATCHDOG_REAL_SLACK_S = 0.5
 """Real seconds a motor watchdog allows on top, for notifier threads that a busy machine runs
@@ -85,6 +94,9 @@ class AxisState:
         self.current: Motion | None = None
         self.position = 0
         self.watchdog_gen = -1
+        self._tokens = 0
+        self.destination: int | None = None
+        """Where the running move goes (None while no move runs)."""
 
     @property
     def name(self) -> str:
@@ -123,7 +135,10 @@ class AxisState:
         order = job.order
         if isinstance(order, MoveOrder):
             dest = clamp_counts(order.destination)
-            order = dataclasses.replace(order, destination=dest)
+            self._tokens += 1
+            order = dataclasses.replace(order, destination=dest, token=self._tokens)
+            job.order = order
+            self.destination = dest
             duration = expected_move_s(dest - self.position, self.motor)
             # the notifier's settling may take up to SETTLE_LIMIT_S more, then threads run late
             self.watchdog_gen = self.watchdog.arm(
@@ -136,9 +151,18 @@ class AxisState:
     def finish_current(self) -> Motion | None:
         """The running order is over (its end was reported); returns it."""
         job, self.current = self.current, None
+        self.destination = None
         if job is not None and isinstance(job.order, MoveOrder):
             self.watchdog.disarm()
         return job
+
+    def ends_current(self, token: int | None) -> bool:
+        """Whether an end-of-move report with ``token`` is the end of the move now running
+        (not of one a reset or fault abandoned)."""
+        job = self.current
+        if job is None or not isinstance(job.order, MoveOrder):
+            return False
+        return token is None or token == job.order.token
 
     def abandon(self) -> list[Motion]:
         """A fault or reset: every order, running or waiting, is given up; returns them."""
@@ -146,4 +170,5 @@ class AxisState:
         jobs = [*([self.current] if self.current else []), *self.queue]
         self.queue.clear()
         self.current = None
+        self.destination = None
         return jobs

@@ -54,6 +54,15 @@ class ActiveScan:
     cmd_done: bool = False
     """BIRIS_CMD_COMPLETE of its BI_ACQUIRE (SWEEP_DATA_DONE in continuous mode) has arrived."""
     status: int = 0
+    completed: bool = False
+    """:meth:`~biris_hw.server.scanning.ScanSequencer.complete` has made it a Scan: its kept
+    acquisitions are counted in ``acquisitions_in_scans`` (only its tail may still be pending)."""
+
+    def pending(self) -> int:
+        """Acquisitions it holds that no counter has settled yet (the accounts' "in progress"):
+        those it kept, until it completes or is abandoned, and its turn-around tail, until the
+        next sweep takes it or it is dropped."""
+        return len(self.tail) + (0 if self.completed else len(self.acqs))
 
     def head_moving(self, azimuth: int) -> bool:
         """Whether a continuous-mode acquisition belongs to the sweep: not made while the head

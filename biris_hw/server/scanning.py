@@ -22,6 +22,14 @@ sweeps is one acquisition period. Otherwise (a single scan, a tilt between sweep
 made with the head standing at either end are dropped and counted (``constant_azimuth``).
 
 The sequencer owns that state and decides; the administrator issues the orders it asks for.
+
+It also keeps the administrator's side of the acquisition accounts
+(:mod:`~biris_hw.server.counters`): every acquisition NEW_POINT brings is counted as read when
+:meth:`ScanSequencer.classify` sees it, and ends up in exactly one of: a completed scan
+(:meth:`ScanSequencer.complete`), standing (``constant_azimuth``: made at a sweep's start, or a
+turn-around no sweep took), stale, or aborted (:meth:`ScanSequencer.forget`: the scan a fault or
+reset abandons, with its tail) -- or is still held by the scan under way, or by the one just
+finished until its tail is taken (:meth:`ScanSequencer.in_progress`).
 """
 
 from __future__ import annotations
@@ -67,6 +75,9 @@ class ScanSequencer:
         self._mount = mount
         self._seq_ids = 0
         self.scan: ActiveScan | None = None
+        self._closing: ActiveScan | None = None
+        """The scan that has just finished (both halves done), until its acquisitions are
+        settled: completed as a Scan, or abandoned by a fault, and its tail taken or dropped."""
         self.deferred: DeferredScan | None = None
         self.continuous: tuple[int, int] | None = None
         """Continuous scanning's (CW, CCW) limits while it runs."""
@@ -143,7 +154,12 @@ class ScanSequencer:
 
     # -- data --------------------------------------------------------------------------------
     def classify(self, acq: Acquisition) -> AcquisitionFate:
-        """Whether NEW_POINT keeps ``acq`` in the scan under way."""
+        """Whether NEW_POINT keeps ``acq`` in the scan under way.
+
+        Every acquisition NEW_POINT brings passes here exactly once, so it is counted here as
+        read (``acquisitions_read``); its fate's counter settles it.
+        """
+        self._counters.acquisitions_read += 1
         scan = self.scan
         if scan is None or acq.seq_id != scan.seq_id:
             return AcquisitionFate.STALE
@@ -172,12 +188,25 @@ class ScanSequencer:
         if not follows:
             self._counters.constant_azimuth += len(after.tail)
         after.tail.clear()
+        self._settled(after)
         return points
 
     def drop_tail(self, scan: ActiveScan) -> None:
         """No sweep follows straight on: the turn-around's acquisitions were made standing."""
         self._counters.constant_azimuth += len(scan.tail)
         scan.tail.clear()
+        self._settled(scan)
+
+    def _settled(self, scan: ActiveScan) -> None:
+        """``scan`` holds nothing unsettled any more: it is no longer the closing scan."""
+        if self._closing is scan and scan.pending() == 0:
+            self._closing = None
+
+    def in_progress(self) -> int:
+        """Acquisitions read and held, not yet settled in any counter: those of the scan under
+        way (kept, and its tail), and the tail of the one just completed until the next sweep
+        takes it or it is dropped (the accounts' "in progress")."""
+        return sum(scan.pending() for scan in (self.scan, self._closing) if scan is not None)
 
     # -- the end of a scan -------------------------------------------------------------------
     def part_done(
@@ -193,8 +222,24 @@ class ScanSequencer:
             scan.status = cmd_status
         if scan.az_done and scan.cmd_done:
             self.scan = None
+            self._close(scan)
             return True
         return False
+
+    def _close(self, scan: ActiveScan) -> None:
+        """``scan`` has finished: it holds its acquisitions until completed or abandoned.
+
+        A previous closing scan still holding something (a tail no sweep took nor dropped: the
+        administrator could not start the next sweep) gives it up here, so that nothing is held
+        for ever: its tail as standing, anything it kept but never completed as aborted.
+        """
+        previous = self._closing
+        if previous is not None and previous is not scan:
+            if not previous.completed:
+                self._counters.aborted_acquisitions += len(previous.acqs)
+            self._counters.constant_azimuth += len(previous.tail)
+            previous.tail.clear()
+        self._closing = scan
 
     def complete(self, scan: ActiveScan) -> Scan:
         """``scan`` as the next buffer of its direction (double-buffered: replaced whole)."""
@@ -203,6 +248,9 @@ class ScanSequencer:
         self._seq[scan.direction] += 1
         self._counters.scans += 1
         self._counters.dropped_acquisitions += result.dropped
+        self._counters.acquisitions_in_scans += len(scan.acqs)
+        scan.completed = True
+        self._settled(scan)  # unless its tail waits for the next sweep
         return result
 
     def following(self, scan: ActiveScan) -> int | None:
@@ -215,7 +263,18 @@ class ScanSequencer:
         return None
 
     def forget(self) -> None:
-        """A fault or reset: no scan under way, asked for or continuing."""
+        """A fault or reset: no scan under way, asked for or continuing.
+
+        What the abandoned scans held is counted as aborted (``aborted_acquisitions``): the
+        acquisitions the scan under way had kept, and the turn-around tail it, or the sweep just
+        completed, held for a next sweep that will not come. A scan that finished but was never
+        completed (its BI_ACQUIRE ended with a bad STATUS, which is a fault) counts whole.
+        """
+        for scan in (self.scan, self._closing):
+            if scan is not None:
+                self._counters.aborted_acquisitions += scan.pending()
+                scan.tail.clear()
+        self._closing = None
         self.scan = None
         self.deferred = None
         self.continuous = None

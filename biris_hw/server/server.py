@@ -2,15 +2,19 @@
 
 The tasks, their threads and their order are the task table (:mod:`biris_hw.server.task_table`):
 the server starts each row's thread from it, with the body :meth:`BirisServer._task_bodies`
-gives that row, and refuses to start if the two disagree. ``close()`` stops every task and
-leaves no thread behind. The devices are the hardware bundle's one set of drivers
-(``BirisHardware.devices``), shared with the initialiser, ``status()`` and the CLI.
+gives that row, and refuses to start if the two disagree. Every thread runs its body under the
+server's :class:`~biris_hw.server.tasks.Supervisor`. A task that fails is reported to the
+administrator as a fault (``bus`` or ``internal``) and runs again at the next reset, so no
+exception kills a task for good. ``close()`` stops every task and leaves no thread behind. The
+devices are the hardware bundle's one set of drivers (``BirisHardware.devices``), shared with the
+initialiser, ``status()`` and the CLI.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import threading
 from collections.abc import Callable
@@ -32,7 +36,7 @@ from biris_hw.server.admin import Administrator
 from biris_hw.server.initialiser import Initialiser, InitResult, run_initialiser
 from biris_hw.server.isr import Level2Demux, Level3Demux, Logical
 from biris_hw.server.messages import BirisTimeoutErr, InitDone, MotorWatchdogErr
-from biris_hw.server.task_table import TASKS, Starts, task
+from biris_hw.server.task_table import TASKS, Starts, TaskSpec, task
 from biris_hw.status import ServerState, ServerStatus
 from regs.tech80 import Axis
 
@@ -70,6 +74,9 @@ class BirisServer:
         self.coupler = self.devices.coupler
         self.reader = AcquisitionReader(hw.biris, self.link, hw.clock, self.record.max_range)
         self.ledger = tasks.CommandLedger()
+        self.az_moves = tasks.MoveLedger()
+        self.el_moves = tasks.MoveLedger()
+        self.supervisor = tasks.Supervisor(self.inbox)
         self.level2 = Level2Demux(hw.level2, hw.coupler, hw.biris, hw.biexec_offset)
         self.level3 = Level3Demux(hw.level3, hw.motion)
         self.biris_timeout = tasks.DeadlineTimer(
@@ -103,8 +110,14 @@ class BirisServer:
             raise
 
     # -- task creation ---------------------------------------------------------------------
-    def _spawn(self, name: str, target: Callable[[], None]) -> None:
-        thread = threading.Thread(target=target, name=name, daemon=True)
+    def _spawn(self, spec: TaskSpec, body: Callable[[], None]) -> None:
+        """Start ``spec``'s thread, running ``body`` under the supervisor."""
+        thread = threading.Thread(
+            target=self.supervisor.run,
+            args=(spec.name, body, spec.restart),
+            name=spec.thread,
+            daemon=True,
+        )
         self._threads.append(thread)
         thread.start()
 
@@ -114,6 +127,7 @@ class BirisServer:
         inbox, reader, ledger, stop = self.inbox, self.reader, self.ledger, self._stop
         level2, level3 = self.level2, self.level3
         set_continuous = level2.set_continuous
+        data_failed = functools.partial(self.supervisor.failed, "biris_data_notifier")
         return {
             "biris_cmd_notifier": lambda: tasks.biris_cmd_notifier(
                 level2.line(Logical.BIRIS_CMD), inbox, self.link, reader, ledger, set_continuous
@@ -122,32 +136,44 @@ class BirisServer:
                 inbox, self.link, reader, ledger, set_continuous
             ),
             "biris_data_notifier": lambda: level2.attach_data_notifier(
-                tasks.BirisDataNotifier(inbox, reader)
+                tasks.BirisDataNotifier(inbox, reader, data_failed)
             ),
             "biris_az_notifier": lambda: tasks.biris_az_notifier(
-                level3.line(Logical.MOTOR_END_OF_SCAN), inbox, self.azimuth, stop, reader
+                level3.line(Logical.MOTOR_END_OF_SCAN),
+                inbox,
+                self.azimuth,
+                stop,
+                reader,
+                self.az_moves,
             ),
-            "az_scan_start": lambda: tasks.az_scan_start(inbox, self.azimuth, reader),
+            "az_scan_start": lambda: tasks.az_scan_start(
+                inbox, self.azimuth, reader, self.az_moves
+            ),
             "biris_timeout": self.biris_timeout.run,
             "biris_parity_err": lambda: tasks.biris_parity_err(
                 level2.line(Logical.BIT3_PERR), inbox
             ),
             "biris_bus_err": lambda: tasks.biris_bus_err(level2.line(Logical.BIT3_BERR), inbox),
             "el_scan_notifier": lambda: tasks.el_scan_notifier(
-                level3.line(Logical.ELEVATION_END_OF_SCAN), inbox, self.elevation, stop
+                level3.line(Logical.ELEVATION_END_OF_SCAN),
+                inbox,
+                self.elevation,
+                stop,
+                self.el_moves,
             ),
-            "el_scan_start": lambda: tasks.el_scan_start(inbox, self.elevation),
+            "el_scan_start": lambda: tasks.el_scan_start(inbox, self.elevation, self.el_moves),
             "az_watchdog": self.motor_watchdog.run,
             "el_watchdog": self.elevation_watchdog.run,
-            "level2_isr": level2.run,
-            "level3_isr": level3.run,
+            "level2_isr": level2.serve,  # serve, not run: a lost line is raised, and reported
+            "level3_isr": level3.serve,
             "biris_server": self.admin.run,
             "biris_init": self._start_initialiser,
         }
 
     def _create_tasks(self) -> None:
         """Start the table's tasks in its order: a thread per row that has its own, and the
-        rows that share a thread put into it."""
+        rows that share a thread put into it (as the supervisor's guests, put back by a reset
+        after they have failed)."""
         bodies = self._task_bodies()
         if set(bodies) != {spec.name for spec in TASKS}:
             raise RuntimeError(
@@ -158,24 +184,36 @@ class BirisServer:
             if spec.starts is not Starts.WITH_SERVER:
                 continue  # started by the administrator (the initialiser, on reset)
             if spec.own_thread:
-                self._spawn(spec.thread, bodies[spec.name])
+                self._spawn(spec, bodies[spec.name])
             else:
-                bodies[spec.name]()
+                self.supervisor.guest(spec.name, bodies[spec.name])
 
     def _start_initialiser(self) -> None:
-        """Called by the administrator (on reset): never blocks, the work runs in a thread."""
+        """Called by the administrator (on reset): never blocks, the work runs in a thread.
+
+        First every task that failed since the last reset runs again
+        (:meth:`~biris_hw.server.tasks.Supervisor.reset`), so the initialiser's moves and
+        commands find live workers and notifiers.
+        """
+        self.supervisor.reset()
         init = Initialiser(self.hardware, self.record, self.inbox, self._stop)
 
         def report(result: InitResult | BaseException) -> None:
             if isinstance(result, InitResult):
-                self.reader.configure(result.addressing, result.samples, result.period_s)
-                message = InitDone(None, result)
+                try:
+                    self.reader.configure(result.addressing, result.samples, result.period_s)
+                    message = InitDone(None, result)
+                except Exception as exc:  # the reset must still end, and say why
+                    log.exception("could not configure the acquisition reader")
+                    message = InitDone(exc)
             else:
                 message = InitDone(result)
             try:
                 self.inbox.send(message)
             except ConnectionClosed:
-                pass
+                pass  # the server has stopped
+            except BirisError as exc:  # the administrator's case failed; it has said so
+                log.error("INIT_DONE refused: %s", exc)
 
         thread = threading.Thread(
             target=run_initialiser,
@@ -310,6 +348,7 @@ class BirisServer:
             return
         self._closed = True
         self._stop.set()
+        self.supervisor.close()  # first: a task waiting for a reset ends, and nothing is reported
         quieting: tuple[Callable[[], None], ...] = (
             lambda: self.link.set_flags(cmd_int=False, data_int=False),
             self.board.disable_all,

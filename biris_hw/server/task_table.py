@@ -13,6 +13,17 @@ another row's runs inside that thread (the report's ISR "triggers" the task; her
 Rows that start ``PER_RESET`` are started by the administrator on each reset (the initialiser),
 not with the server. A test compares the table with ``threading.enumerate()`` both ways.
 
+**Supervision** (``restart``). Every thread the server starts from the table runs its body under
+:class:`~biris_hw.server.tasks.Supervisor`, so no task dies of an exception. A failure is logged
+with its traceback and reported to the administrator one-way as TaskFailed: kind ``bus`` for a
+BusError (a window or interrupt line of a target that has gone), ``internal`` for anything else.
+The thread then stays alive, under its name, and waits for the next reset
+(``Restart.ON_RESET``), when it runs its body again. So a reset brings every task back, the
+threads still match this table, and a task that keeps failing fails once per reset and never
+spins. The administrator itself is restarted at once (``Restart.AT_ONCE``), since it is the task
+that carries out a reset. The initialiser is not restarted (``Restart.NEVER``): it runs once per
+reset, and a failure is its INIT_DONE's error.
+
 The order is the creation order, Appendix B's for the report's eight tasks (its global indices,
 ``index``), then the tilt's future tasks and the watchdogs, then the two interrupt service
 routines (every notifier is already waiting on its logical line when they start), then the
@@ -64,7 +75,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-__all__ = ["TASKS", "Starts", "TaskKind", "TaskSpec", "task", "threads"]
+__all__ = ["TASKS", "Restart", "Starts", "TaskKind", "TaskSpec", "task", "threads"]
 
 
 class TaskKind(enum.Enum):
@@ -92,6 +103,18 @@ class Starts(enum.Enum):
     PER_RESET = "on each reset"
 
 
+class Restart(enum.Enum):
+    """What the supervisor does once a task's body has failed (module notes, "Supervision")."""
+
+    ON_RESET = "at the next reset"
+    """Wait, alive, for the server's next reset, then run the body again."""
+    AT_ONCE = "at once"
+    """Run the body again at once, backing off while it keeps failing: for the administrator,
+    which is the task that carries out a reset."""
+    NEVER = "never"
+    """Not restarted: the initialiser, whose failure is its INIT_DONE's error."""
+
+
 @dataclass(frozen=True)
 class TaskSpec:
     """One task of the server."""
@@ -112,6 +135,8 @@ class TaskSpec:
     index: str = ""
     """Its global index in the init record (Appendix B), for the report's eight tasks."""
     starts: Starts = Starts.WITH_SERVER
+    restart: Restart = Restart.ON_RESET
+    """What the supervisor does after the task has failed."""
 
     @property
     def own_thread(self) -> bool:
@@ -164,7 +189,8 @@ TASKS: tuple[TaskSpec, ...] = (
         TaskKind.NOTIFIER,
         waits_on="MOTOR_END_OF_SCAN (logical, from level3_isr), then the head at rest "
         "(AxisDriver.wait_settled)",
-        sends="in continuous mode the sweep's completed acquisitions (one-way), then AZ_SCAN_DONE",
+        sends="in continuous mode the sweep's completed acquisitions (one-way), then AZ_SCAN_DONE "
+        "with where the head stands, whether it settled, and which move ended",
         thread="biris_az_notifier",
         why="With BIRIS_CMD_COMPLETE it completes a scan. The chip's end of profile is not the "
         "motor's stop, so it polls the encoder; its own thread, since that takes milliseconds.",
@@ -218,7 +244,7 @@ TASKS: tuple[TaskSpec, ...] = (
         "el_scan_notifier",
         TaskKind.NOTIFIER,
         waits_on="ELEVATION_END_OF_SCAN (logical, from level3_isr), then the tilt at rest",
-        sends="EL_SCAN_DONE",
+        sends="EL_SCAN_DONE with where the tilt stands, whether it settled, and which move ended",
         thread="el_scan_notifier",
         why="The report's future tilt task, as biris_az_notifier for the elevation axis.",
         report="_el_scan_notifier",
@@ -279,6 +305,7 @@ TASKS: tuple[TaskSpec, ...] = (
         why="The report's BIRIS server: one case per message, the only owner of the server's "
         "state, so nothing in it needs a lock.",
         report="the BIRIS server",
+        restart=Restart.AT_ONCE,
     ),
     TaskSpec(
         "biris_init",
@@ -290,6 +317,7 @@ TASKS: tuple[TaskSpec, ...] = (
         "again by every reset; a task of its own so that the administrator never waits on it.",
         report="_Create_server start-up",
         starts=Starts.PER_RESET,
+        restart=Restart.NEVER,
     ),
 )
 """Every task of the server, in creation order."""

@@ -19,6 +19,16 @@ always posted one-way, under the reader's lock: so the inbox holds it in the rea
 and no task ever waits for the administrator while holding that lock -- which the level-2
 routine takes for every acquisition.
 
+**Supervision.** The server runs every task under a :class:`Supervisor` (the task table's
+``restart`` column). The bodies here therefore catch nothing they cannot carry on from. A
+BusError (a register of a target that has gone) and any unexpected exception propagate to the
+supervisor, which logs the failure, reports it one-way as TaskFailed (``bus`` or ``internal``),
+and restarts the body at the next reset. A body ends only once the administrator's mailbox has
+stopped or its line has been closed, and both happen only when the server closes. What the
+administrator *answers* with an error is the administrator's own failure: a notifier or timer
+logs the refusal (:func:`_tell`) and carries on with its next interrupt, while a worker, which
+would only report ready again at once, waits for the reset.
+
 Continuous mode (Appendix D) touches three tasks: ``biris_cmd_transfer`` raises the
 continuous-mode flag of the level-2 demultiplexer and primes the reader before it writes
 BI_START_CONTINUOUS; ``biris_cmd_notifier`` lowers the flag once BI_STOP_CONTINUOUS has completed;
@@ -30,10 +40,11 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 from biris_hw.devices import AxisDriver, BirisLink
-from biris_hw.errors import BirisError, BusError, LineClosed
+from biris_hw.errors import BirisError, BusError, FaultKind, HardwareFault, LineClosed
 from biris_hw.ipc import Mailbox, TaskStopped
 from biris_hw.irq.base import InterruptLine
 from biris_hw.server.acquisition import AcquisitionReader, Drained, ring_length
@@ -51,14 +62,18 @@ from biris_hw.server.messages import (
     NewPoint,
     ParamsOrder,
     SweepDataDone,
+    TaskFailed,
     TransferOrder,
 )
+from biris_hw.server.task_table import Restart
 from regs.biexec import BiCommand, BiStatus
 
 __all__ = [
     "BirisDataNotifier",
     "CommandLedger",
     "DeadlineTimer",
+    "MoveLedger",
+    "Supervisor",
     "az_scan_start",
     "biris_az_notifier",
     "biris_bus_err",
@@ -80,6 +95,195 @@ def _await(line: InterruptLine) -> int | None:
         return None
 
 
+def _post_quietly(admin: Mailbox, message: object) -> None:
+    """Post ``message`` one-way; a mailbox that has stopped has nobody left to tell."""
+    try:
+        admin.post_oneway(message)
+    except Exception:  # TaskStopped, or the reason the mailbox was closed with
+        log.debug("not posted (the administrator has stopped): %r", message)
+
+
+def _tell(admin: Mailbox, message: object) -> object:
+    """A notifier's or timer's report: send it and return the reply.
+
+    The administrator answers a report with an error only when its case went wrong, and it has
+    then entered a fault itself (a case that fails unexpectedly is an ``internal`` fault, see
+    :meth:`Administrator.handle`). So the notifier does not fail with it: it logs the refusal
+    and carries on with its next interrupt, which needs nothing from the administrator. It
+    reports nothing more: a second report would reach the administrator late -- after a reset
+    the client may already have asked for -- and fault the fresh initialisation. TaskStopped
+    (the server is closing) is raised on.
+    """
+    try:
+        return admin.send(message)
+    except TaskStopped:
+        raise
+    except BirisError as exc:
+        name = threading.current_thread().name
+        what = type(message).__name__
+        log.error("%s: the administrator refused %s: %s", name, what, exc)
+        return None
+
+
+# --- supervision ---------------------------------------------------------------------------------
+
+
+class Supervisor:
+    """Runs the server's tasks so that an exception never kills one for good (issue 11).
+
+    Each thread the server starts from the task table runs :meth:`run` with its task's body.
+    A body that raises anything but TaskStopped has failed, and so has a body that returns while
+    the server runs, since every body runs until the server stops. The failure is logged with
+    its traceback and reported to the administrator one-way as ``TaskFailed(task, kind, text)``:
+    ``bus`` for a BusError (a register or interrupt line of a target that has gone),
+    ``internal`` for anything else (a bug). The administrator turns it into a fault of that kind
+    and tells every caller. The thread stays alive under its table name and, for
+    ``Restart.ON_RESET``, waits until :meth:`reset` (the administrator starting the
+    initialiser), then runs its body again. A task that keeps failing therefore reports once per
+    reset and never spins. The administrator's own thread is ``Restart.AT_ONCE``: it carries out
+    resets, so it is restarted at once. Its failure is posted to its own inbox and handled as
+    soon as it runs again. Should it keep failing, the restarts back off up to
+    :data:`ADMIN_BACKOFF_MAX_S`.
+
+    A task that runs in another task's thread (biris_data_notifier in level2_isr) is a *guest*:
+    :meth:`guest` attaches it, it reports its own failure through :meth:`failed`, and its host
+    detaches it. :meth:`reset` attaches it again.
+
+    Only :meth:`reset` and :meth:`close` touch a thread other than the caller's, and both only
+    notify: the administrator, which calls :meth:`reset`, never waits on a task.
+    """
+
+    ADMIN_BACKOFF_MAX_S = 1.0
+    """Longest pause between two restarts of a task restarted at once, when it keeps failing."""
+
+    def __init__(self, admin: Mailbox) -> None:
+        self._admin = admin
+        self._cond = threading.Condition()
+        self._resets = 0
+        self._closed = False
+        self._down: dict[str, int] = {}
+        """Tasks waiting for a reset after a failure, with the reset count at that failure."""
+        self._guests: dict[str, Callable[[], None]] = {}
+        self.failures: dict[str, int] = {}
+        """How many times each task has failed, by name (for status and tests)."""
+
+    # -- what the server and the tests use --------------------------------------------------------
+    @property
+    def resets(self) -> int:
+        """How many resets have restarted the tasks."""
+        return self._resets
+
+    @property
+    def down(self) -> frozenset[str]:
+        """The tasks that have failed and wait for the next reset."""
+        with self._cond:
+            return frozenset(self._down)
+
+    def wait_down(self, name: str, timeout: float | None = None) -> bool:
+        """Block until task ``name`` is waiting for a reset (True) or ``timeout`` passes; for
+        tests, which must not sleep to find that out."""
+        with self._cond:
+            return self._cond.wait_for(lambda: name in self._down, timeout)
+
+    def reset(self) -> None:
+        """The server's reset: every task waiting after a failure runs its body again.
+
+        Called by the administrator just before it starts the initialiser, so the initialiser's
+        moves and commands find live workers and notifiers. Never blocks: a revived worker
+        reports ready on its own, and until then what the initialiser asks for waits in the
+        administrator's queues, as it always does.
+        """
+        with self._cond:
+            self._resets += 1
+            guests = [name for name in self._guests if name in self._down]
+            for name in guests:
+                del self._down[name]
+            attach = [self._guests[name] for name in guests]
+            self._cond.notify_all()
+        for put_back in attach:
+            put_back()
+
+    def close(self) -> None:
+        """The server is closing: every waiting task ends, and no failure is reported any
+        more (a task that fails because its hardware is being shut down has not failed)."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    # -- the tasks' side --------------------------------------------------------------------------
+    def run(self, name: str, body: Callable[[], None], restart: Restart = Restart.ON_RESET) -> None:
+        """The thread of task ``name``: ``body``, supervised, until the server closes."""
+        pause = 0.0
+        last_failure = float("-inf")
+        while not self._closed:
+            try:
+                body()
+            except TaskStopped:
+                return
+            except Exception as exc:
+                if self.closed:
+                    return
+                self.failed(name, exc)
+            else:
+                if self.closed:
+                    return
+                self.failed(name, RuntimeError(f"{name} ended while the server runs"))
+            if restart is Restart.NEVER:
+                return
+            if restart is Restart.AT_ONCE:
+                now = time.monotonic()
+                repeated = now - last_failure < self.ADMIN_BACKOFF_MAX_S
+                pause = min(self.ADMIN_BACKOFF_MAX_S, max(0.001, 2 * pause)) if repeated else 0.0
+                last_failure = now
+                with self._cond:
+                    self._down.pop(name, None)
+                    if self._cond.wait_for(lambda: self._closed, pause):
+                        return
+            elif not self._await_reset(name):
+                return
+
+    def failed(self, name: str, exc: BaseException) -> None:
+        """Task ``name`` failed with ``exc``: log it (traceback included), report it one-way,
+        and mark the task as waiting for the next reset."""
+        kind: FaultKind = "bus" if isinstance(exc, BusError) else "internal"
+        with self._cond:
+            if self._closed:
+                return
+            self._down[name] = self._resets
+            self.failures[name] = self.failures.get(name, 0) + 1
+            self._cond.notify_all()
+        if kind == "bus":
+            log.error(
+                "%s: bus error, the target is gone or unreachable (%s); "
+                "it waits for the next reset",
+                name,
+                exc,
+                exc_info=exc,
+            )
+        else:
+            log.error("%s failed; it waits for the next reset", name, exc_info=exc)
+        _post_quietly(self._admin, TaskFailed(name, kind, f"{type(exc).__name__}: {exc}"))
+
+    def guest(self, name: str, attach: Callable[[], None]) -> None:
+        """Attach guest task ``name`` now, and again at every reset after it has failed."""
+        with self._cond:
+            self._guests[name] = attach
+        attach()
+
+    def _await_reset(self, name: str) -> bool:
+        """Wait, after a failure, for the next reset (True) or the server's close (False)."""
+        with self._cond:
+            failed_at = self._down.get(name, self._resets)
+            self._cond.wait_for(lambda: self._closed or self._resets != failed_at)
+            self._down.pop(name, None)
+            self._cond.notify_all()
+            return not self._closed
+
+
 # --- notifiers -----------------------------------------------------------------------------------
 
 
@@ -99,14 +303,31 @@ class CommandLedger:
         self.outstanding: TransferOrder | None = None
 
 
+class MoveLedger:
+    """Which move an axis is making, shared by its worker and its notifier.
+
+    The administrator numbers every move it orders (``MoveOrder.token``) and the notifier names
+    the move whose end it reports, so that the end of a move a reset abandoned is never taken
+    for the end of the next one. The worker records the token just before it starts the
+    trapezoid. The notifier reads it as soon as the end-of-scan interrupt wakes it, before it
+    waits for the head to settle, so a move ordered meanwhile cannot lend the ended one its
+    name. The token is kept, not cleared, after it has been read: a spurious or repeated end
+    then names a move that has already ended, and the administrator ignores it.
+    """
+
+    def __init__(self) -> None:
+        self.token: int | None = None
+        """The token of the move last started; None before the first (plain stores: atomic)."""
+
+
 def _post_drained(admin: Mailbox, drained: Drained) -> None:
     """What a drain produced, as one-way messages, in order: NEW_POINT, then what it completed.
 
     Called under the reader's lock (see the module notes); raises TaskStopped once the
     administrator has stopped.
     """
-    if drained.acquisitions or drained.lost:
-        admin.post_oneway(NewPoint(drained.acquisitions, drained.lost))
+    if drained.acquisitions or drained.lost or drained.idle:
+        admin.post_oneway(NewPoint(drained.acquisitions, drained.lost, drained.idle))
     if drained.live:
         admin.post_oneway(ContinuousLive())
     if drained.sweep_done:
@@ -127,6 +348,10 @@ def biris_cmd_notifier(
     is back on the interrupt before that command can complete. A completed BI_START_CONTINUOUS
     tells the reader the ring's length; a completed BI_STOP_CONTINUOUS (or a refused start) ends
     continuous mode in the reader and lowers the demultiplexer's flag.
+
+    A BusError reading BIEXEC_COM, or anything unexpected, propagates to the supervisor (module
+    notes), which reports it: a BIRIS that can no longer be read is a ``bus`` fault, not a
+    timeout some seconds later.
     """
     while _await(line) is not None:
         try:
@@ -143,11 +368,9 @@ def biris_cmd_notifier(
                 set_continuous(False)
             with reader.lock:
                 _post_drained(admin, reader.drain_sequence(final=True))
-            admin.send(BirisCmdComplete(status, param, order.token))
+            _tell(admin, BirisCmdComplete(status, param, order.token))
         except TaskStopped:
             return
-        except BusError:
-            log.exception("biris_cmd_notifier: bus error reading BIEXEC_COM")
 
 
 class BirisDataNotifier:
@@ -164,21 +387,38 @@ class BirisDataNotifier:
 
     The administrator answers NEW_POINT at once and nobody waits for the answer; a refusal is
     logged by the mailbox (debug) and by the administrator.
+
+    ``failed`` is how it reports its own failure: the server passes its supervisor's
+    :meth:`Supervisor.failed` for this task. A frame that cannot be read (BusError: a ``bus``
+    fault) or anything unexpected (``internal``) is reported there, and the notifier returns
+    False, so the routine detaches it until the next reset attaches a new one. It does not stay
+    attached, so it cannot fail again with every data interrupt of a target that has gone.
+    Without ``failed`` the exception propagates to the routine, which logs it.
     """
 
-    def __init__(self, admin: Mailbox, reader: AcquisitionReader) -> None:
+    def __init__(
+        self,
+        admin: Mailbox,
+        reader: AcquisitionReader,
+        failed: Callable[[BaseException], None] | None = None,
+    ) -> None:
         self._admin = admin
         self._reader = reader
+        self._failed = failed
 
     def __call__(self, count: int = 1) -> bool:
-        """One interrupt (``count`` coalesced); False once the administrator has stopped."""
+        """One interrupt (``count`` coalesced); False once the administrator has stopped, or
+        once this notifier has failed and reported so."""
         try:
             with self._reader.lock:
                 _post_drained(self._admin, self._reader.drain())
         except TaskStopped:
             return False
-        except BusError:
-            log.exception("biris_data_notifier: bus error reading a frame")
+        except Exception as exc:
+            if self._failed is None:
+                raise
+            self._failed(exc)
+            return False
         return True
 
 
@@ -187,21 +427,33 @@ def _axis_notifier(
     admin: Mailbox,
     axis: AxisDriver,
     stop: threading.Event,
-    done: object,
+    done: type[AzScanDone] | type[ElScanDone],
     reader: AcquisitionReader | None = None,
+    moves: MoveLedger | None = None,
 ) -> None:
-    """Shared body of the two motor notifiers: end of profile -> settled -> ``done``."""
+    """Shared body of the two motor notifiers: end of profile -> settled -> ``done``.
+
+    The report's notifier says only that the move ended. This one also says where the axis
+    came to rest and whether it settled in time, because the HCTL-1000 ends its profile
+    whatever the shaft does (a locked shaft, a dead amplifier, a gain of 0). The administrator
+    compares that position with the destination, so a head that never arrived is a fault, not a
+    completed scan. The encoder is read after settling whether or not it settled: an axis still
+    hunting is judged by where it stands. A BusError (the board cannot be read) propagates to
+    the supervisor as a ``bus`` fault. It is never a done without a position.
+    """
     while _await(line) is not None:
         try:
-            axis.wait_settled(stop)
+            token = moves.token if moves is not None else None  # before settling: see MoveLedger
+            settled = axis.wait_settled(stop)
+            if stop.is_set():
+                return  # the server is closing: nobody wants the report
+            position = axis.actual_position()
             if reader is not None:
                 with reader.lock:
                     _post_drained(admin, reader.end_sweep())
-            admin.send(done)
+            _tell(admin, done(position=position, settled=settled, token=token))
         except TaskStopped:
             return
-        except BusError:
-            log.exception("%s notifier: bus error while settling", axis.axis.name.lower())
 
 
 def biris_az_notifier(
@@ -210,16 +462,18 @@ def biris_az_notifier(
     axis: AxisDriver,
     stop: threading.Event,
     reader: AcquisitionReader | None = None,
+    moves: MoveLedger | None = None,
 ) -> None:
     """MOTOR_END_OF_SCAN -> AZ_SCAN_DONE, once the head has actually come to rest.
 
     The chip signals the end of the profile when it issues the last setpoint, not when the motor
     stops; the notifier polls the position briefly (:meth:`AxisDriver.wait_settled`, given up
     when ``stop`` is set) so that AZ_SCAN_DONE means what the report says: motion has
-    terminated. In continuous mode it then tells the reader that the sweep ends with the frame
-    in exposure (and posts what is already complete) first.
+    terminated. AZ_SCAN_DONE carries where the head stands, whether it settled, and which move
+    ended (``moves``, shared with az_scan_start). In continuous mode it first tells the reader
+    that the sweep ends with the frame in exposure, and posts what is already complete.
     """
-    _axis_notifier(line, admin, axis, stop, AzScanDone(), reader)
+    _axis_notifier(line, admin, axis, stop, AzScanDone, reader, moves)
 
 
 def el_scan_notifier(
@@ -227,17 +481,18 @@ def el_scan_notifier(
     admin: Mailbox,
     axis: AxisDriver,
     stop: threading.Event,
+    moves: MoveLedger | None = None,
 ) -> None:
     """ELEVATION_END_OF_SCAN -> EL_SCAN_DONE, once the tilt has come to rest (the report's
-    future _el_scan_notifier)."""
-    _axis_notifier(line, admin, axis, stop, ElScanDone())
+    future _el_scan_notifier); with position, settling and move as AZ_SCAN_DONE."""
+    _axis_notifier(line, admin, axis, stop, ElScanDone, None, moves)
 
 
 def error_notifier(line: InterruptLine, admin: Mailbox, message: object) -> None:
     """Shared body of biris_parity_err and biris_bus_err: each interrupt is one report."""
     while _await(line) is not None:
         try:
-            admin.send(message)
+            _tell(admin, message)
         except TaskStopped:
             return
 
@@ -266,6 +521,12 @@ def biris_cmd_transfer(
 
     Before BI_START_CONTINUOUS the continuous-mode flag goes up, so that the demultiplexer
     classifies the first data interrupt right.
+
+    A command that cannot be written (BusError: the target is gone) propagates to the
+    supervisor, which reports a ``bus`` fault. It used to be only logged, and the command then
+    never completed. So does a READY the administrator refuses, since re-sending it at once
+    could only spin. The ledger forgets a command whose write failed, so no later interrupt is
+    taken for its completion.
     """
     ready = CmdTransferRdy()
     while True:
@@ -280,22 +541,30 @@ def biris_cmd_transfer(
         elif order.code == BiCommand.BI_START_CONTINUOUS:
             set_continuous(True)
             reader.prime_ring()
-        try:
-            with ledger.lock:
-                ledger.outstanding = order
+        with ledger.lock:
+            ledger.outstanding = order
+            try:
                 link.issue(order.code, order.param)
-        except BirisError:
-            log.exception("biris_cmd_transfer: could not write command %d", order.code)
+            except BaseException:
+                ledger.outstanding = None
+                raise
 
 
 def _axis_worker(
     admin: Mailbox,
     axis: AxisDriver,
-    make_ready: Callable[[str | None], object],
+    make_ready: Callable[[str | None, str | None], object],
     reader: AcquisitionReader | None = None,
+    moves: MoveLedger | None = None,
 ) -> None:
-    """Shared body of the two motor workers: report ready, carry out the reply; forever."""
-    ready = make_ready(None)
+    """Shared body of the two motor workers: report ready, carry out the reply; forever.
+
+    An order the chip refuses (a profile still running) goes back in the next READY, the
+    report's way. A BusError (the board cannot be reached) and anything unexpected propagate to
+    the supervisor instead, as does a READY the administrator refuses, which re-sent at once
+    could only spin.
+    """
+    ready = make_ready(None, None)
     while True:
         try:
             order = admin.send(ready)
@@ -309,16 +578,36 @@ def _axis_worker(
                     # moves is at the start azimuth, and the administrator drops it (or, in
                     # a sweep that turns straight round, keeps it as the turn-around's)
                     reader.open_sweep(order.sweep, follows=order.follows)
-                axis.start_trapezoid(order.destination)
+                _start_move(axis, order, moves)
             elif isinstance(order, ParamsOrder):
                 axis.configure(order.params)
-            ready = make_ready(None)
+            ready = make_ready(None, None)
+        except BusError:
+            raise
         except BirisError as exc:
-            ready = make_ready(str(exc))
+            kind = exc.kind if isinstance(exc, HardwareFault) else "protocol"
+            ready = make_ready(str(exc), kind)
+
+
+def _start_move(axis: AxisDriver, order: MoveOrder, moves: MoveLedger | None) -> None:
+    """Start ``order``'s trapezoid, its token recorded first (the end may come at once); a
+    move that did not start gives the ledger its previous token back."""
+    if moves is None:
+        axis.start_trapezoid(order.destination)
+        return
+    previous, moves.token = moves.token, order.token
+    try:
+        axis.start_trapezoid(order.destination)
+    except BaseException:
+        moves.token = previous
+        raise
 
 
 def az_scan_start(
-    admin: Mailbox, axis: AxisDriver, reader: AcquisitionReader | None = None
+    admin: Mailbox,
+    axis: AxisDriver,
+    reader: AcquisitionReader | None = None,
+    moves: MoveLedger | None = None,
 ) -> None:
     """AZ_READY, then start the motion the reply carries; forever.
 
@@ -326,13 +615,13 @@ def az_scan_start(
     back on, "after the next scan is started" (Appendix D) -- here an instant before, so that
     the head's first move is never missed.
     """
-    _axis_worker(admin, axis, lambda error: AzReady(error=error), reader)
+    _axis_worker(admin, axis, lambda error, kind: AzReady(error, kind), reader, moves)
 
 
-def el_scan_start(admin: Mailbox, axis: AxisDriver) -> None:
+def el_scan_start(admin: Mailbox, axis: AxisDriver, moves: MoveLedger | None = None) -> None:
     """EL_READY, then start the tilt the reply carries; forever (the report's future
     _el_scan_start)."""
-    _axis_worker(admin, axis, lambda error: ElReady(error=error))
+    _axis_worker(admin, axis, lambda error, kind: ElReady(error, kind), None, moves)
 
 
 # --- timers --------------------------------------------------------------------------------------
@@ -431,7 +720,7 @@ class DeadlineTimer:
                 self._deadline = None
                 self._cond.release()
                 try:
-                    self._admin.send(self._make(generation))
+                    _tell(self._admin, self._make(generation))
                 except TaskStopped:
                     return
                 finally:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import abc
 import re
 import threading
+from array import array
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal
 
@@ -41,11 +42,14 @@ if TYPE_CHECKING:
     from sim.supervisor.acquisition import AcquisitionSequence
 
 __all__ = [
+    "ACQUISITION_TIMES_KEPT",
     "JITTER_S",
+    "SEQUENCE_STARTS_KEPT",
     "AcquireFn",
     "Frame",
     "GarbageKind",
     "SupervisorState",
+    "TimeHistory",
     "parse_int",
     "signed16",
 ]
@@ -58,6 +62,75 @@ GarbageKind = Literal["unterminated", "bad_digits"]
 
 JITTER_S = (20e-6, 2e-3)
 """Range of the seeded delay between a command's field and its completion, hardware seconds."""
+
+
+ACQUISITION_TIMES_KEPT = 65536
+"""Mid-exposure times the supervisor remembers (the newest; the count stays exact).
+
+Enough for every test and benchmark run (a throughput trial at 100x makes about 10^4), and
+bounded: a long ``biris sim`` once grew by 3.5 MB an hour at x1 keeping them all. At most
+1.25 times this many 8-byte doubles are held (640 KiB)."""
+
+SEQUENCE_STARTS_KEPT = 4096
+"""Sequence start times the supervisor remembers (the newest; the count stays exact). A
+sequence takes at least its 250 ms start-up, so this is over 17 minutes of them at x1."""
+
+
+class TimeHistory:
+    """Clock times appended in order, of which the newest ``keep`` are remembered.
+
+    The count of everything ever appended stays exact; the times themselves live in an array of
+    doubles that is cut back to the newest ``keep`` whenever it passes ``keep`` by a quarter, so
+    memory is bounded and an append costs O(1) amortised. Not thread-safe: the supervisor's
+    lock guards it.
+    """
+
+    __slots__ = ("_dropped", "_keep", "_slack", "_times")
+
+    def __init__(self, keep: int) -> None:
+        if keep < 1:
+            raise ValueError("a history must keep at least one time")
+        self._keep = keep
+        self._slack = max(1, keep // 4)
+        self._times = array("d")
+        self._dropped = 0
+
+    def append(self, t: float) -> None:
+        times = self._times
+        times.append(t)
+        if len(times) > self._keep + self._slack:
+            cut = len(times) - self._keep
+            del times[:cut]
+            self._dropped += cut
+
+    @property
+    def keep(self) -> int:
+        return self._keep
+
+    @property
+    def count(self) -> int:
+        """How many times were ever appended (exact, however many are remembered)."""
+        return self._dropped + len(self._times)
+
+    @property
+    def stored(self) -> int:
+        """How many times are held now: never more than 1.25 ``keep`` (rounded up)."""
+        return len(self._times)
+
+    def recent(self) -> list[float]:
+        """The newest ``keep`` times (all of them while fewer were appended), oldest first."""
+        return self._times[-self._keep :].tolist()
+
+    def since(self, index: int) -> list[float]:
+        """The times from the ``index``-th ever appended (0 = the first) to the newest.
+
+        Raises ValueError when ``index`` is no longer remembered, rather than hand back a list
+        that silently starts later than asked.
+        """
+        first = self.count - min(len(self._times), self._keep)
+        if index < first:
+            raise ValueError(f"time {index} is no longer kept (the oldest kept is {first})")
+        return self._times[index - self._dropped :].tolist()
 
 
 def signed16(raw: int) -> int:
@@ -93,6 +166,8 @@ class SupervisorState(abc.ABC):
         tilting: Callable[[], bool] | None = None,
         elevation_counts: Callable[[float], float] | None = None,
         require_motor_access: bool = True,
+        times_kept: int = ACQUISITION_TIMES_KEPT,
+        starts_kept: int = SEQUENCE_STARTS_KEPT,
     ) -> None:
         if memory.size < memory_map.size:
             raise ValueError(
@@ -140,8 +215,9 @@ class SupervisorState(abc.ABC):
         self._commands_completed = 0
         self._acquisitions_made = 0
         self._acquisitions_abandoned = 0
-        self._acquisition_times: list[float] = []
-        self._sequence_starts: list[float] = []
+        # bounded: a simulator left running for days must not grow (see TimeHistory)
+        self._acquisition_times = TimeHistory(times_kept)
+        self._sequence_starts = TimeHistory(starts_kept)
         self._power_up()
 
     def _shift_schedule(self) -> None:

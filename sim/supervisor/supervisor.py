@@ -108,15 +108,32 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
 
     @property
     def acquisition_times(self) -> list[float]:
-        """Mid-exposure clock time of every acquisition made, oldest first."""
+        """Mid-exposure clock time of the acquisitions made, oldest first: all of them up to
+        ``times_kept`` (:data:`~sim.supervisor.state.ACQUISITION_TIMES_KEPT` by default), the
+        newest that many after that, so that a long run's memory stays bounded. Index k is
+        acquisition k until then; :meth:`acquisition_times_since` numbers them for ever."""
         with self._lock:
-            return list(self._acquisition_times)
+            return self._acquisition_times.recent()
+
+    def acquisition_times_since(self, index: int) -> list[float]:
+        """Mid-exposure times of acquisition ``index`` (0 = the first ever made; compare
+        :attr:`acquisitions_made`) and every later one; ValueError if it is no longer kept."""
+        with self._lock:
+            return self._acquisition_times.since(index)
 
     @property
     def sequence_starts(self) -> list[float]:
-        """Clock time (a field) at which each acquisition sequence was accepted."""
+        """Clock time (a field) at which each acquisition sequence was accepted: the newest
+        ``starts_kept`` (:data:`~sim.supervisor.state.SEQUENCE_STARTS_KEPT` by default). Count
+        sequences with :attr:`sequences_started`, which stays exact."""
         with self._lock:
-            return list(self._sequence_starts)
+            return self._sequence_starts.recent()
+
+    @property
+    def sequences_started(self) -> int:
+        """Acquisition sequences accepted since power-up (BI_ACQUIRE and BI_START_CONTINUOUS)."""
+        with self._lock:
+            return self._sequence_starts.count
 
     @property
     def failure(self) -> BaseException | None:
@@ -161,6 +178,22 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
                 self._failure = exc
                 self._stopping = True
                 self._kick.set()
+            self._changed.notify_all()
+
+    def run_until(self, t: float) -> None:
+        """Do everything due by clock time ``t`` on the caller's thread, whatever the clock says.
+
+        For a supervisor whose thread is not running (never started, or stopped): a test then
+        drives it through any number of fields deterministically, as fast as the host computes
+        them, instead of waiting for real time. A hung supervisor does nothing, as its thread
+        would. RuntimeError while the thread runs: it keeps its own time.
+        """
+        with self._changed:
+            thread = self._thread
+            if thread is not None and thread.is_alive():
+                raise RuntimeError("the supervisor thread is running; it keeps its own time")
+            if self._hung_since is None:
+                self._run_due(t)
             self._changed.notify_all()
 
     # -- the thread --------------------------------------------------------------------------
