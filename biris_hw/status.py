@@ -30,6 +30,10 @@ class ServerState(enum.Enum):
     HOMING = "homing"
     TILTING = "tilting"
     SCANNING = "scanning"
+    BUSY = "busy"
+    """Initialised and none of the above, but something is still owed (a motor parameter load,
+    Appendix D's ring starting or stopping, a BIRIS command): ``wait_idle`` waits for it, so
+    ``idle`` is said only when ``wait_idle(timeout=0)`` would return."""
     FAULT = "fault"  # ServerStatus.fault says which kind
 
 

@@ -452,6 +452,8 @@ def _exercise(
     wall_reset = time.monotonic()
     conn.reset()
     reset_wall_s = time.monotonic() - wall_reset
+    # in continuous acquisition the server is "busy" until its ring is live again
+    conn.wait_idle(timeout=30.0)
     status = server.status()
     assert status["state"] == "idle"
     here = status.azimuth

@@ -161,6 +161,24 @@ def test_every_reset_homes_to_true_zero_not_the_nearest_index(
     assert rig.hardware.pan_reference.referenced
 
 
+@pytest.mark.parametrize("degrees", [45.0, -45.0])
+def test_a_reset_with_the_tilt_at_its_limit_finds_level(
+    make_rig: RigFactory, degrees: float
+) -> None:
+    """The tilt counts from level once homed: a reset reads that count before the chip reset
+    and searches around level, not around the tilted head (at the limit, level was on the edge
+    of the search and the reset failed with "no zero index")."""
+    rig = make_rig()
+    with BirisServer(rig.hardware, BirisInitRecord()) as server:
+        conn = server.open()
+        conn.set_elevation(degrees)
+        conn.wait_idle(timeout=WAIT)
+        assert abs(rig.elevation_counts) > 400
+        server.reset()
+        assert abs(rig.elevation_counts) <= HOMED
+        assert server.status()["elevation_live"] == pytest.approx(0, abs=HOMED)
+
+
 def test_a_new_server_on_the_same_bundle_homes_to_true_zero(
     make_rig: RigFactory, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -283,6 +283,8 @@ class Administrator:
             return ServerState.TILTING
         if self.scans.active():
             return ServerState.SCANNING
+        if not self.is_idle():
+            return ServerState.BUSY
         return ServerState.IDLE
 
     def status(self) -> ServerStatus:

@@ -130,6 +130,8 @@ class Initialiser:
         self.link = hw.devices.link
         self.reference = hw.pan_reference
         self._position = {Axis.AZIMUTH: 0, Axis.ELEVATION: 0}
+        self._tilt_level = 0
+        """Where level is on the tilt's count after the chip reset (:meth:`_locate_tilt`)."""
 
     # -- steps ---------------------------------------------------------------------------------
     def run(self) -> InitResult:
@@ -206,6 +208,7 @@ class Initialiser:
         """
         self.board.disable_all()
         counter = self._locate_pan()
+        self._tilt_level = self._locate_tilt()
         for axis, params in (
             (self.azimuth, self.record.motor),
             (self.elevation, self.record.tilt_motor),
@@ -238,6 +241,27 @@ class Initialiser:
         )
         return counter
 
+    def _tilt_reach(self) -> int:
+        """How far the tilt may be from level: the widest of the record's elevation limits."""
+        return max(1, *(abs(v) for v in self.record.elevation_limits_counts))
+
+    def _locate_tilt(self) -> int:
+        """Stop the tilt and read its counter before the chip reset zeroes it where the head
+        stands; returns where level will be on the new count.
+
+        A tilt homed before (by this server, or a driver before it on a chip that kept power)
+        counts from level, so level is at minus that reading after the reset -- and the search
+        is centred there, not on wherever the head stood (at +45 degrees, a search centred on
+        the head would put level on the edge of its reach). A fresh chip reads 0: the head is
+        then taken to be level, the assumption a tilt head resting within its limits allows.
+        The reading is bounded by the limits, so a garbage count can never send it further.
+        """
+        tilt = self.elevation
+        tilt.idle()
+        tilt.wait_still(self.stop)
+        reach = self._tilt_reach()
+        return -max(-reach, min(reach, tilt.actual_position()))
+
     def _move(self, destination: int, axis: Axis = Axis.AZIMUTH) -> None:
         if destination == self._position[axis]:
             return
@@ -263,8 +287,9 @@ class Initialiser:
         if axis is Axis.AZIMUTH:
             self._home_pan()
             return
-        start = self._position[axis]
-        half = max(1, *(abs(v) for v in self.record.elevation_limits_counts))
+        start = self._tilt_level
+        half = self._tilt_reach()
+        self._move(start, axis)
         bracket = self._sweep(axis, start - half, start + half, start, TILT_HOMING_CHUNK)
         if bracket is None:
             raise HardwareFault(

@@ -293,7 +293,7 @@ class BirisServer:
         """What the server is doing and has done (:class:`biris_hw.status.ServerStatus`).
 
         ``state`` (a :class:`~biris_hw.status.ServerState`; ``status["state"]`` reads
-        initialising, idle, scanning, homing, tilting or fault:<kind>), ``fault`` (the kind),
+        initialising, idle, scanning, homing, tilting, busy or fault:<kind>), ``fault`` (the kind),
         ``azimuth`` and ``elevation`` (counts: where the axes were last sent),
         ``azimuth_live`` and ``elevation_live`` (counts: the encoders now, None while
         initialising or if the board cannot be read), ``counters``, ``interrupts`` by logical
