@@ -79,6 +79,7 @@ def test_a_restarted_driver_waits_for_the_old_drivers_scan(
     assert abs(rig.azimuth_counts - 512) <= 3  # homed to true zero, then 45 degrees
 
 
+@pytest.mark.slow
 def test_the_old_acquisition_runs_to_its_end(
     make_rig: RigFactory, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -101,7 +102,7 @@ def test_the_old_acquisition_runs_to_its_end(
     ("code", "param", "running_s"),
     [
         (BiCommand.BI_ACQUIRE, "20", STARTUP_LATENCY_S + 20 * LONGEST_ACQUISITION_S),
-        (BiCommand.BI_LOAD_LUT, "0", 0.0),
+        pytest.param(BiCommand.BI_LOAD_LUT, "0", 0.0, marks=pytest.mark.slow),
     ],
     ids=["acquire", "load_lut"],
 )

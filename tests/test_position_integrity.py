@@ -161,7 +161,7 @@ def test_every_reset_homes_to_true_zero_not_the_nearest_index(
     assert rig.hardware.pan_reference.referenced
 
 
-@pytest.mark.parametrize("degrees", [45.0, -45.0])
+@pytest.mark.parametrize("degrees", [45.0, pytest.param(-45.0, marks=pytest.mark.slow)])
 def test_a_reset_with_the_tilt_at_its_limit_finds_level(
     make_rig: RigFactory, degrees: float
 ) -> None:
@@ -192,7 +192,7 @@ def test_a_new_server_on_the_same_bundle_homes_to_true_zero(
     moves.assert_within_envelope()
 
 
-@pytest.mark.parametrize("woke", [1500.0, -1900.0])
+@pytest.mark.parametrize("woke", [1500.0, pytest.param(-1900.0, marks=pytest.mark.slow)])
 def test_a_fresh_start_away_from_zero_finds_true_zero(
     make_rig: RigFactory, monkeypatch: pytest.MonkeyPatch, woke: float
 ) -> None:

@@ -302,7 +302,14 @@ CASES: dict[str, Case] = {
 }
 
 
-@pytest.mark.parametrize("name", list(CASES))
+# one notifier and the command notifier in the fast tier; the rest are slow (the fast suite's
+# budget), and the x10 variants of all are slow through the time_scale fixture
+FAST_CASES = ("biris_cmd_notifier", "biris_az_notifier")
+
+
+@pytest.mark.parametrize(
+    "name", [n if n in FAST_CASES else pytest.param(n, marks=pytest.mark.slow) for n in CASES]
+)
 def test_an_exception_in_a_task_is_an_internal_fault_and_reset_brings_it_back(
     rig: SimulatedBiris,
     server: BirisServer,
@@ -389,6 +396,7 @@ def test_an_exception_in_an_administrator_case_is_internal_and_reset_recovers(
     assert server.status()["state"] == "idle"
 
 
+@pytest.mark.slow
 def test_a_task_that_keeps_failing_fails_once_per_reset(
     rig: SimulatedBiris, server: BirisServer, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -419,6 +427,7 @@ def test_a_task_that_keeps_failing_fails_once_per_reset(
     conn.wait_idle(timeout=WAIT)
 
 
+@pytest.mark.slow
 def test_a_failed_initialiser_report_still_ends_the_reset(
     rig: SimulatedBiris, server: BirisServer, monkeypatch: pytest.MonkeyPatch
 ) -> None:
