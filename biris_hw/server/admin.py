@@ -99,6 +99,8 @@ class Administrator:
         self.tilt = TiltControl(record.elevation_limits_counts)
         self.ring = Ring(record.continuous_acquisition)
         self.clients = Connections(clock, self.counters)
+        self._init_syncs: list[Envelope] = []
+        """The initialiser's InitSync, while the command worker is still writing."""
         self._handlers = self._cases()
 
     def _cases(self) -> dict[type, Case]:
@@ -125,6 +127,7 @@ class Administrator:
                 env, "parity", "parity error on the coupler"
             ),
             # from the initialiser
+            m.InitSync: self._on_init_sync,
             m.InitCommand: self._on_init_command,
             m.InitMove: self._on_init_move,
             m.InitDone: self._on_init_done,
@@ -490,6 +493,9 @@ class Administrator:
 
     def _on_cmd_transfer_rdy(self, env: Envelope, msg: m.CmdTransferRdy) -> None:
         self.commands.worker_ready(env)
+        for sync in self._init_syncs:  # the initialiser may now look at COMMAND
+            sync.reply(None)
+        self._init_syncs.clear()
         self._pump_commands()
 
     def _on_cmd_complete(self, env: Envelope, msg: m.BirisCmdComplete) -> None:
@@ -852,6 +858,12 @@ class Administrator:
                 fail_quietly(cmd.requester, RequestError("a reset has begun"))
         self.commands.stop_timer()
         self._start_initialiser()
+
+    def _on_init_sync(self, env: Envelope, msg: m.InitSync) -> None:
+        if self.commands.worker_parked:
+            env.reply(None)
+        else:  # it is writing what it was handed before the reset: answered when it is back
+            self._init_syncs.append(env)
 
     def _on_init_command(self, env: Envelope, msg: m.InitCommand) -> None:
         self._submit_command(BirisCommand(msg.code, msg.param, CommandPurpose.INIT, requester=env))

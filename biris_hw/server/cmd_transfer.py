@@ -139,6 +139,11 @@ class CommandChannel:
         """CMD_TRANSFER_RDY: the worker is parked until the next command."""
         self._transfer_env = env
 
+    @property
+    def worker_parked(self) -> bool:
+        """The worker waits for an order: nothing handed to it is still unwritten."""
+        return self._transfer_env is not None
+
     def complete(self, env: Envelope, token: int) -> BirisCommand | None:
         """BIRIS_CMD_COMPLETE: the command it completes, or None when it is stale.
 

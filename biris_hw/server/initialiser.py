@@ -25,9 +25,13 @@ revolution looking for its index, so the search stays within the widest of the r
 elevation limits either side of where the head woke up (the head is assumed to power up within
 its limits, as a tilt head resting on its stops does). Its index marks the level head.
 
-**A busy BIRIS first.** A driver that died (or a reset that abandoned a scan) may leave BIRIS
-executing a command, typically a long BI_ACQUIRE; a command written meanwhile is lost
-(CMD_WHILE_BUSY, defect 8). So before its first command the initialiser polls COMMAND until
+**The motors stop first, then a busy BIRIS is awaited.** The chips are reset before anything
+else (the head coasts to rest where it is; nothing runs on while BIRIS is awaited). A driver
+that died (or a reset that abandoned a scan) may leave BIRIS executing a command, typically a
+long BI_ACQUIRE; a command written meanwhile is lost (CMD_WHILE_BUSY, defect 8). The
+initialiser first asks the administrator (InitSync) to answer once the command-transfer worker
+is parked -- a command handed to it just before the reset is then written, and seen -- and
+before its first command it polls COMMAND until
 BIRIS clears it, bounded by what can be running: for BI_ACQUIRE the count its PARAM still holds
 times the longest acquisition period, plus the start-up and the record's BIRIS timeout;
 otherwise the timeout alone. Then a BI_STOP_CONTINUOUS goes first, before anything moves: a
@@ -57,7 +61,7 @@ from biris_hw.ipc import Mailbox
 from biris_hw.pan_reference import NARROW_WINDOW, index_search_range
 from biris_hw.records import BirisInitRecord
 from biris_hw.server.cmd_transfer import status_name
-from biris_hw.server.messages import InitCommand, InitMove
+from biris_hw.server.messages import InitCommand, InitMove, InitSync
 from regs.biexec import BiCommand, BiStatus, decode_param
 from regs.hctl1000 import COUNTS_PER_REV, MOTION_LIMIT_COUNTS
 from regs.layout import (
@@ -137,8 +141,8 @@ class Initialiser:
     def run(self) -> InitResult:
         self.coupler.clear_errors()
         self.coupler.enable_interrupts(LEVEL2_VECTOR)
+        self.configure_axes()  # stops the motors first: nothing runs on while BIRIS is awaited
         self.stop_acquisition()
-        self.configure_axes()
         self.find_zero_index()
         self.find_zero_index(Axis.ELEVATION)
         return self.boot_biris()
@@ -148,6 +152,7 @@ class Initialiser:
         command still running, and BI_STOP_CONTINUOUS, since a tilt must never happen under a
         running acquisition."""
         self.link.set_flags(cmd_int=True, data_int=False, motor_access=True)
+        self._send(InitSync())  # a command handed over before the reset is written by now
         self.wait_biris_idle()
         self._command(BiCommand.BI_STOP_CONTINUOUS)
 

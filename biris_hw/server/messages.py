@@ -170,6 +170,13 @@ class TaskFailed:
 
 
 @dataclass(frozen=True, slots=True)
+class InitSync:
+    """From the initialiser, before it looks at COMMAND: replied once the command-transfer
+    worker is parked. A command the administrator handed the worker just before a reset may
+    not be written yet; BIRIS must be seen busy with it, not idle a moment before it arrives."""
+
+
+@dataclass(frozen=True, slots=True)
 class InitCommand:
     """The initialiser asks for a BIRIS command; replied with (status, PARAM) on completion."""
 
