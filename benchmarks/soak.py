@@ -284,30 +284,18 @@ def _figures(mode: str, record_text: str, run: _Run) -> list[Figure]:
             " buffers still filling (the simulator's 65,536 acquisition times). Quick runs make"
             " few acquisitions, so the figure is noisy there.",
         ),
-        Figure(
-            key=f"soak.{mode}_threads",
-            values={
-                "before": float(run.threads_before),
-                "during": float(run.threads_during),
-                "after_close": float(run.threads_after),
-                "left": float(run.threads_after - run.threads_before),
-            },
-            unit="threads",
-            target=Target("==", 0.0, on="left"),
-            method=base + " threading.active_count() before the rig was built, at the end of"
+        _left_behind(
+            f"soak.{mode}_threads",
+            "threads",
+            (run.threads_before, run.threads_during, run.threads_after),
+            base + " threading.active_count() before the rig was built, at the end of"
             " scanning, and after the server and the rig were closed.",
         ),
-        Figure(
-            key=f"soak.{mode}_descriptors",
-            values={
-                "before": float(run.fds_before),
-                "during": float(run.fds_during),
-                "after_close": float(run.fds_after),
-                "left": float(run.fds_after - run.fds_before),
-            },
-            unit="descriptors",
-            target=Target("==", 0.0, on="left"),
-            method=base + " Entries of /proc/self/fd at the same three moments.",
+        _left_behind(
+            f"soak.{mode}_descriptors",
+            "descriptors",
+            (run.fds_before, run.fds_during, run.fds_after),
+            base + " Entries of /proc/self/fd at the same three moments.",
         ),
         Figure(
             key=f"soak.{mode}_faults",
@@ -324,6 +312,23 @@ def _figures(mode: str, record_text: str, run: _Run) -> list[Figure]:
             " injected.",
         ),
     ]
+
+
+def _left_behind(key: str, unit: str, counts: tuple[int, int, int], method: str) -> Figure:
+    """A resource counted before the run, during it and after close; ``left`` must be 0."""
+    before, during, after = counts
+    return Figure(
+        key=key,
+        values={
+            "before": float(before),
+            "during": float(during),
+            "after_close": float(after),
+            "left": float(after - before),
+        },
+        unit=unit,
+        target=Target("==", 0.0, on="left"),
+        method=method,
+    )
 
 
 @benchmark("soak")

@@ -219,7 +219,8 @@ class AxisDriver:
         if dest != destination:
             log.warning("destination %d clamped to %d", destination, dest)
         if self.profile_active():
-            raise HardwareFault("protocol", f"axis {self.axis.name}: profile already running")
+            # the previous move never ended: the motor's fault, not BIRIS's
+            raise HardwareFault("motor_stall", f"axis {self.axis.name}: profile already running")
         if self.reference is not None:
             self.reference.record_move(self.command_position(), dest)
         for reg, byte in zip(

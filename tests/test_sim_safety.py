@@ -112,20 +112,23 @@ def test_without_stops_the_head_turns_freely() -> None:
     assert plant.stop_hits == 0
 
 
+APPENDIX_B: tuple[tuple[int, int], ...] = (
+    (Reg.SAMPLE_TIMER, 0xAF),
+    (Reg.FILTER_ZERO, 0x7F),
+    (Reg.FILTER_POLE, 0xEF),
+    (Reg.FILTER_GAIN, 0x3F),
+    (Reg.MAX_VELOCITY, 2),
+    (Reg.ACCEL_LSB, 0x22),
+    (Reg.ACCEL_MSB, 0x33),
+)
+"""Appendix B's filter, sample timer and profile limits, as a driver writes them."""
+
+
 def _ready_chip(azimuth: float, audit: Audit | None = None) -> Hctl1000:
     """An azimuth chip under Appendix B, holding where the head is (counter 0 there)."""
     plant = MotorPlant(np.random.default_rng(0), initial_azimuth_counts=azimuth)
     chip = Hctl1000("azimuth", plant, audit=audit, head_limit=HEAD_LIMIT_COUNTS)
-    for reg, value in (
-        (Reg.SAMPLE_TIMER, 0xAF),
-        (Reg.FILTER_ZERO, 0x7F),
-        (Reg.FILTER_POLE, 0xEF),
-        (Reg.FILTER_GAIN, 0x3F),
-        (Reg.MAX_VELOCITY, 2),
-        (Reg.ACCEL_LSB, 0x22),
-        (Reg.ACCEL_MSB, 0x33),
-        (Reg.PROGRAM_COUNTER, ProgramCounter.CONTROL),
-    ):
+    for reg, value in (*APPENDIX_B, (Reg.PROGRAM_COUNTER, ProgramCounter.CONTROL)):
         chip.bus_write(reg, value)
     return chip
 
@@ -197,15 +200,7 @@ class Board:
 
     def initialise(self, axis: Axis) -> None:
         """Appendix B, then hold the present position (counter 0) in position control."""
-        for reg, value in (
-            (Reg.SAMPLE_TIMER, 0xAF),
-            (Reg.FILTER_ZERO, 0x7F),
-            (Reg.FILTER_POLE, 0xEF),
-            (Reg.FILTER_GAIN, 0x3F),
-            (Reg.MAX_VELOCITY, 2),
-            (Reg.ACCEL_LSB, 0x22),
-            (Reg.ACCEL_MSB, 0x33),
-        ):
+        for reg, value in APPENDIX_B:
             self.wr(axis, reg, value)
         for reg, byte in zip(
             (Reg.CMD_POS_MSB, Reg.CMD_POS_MID, Reg.CMD_POS_LSB), pos24_msb_first(0), strict=True
@@ -295,15 +290,7 @@ class Motion:
         self.rig = rig
         self.win = rig.hardware.motion
         base = AXIS_BASE[Axis.AZIMUTH]
-        for reg, value in (
-            (Reg.SAMPLE_TIMER, 0xAF),
-            (Reg.FILTER_ZERO, 0x7F),
-            (Reg.FILTER_POLE, 0xEF),
-            (Reg.FILTER_GAIN, 0x3F),
-            (Reg.MAX_VELOCITY, 2),
-            (Reg.ACCEL_LSB, 0x22),
-            (Reg.ACCEL_MSB, 0x33),
-        ):
+        for reg, value in APPENDIX_B:
             self.win.write8(base + reg, value)
         here = self.actual()
         for reg, byte in zip(

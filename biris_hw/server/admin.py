@@ -583,8 +583,7 @@ class Administrator:
         if job is not None:
             if error is not None:
                 axis.finish_current()
-                kind: FaultKind = "motor_stall" if "profile" in error else _fault_kind(msg.kind)
-                self._fault(kind, error)
+                self._fault(_fault_kind(msg.kind), error)
                 if self.life.fault is not None:
                     self._motion_failed(job, self.life.fault)
                 return
@@ -606,14 +605,15 @@ class Administrator:
         if not axis.ends_current(msg.token) or job is None:
             self.counters.spurious_motor_end += 1
             return
-        dest = axis.destination
+        assert isinstance(job.order, m.MoveOrder)  # ends_current says so
+        dest = job.order.destination  # clamped by dispatch
         if not msg.settled:  # judged by where it stands; a busy host may have polled late
             log.warning(
                 "%s: the head had not come to rest %g s after its profile",
                 axis.name,
                 SETTLE_LIMIT_S,
             )
-        if msg.position is not None and dest is not None:
+        if msg.position is not None:
             miss = msg.position - dest
             if abs(miss) > ARRIVAL_TOLERANCE_COUNTS:
                 self._fault(

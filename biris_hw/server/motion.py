@@ -95,8 +95,6 @@ class AxisState:
         self.position = 0
         self.watchdog_gen = -1
         self._tokens = 0
-        self.destination: int | None = None
-        """Where the running move goes (None while no move runs)."""
 
     @property
     def name(self) -> str:
@@ -137,8 +135,7 @@ class AxisState:
             dest = clamp_counts(order.destination)
             self._tokens += 1
             order = dataclasses.replace(order, destination=dest, token=self._tokens)
-            job.order = order
-            self.destination = dest
+            job.order = order  # what the worker got: the clamped destination and the token
             duration = expected_move_s(dest - self.position, self.motor)
             # the notifier's settling may take up to SETTLE_LIMIT_S more, then threads run late
             self.watchdog_gen = self.watchdog.arm(
@@ -151,7 +148,6 @@ class AxisState:
     def finish_current(self) -> Motion | None:
         """The running order is over (its end was reported); returns it."""
         job, self.current = self.current, None
-        self.destination = None
         if job is not None and isinstance(job.order, MoveOrder):
             self.watchdog.disarm()
         return job
@@ -170,5 +166,4 @@ class AxisState:
         jobs = [*([self.current] if self.current else []), *self.queue]
         self.queue.clear()
         self.current = None
-        self.destination = None
         return jobs
