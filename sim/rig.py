@@ -196,6 +196,7 @@ class SimulatedBiris:
             rng=rngs[4],
             tilting=self._tilting,
             elevation_counts=self._encoder_elevation,
+            true_elevation_counts=self._true_elevation,
         )
         tap.target = self.supervisor
         self.faults = FaultPanel(
@@ -224,6 +225,15 @@ class SimulatedBiris:
 
     def _encoder_elevation(self, t: float) -> float:
         return float(self.board.position_at(1, t))
+
+    def _true_elevation(self, t: float) -> float:
+        """The tilt the optics see at clock time ``t`` (counts from level): the encoder's
+        reading then, moved by the encoder's offset from the truth (constant while it moves)."""
+        with self.board.lock:
+            self.board.catch_up()
+            plant, chip = self.board.plants[1], self.board.elevation
+            offset = plant.true_azimuth_counts - chip.actual_position
+            return float(self.board.position_at(1, t)) + offset
 
     def _tilting(self) -> bool:
         with self.board.lock:

@@ -21,6 +21,7 @@ from biris_hw import (
     MotorParams,
     RequestError,
 )
+from biris_hw.errors import HardwareFault
 from biris_hw.server import BirisServer
 from regs.hctl1000 import Reg
 from sim import Scene, SimulatedBiris
@@ -209,3 +210,30 @@ def test_elevation_limits_come_from_the_init_record(rig: SimulatedBiris) -> None
         conn.wait_idle(timeout=WAIT)
         assert server.status()["elevation"] == -100
         assert abs(rig.elevation_counts + 100) <= 3.0
+
+
+def test_a_reset_under_a_hung_acquisition_at_a_tilt_leaves_the_calibration_right(
+    make_rig: RigFactory,
+) -> None:
+    """A reset resets the tilt's chip (its counter reads 0 where the head stands) before it
+    waits for a BI_ACQUIRE that a hang left running; that acquisition goes on with the table
+    of where the head truly stands, which is right. The simulator judges the table against the
+    true tilt, not against the encoder the reset just zeroed (it used to record
+    WRONG_CALIBRATION LUT=28 ELEVATION=0 here: the random-request test's finding)."""
+    rig = make_rig(scene=Scene.circle(2.0))
+    with BirisServer(rig.hardware) as server:
+        conn = server.open()
+        conn.set_elevation(2.5)
+        conn.wait_idle(timeout=WAIT)
+        before = rig.supervisor.sequences_started
+        conn.single_scan(120.0)
+        assert rig.supervisor.wait_for(lambda s: s.sequences_started > before, WAIT)
+        rig.faults.hang_supervisor()
+        with pytest.raises(HardwareFault) as fault:
+            conn.wait_idle(timeout=WAIT)
+        assert fault.value.kind == "timeout"
+        rig.faults.clear_all()  # BIRIS resumes the BI_ACQUIRE of the 120 degree scan
+        conn.reset()
+        assert server.status()["calibration"] == 0 and abs(rig.elevation_counts) <= 3.0
+        assert rig.supervisor.loaded_lut == 0
+        assert rig.audit.violations == []

@@ -26,7 +26,10 @@ its matching azimuth entry; CURRENT_FRAME names the last completed slot, ACQ_LIN
 further data interrupt. A stop while not continuous just completes.
 
 **Audit.** At each acquisition start, ``tilting()`` true is ``ACQUIRE_WHILE_TILTING`` and a
-table more than one count away from ``elevation_counts(t)`` is ``WRONG_CALIBRATION``; each is
+table more than ``LUT_TOLERANCE_COUNTS`` away from the true tilt (``true_elevation_counts(t)``:
+the encoder reading is no judge, a driver may reset the tilt's chip and zero it while BIRIS
+still acquires with the table that matches where the head truly stands) is
+``WRONG_CALIBRATION``; each is
 recorded when it begins (once per episode within a sequence, not once per acquisition).
 """
 
@@ -53,6 +56,11 @@ from sim.clock import FIELD_PERIOD
 from sim.supervisor.state import Frame, SupervisorState, parse_int
 
 __all__ = ["Acquisition", "AcquisitionSequence"]
+
+LUT_TOLERANCE_COUNTS = 3.0
+"""How far (counts of tilt, 0.26 degrees) the loaded table may be from the true tilt before the
+audit calls it WRONG_CALIBRATION: a homed tilt stands on its index only to within a count or two
+(the encoder then reads 0 with the head that far from true level), which no table resolves."""
 
 
 def _counts_to_rad(counts: float) -> float:
@@ -189,9 +197,9 @@ class Acquisition(SupervisorState):
             self._record(Rule.ACQUIRE_WHILE_TILTING, "acquisition while the head tilts")
         seq.tilting_noted = tilting
         wrong = False
-        if self._elevation is not None and self._lut is not None:
-            elevation = self._elevation(t)
-            wrong = abs(self._lut - elevation) > 1.0
+        if self._true_elevation is not None and self._lut is not None:
+            elevation = self._true_elevation(t)
+            wrong = abs(self._lut - elevation) > LUT_TOLERANCE_COUNTS
             if wrong and not seq.wrong_lut_noted:
                 self._record(
                     Rule.WRONG_CALIBRATION,

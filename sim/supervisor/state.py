@@ -165,6 +165,7 @@ class SupervisorState(abc.ABC):
         rng: np.random.Generator,
         tilting: Callable[[], bool] | None = None,
         elevation_counts: Callable[[float], float] | None = None,
+        true_elevation_counts: Callable[[float], float] | None = None,
         require_motor_access: bool = True,
         times_kept: int = ACQUISITION_TIMES_KEPT,
         starts_kept: int = SEQUENCE_STARTS_KEPT,
@@ -185,6 +186,12 @@ class SupervisorState(abc.ABC):
         self._rng = rng
         self._tilting = tilting
         self._elevation = elevation_counts
+        self._true_elevation = (
+            true_elevation_counts if true_elevation_counts is not None else elevation_counts
+        )
+        """The tilt the optics truly see (counts from level): what the calibration table is
+        judged against. The encoder (``elevation_counts``) stops being that when a driver resets
+        the tilt's chip while BIRIS still acquires."""
         self._require_motor_access = require_motor_access
         self._base = memory_map.biexec_offset
         self._fpa = fields_per_acquisition(memory_map.samples)
