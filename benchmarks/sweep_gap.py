@@ -1,10 +1,14 @@
 """Sweep gap: the blind time between one sweep's last acquisition and the next sweep's first.
 
 In the report's mode every sweep is its own BI_ACQUIRE, so each turn-around costs BIRIS's 240 ms
-start-up (plus the command's trip through the server and a wait for the next video field):
-the head sweeps on, but nothing is acquired. Continuous acquisition (Appendix D,
-``BirisInitRecord(continuous_acquisition=True)``) keeps BIRIS acquiring through the turn-around
-and only partitions the stream into sweeps, so the gap should be one acquisition period.
+start-up (plus the command's trip through the server and a wait for the next video field). The
+head waits at the limit for it (issue 12: the trapezoid starts when the first acquisition
+begins), so the gap is blind *time* at the turn-around, not a hole in the sweep: before that
+change the head swept on and the first ~32 degrees of every sweep were missing (300 ms then,
+one period less than now, since the standing acquisition at the limit is now discarded).
+Continuous acquisition (Appendix D, ``BirisInitRecord(continuous_acquisition=True)``) keeps
+BIRIS acquiring through the turn-around and only partitions the stream into sweeps, so the gap
+should be one acquisition period.
 
 Measured from consecutive buffers of one DATA connection during continuous 90 degree sweeps:
 gap = next scan's first acquisition time - previous scan's last, in hardware ms. Acquisition

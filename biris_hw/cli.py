@@ -5,6 +5,11 @@ only knows their names, a one-line summary, and where they live. A command's mod
 only when that command is asked for, so ``biris --help`` is instant, a missing optional piece
 (the simulator process, matplotlib) breaks only the command that needs it, and that command
 says so in one line.
+
+While a command runs, what the server says it is doing (homing, booting BIRIS, waiting for a
+command to finish) is shown on stderr when a person watches it
+(:func:`~biris_hw.commands.common.progress_to_stderr`); Ctrl-C is exit status 130, after the
+command has kept what it could.
 """
 
 from __future__ import annotations
@@ -23,7 +28,9 @@ from biris_hw.commands.common import (
     EXIT_USAGE,
     add_debug_argument,
     log_to_stderr,
+    progress_to_stderr,
     report_error,
+    wants_progress,
 )
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
@@ -181,7 +188,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("biris: say which command to run (biris --help lists them)", file=sys.stderr)
         return EXIT_USAGE
     debug = bool(getattr(args, "debug", False))
-    with log_to_stderr(debug):
+    with log_to_stderr(debug), progress_to_stderr(prog, wants_progress(args)):
         try:
             return int(run(args))
         except KeyboardInterrupt:

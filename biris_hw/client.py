@@ -255,6 +255,43 @@ class Connection(Generic[D]):
         """
         self._call(m.StopScanRqst(self.ident))
 
+    def start_continuous(self) -> None:
+        """START_CONTINUOUS (Appendix D): acquire continuously into BIRIS's ring from now on.
+
+        Scans then become motor sweeps over a BIRIS that never stops acquiring, so the 240 ms
+        start-up is paid once, not per scan. Returns once accepted. With no scan running the
+        ring starts at once (``wait_idle`` returns when it is live); while a scan runs, or
+        continuous scanning is on, the switch is pending, as BIRIS_HOME is, and takes effect
+        when scanning ends: ``status()["acquisition"]`` says the mode in force,
+        ``status()["acquisition_pending"]`` a switch that waits, and every :class:`Scan` and
+        :class:`Point` the mode it was taken in (``acquisition``). Calling it again changes
+        nothing. A reset returns to the init record's ``continuous_acquisition``.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset); nothing changes.
+            RequestError: the server is initialising; nothing changes.
+        """
+        self._call(m.StartContinuous(self.ident))
+
+    def stop_continuous(self) -> None:
+        """STOP_CONTINUOUS (Appendix D): cease continuous acquisition immediately.
+
+        Single acquisition (one BI_ACQUIRE per scan) from now on, and a pending
+        :meth:`start_continuous` is withdrawn. BIRIS is stopped at once, even in the middle of a
+        sweep: that sweep keeps the acquisitions made before the stop and is delivered when the
+        head arrives (its ``acquisition`` is ``"continuous"``; it covers only part of its length
+        and says so with ``partial``); the motion is not stopped (:meth:`stop_scan` does that),
+        and continuous scanning goes on, its next sweeps in single acquisition. Calling it
+        again, or in single acquisition, changes nothing.
+
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            HardwareFault: the server is in a fault state (until a reset); nothing changes.
+            RequestError: the server is initialising; nothing changes.
+        """
+        self._call(m.StopContinuous(self.ident))
+
     def home(self) -> None:
         """BIRIS_HOME: drive to 0 degrees (pending while a scan or motion runs).
 

@@ -18,9 +18,16 @@ from numpy.typing import NDArray
 from biris_hw.geometry import Frame, Mount, point_points, scan_points
 from regs.hctl1000 import COUNTS_PER_REV
 
-__all__ = ["ConnectionKind", "DeliveryPolicy", "Direction", "Point", "Scan"]
+__all__ = ["ACQUISITION_MODES", "ConnectionKind", "DeliveryPolicy", "Direction", "Point", "Scan"]
 
 _DEG_PER_COUNT = 360.0 / COUNTS_PER_REV
+
+ACQUISITION_MODES = ("single", "continuous")
+"""How BIRIS acquired a scan's or a point's data: ``"single"`` -- the report's mode, one
+BI_ACQUIRE sequence per scan (240 ms start-up each time) -- or ``"continuous"`` -- Appendix D's
+ring, BIRIS started once with BI_START_CONTINUOUS and acquiring for ever. The same words as
+``server.status()["acquisition"]``, which says which mode is on now; the data say which one they
+were taken in, so a client that did not switch the mode itself still knows."""
 
 
 class Direction(enum.IntEnum):
@@ -128,6 +135,15 @@ class Scan:
     the head's place on the vehicle, as the server's init record gives it, so that
     :meth:`points` needs nothing else.
 
+    ``acquisition`` is how BIRIS acquired the scan (:data:`ACQUISITION_MODES`): ``"single"``, a
+    BI_ACQUIRE sequence of its own (the report's mode), or ``"continuous"``, cut out of
+    Appendix D's ring. Clients are told through the data because the mode can change while they
+    listen (``conn.start_continuous()`` / ``stop_continuous()`` from any connection), and the two
+    differ in what a scan covers. ``partial`` is True when the scan covers only part of the sweep
+    it belongs to -- the first sweep of a continuous scan, begun from wherever the head stood
+    rather than from a limit, or a sweep whose ring STOP_CONTINUOUS stopped under it -- so that a
+    client can tell it from a full one; its ``azimuth`` says which part.
+
     Equality is identity: comparing array contents is the caller's choice (``np.array_equal``).
     """
 
@@ -142,6 +158,8 @@ class Scan:
     elevation: int = 0
     t_delivered: float | None = None
     mount: Mount | None = None
+    acquisition: str = "single"
+    partial: bool = False
 
     def __post_init__(self) -> None:
         def put(key: str, value: object) -> None:
@@ -153,6 +171,8 @@ class Scan:
         put("elevation", operator.index(self.elevation))
         put("t_delivered", _optional_time("t_delivered", self.t_delivered))
         _check_mount(self.mount)
+        put("acquisition", _acquisition(self.acquisition))
+        put("partial", _flag("partial", self.partial))
         azimuth = _frozen("azimuth", self.azimuth, np.int32, 1)
         range_mm = _frozen("range_mm", self.range_mm, np.int16, 2)
         closest = _frozen("closest_mm", self.closest_mm, np.int16, 1)
@@ -226,7 +246,8 @@ class Point:
     and ``intensity`` the full line. ``acq`` is its index in sequence ``scan_seq``; ``t`` its
     acquisition time and ``t_delivered`` the time it was handed over, both hardware seconds.
     ``elevation`` is the tilt axis position (counts) and ``mount`` the head's place on the
-    vehicle, for :meth:`points`.
+    vehicle, for :meth:`points`. ``acquisition`` is how BIRIS acquired it, ``"single"`` (a
+    BI_ACQUIRE sequence) or ``"continuous"`` (Appendix D's ring), as for :class:`Scan`.
     """
 
     azimuth: int
@@ -239,6 +260,7 @@ class Point:
     elevation: int = 0
     t_delivered: float | None = None
     mount: Mount | None = None
+    acquisition: str = "single"
 
     def __post_init__(self) -> None:
         if self._valid_as_given():
@@ -258,6 +280,7 @@ class Point:
         put("t", t)
         put("t_delivered", _optional_time("t_delivered", self.t_delivered))
         _check_mount(self.mount)
+        put("acquisition", _acquisition(self.acquisition))
         profile = _frozen("profile", self.profile, np.int16, 1)
         intensity = _frozen("intensity", self.intensity, np.int16, 1)
         if intensity.shape != profile.shape:
@@ -285,6 +308,8 @@ class Point:
             and type(self.t) is float
             and (t_delivered is None or type(t_delivered) is float)
             and (self.mount is None or isinstance(self.mount, Mount))
+            and type(self.acquisition) is str
+            and self.acquisition in ACQUISITION_MODES
             and _read_only(profile)
             and _read_only(intensity)
             and profile.shape == intensity.shape
@@ -308,6 +333,21 @@ class Point:
 def _check_mount(mount: object) -> None:
     if mount is not None and not isinstance(mount, Mount):
         raise ValueError(f"mount must be a geometry.Mount or None, not {type(mount).__name__}")
+
+
+def _acquisition(value: object) -> str:
+    """One of :data:`ACQUISITION_MODES`, as a plain str (a str subclass is taken as its text)."""
+    if not isinstance(value, str) or value not in ACQUISITION_MODES:
+        raise ValueError(f"acquisition must be one of {ACQUISITION_MODES}, not {value!r}")
+    return str(value)
+
+
+def _flag(name: str, value: object) -> bool:
+    """A bool (numpy's too, as a file gives it back); a number or anything else is refused, since
+    a truthy 2 or "no" there is a mistake in the caller, not a wish."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise ValueError(f"{name} must be True or False, not {value!r}")
 
 
 def _count(name: str, value: int) -> int:

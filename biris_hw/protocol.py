@@ -1,9 +1,10 @@
 """The client/server protocol: every message a client sends to the BIRIS server's administrator.
 
 Named after the report's client messages (OPEN_REQUEST, REQUEST_POINT, REQUEST_SCAN_DATA, ...,
-READY_FOR_DATA, and SET_ELEVATION, the "new message" the report asks for to servo the elevation
-axis). It sits below both :mod:`biris_hw.client` and :mod:`biris_hw.server`, so neither imports
-the other for it. All messages are immutable.
+READY_FOR_DATA, SET_ELEVATION, the "new message" the report asks for to servo the elevation
+axis, and START_CONTINUOUS / STOP_CONTINUOUS, Appendix D's messages that switch BIRIS's
+continuous acquisition on and off). It sits below both :mod:`biris_hw.client` and
+:mod:`biris_hw.server`, so neither imports the other for it. All messages are immutable.
 
 The messages that carry numbers check them when they are made, whoever makes them: a destination
 is a whole number of counts (any integer type, kept as a plain ``int``; the administrator clamps
@@ -117,6 +118,22 @@ class StopScanRqst:
 
 @dataclass(frozen=True, slots=True)
 class BirisHome:
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class StartContinuous:
+    """START_CONTINUOUS (Appendix D): acquire continuously into BIRIS's ring from now on --
+    at once when no scan runs, else once the scan under way (or continuous scanning) ends."""
+
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class StopContinuous:
+    """STOP_CONTINUOUS (Appendix D): "cease all acquisitions immediately" and go back to one
+    BI_ACQUIRE sequence per scan."""
+
     conn: int
 
 

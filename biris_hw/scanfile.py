@@ -2,28 +2,34 @@
 
 :func:`save_scans` writes a list of :class:`~biris_hw.Scan` to ``.npz`` and :func:`load_scans`
 gives back scans equal to them field by field: every array with its dtype and shape, and
-``direction``, ``seq``, ``dropped``, ``elevation``, ``t_delivered`` (None kept as None) and
-``mount`` (None kept as None). Scans of different sample counts may share a file.
+``direction``, ``seq``, ``dropped``, ``elevation``, ``t_delivered`` (None kept as None),
+``mount`` (None kept as None), ``acquisition`` and ``partial``. Scans of different sample counts
+may share a file.
 
-The ``.npz`` (format version 2) is plain numpy arrays, no pickles, readable without this
+The ``.npz`` (format version 3) is plain numpy arrays, no pickles, readable without this
 module. Per scan, in saving order: ``direction`` (0 CW, 1 CCW), ``seq``, ``dropped``,
 ``elevation`` (counts), ``n_acq``, ``samples``, ``t_delivered`` (NaN where
-``has_t_delivered`` is false), ``has_mount``, ``mount_offset_m`` (n, 3), ``mount_head_height_m``
-and ``mount_head_offset_m``. Per acquisition, every scan's rows one after the other:
+``has_t_delivered`` is false), ``has_mount``, ``mount_offset_m`` (n, 3), ``mount_head_height_m``,
+``mount_head_offset_m``, ``acquisition`` (text: ``single`` or ``continuous``) and ``partial``
+(bool). Per acquisition, every scan's rows one after the other:
 ``scan_index`` (which scan the row belongs to), ``azimuth`` (counts, int32), ``azimuth_deg``
 (for convenience; not read back), ``t``, ``closest_mm``, and ``range_mm`` and ``intensity``
 (int16, as wide as the widest scan; a narrower scan's rows are padded with 0, "no return", and
-its ``samples`` says where they end). ``format_version`` is 2.
+its ``samples`` says where they end). ``format_version`` is 3.
 
-Files written before format version 2 (by ``biris scan --save`` and ``biris demo`` of earlier
-releases) load too; they did not keep ``elevation``, ``t_delivered`` or ``mount``, which come
-back as 0, None and None.
+Files of earlier format versions load too. Version 2 did not keep ``acquisition`` or
+``partial``: every scan of its day was a single-acquisition one or a whole continuous-acquisition
+sweep, and they come back as ``"single"`` and False (the mode is not recorded anywhere else, so a
+version-2 file of Appendix D sweeps reads as single). Files written before version 2 (by
+``biris scan --save`` and ``biris demo`` of earlier releases) did not keep ``elevation``,
+``t_delivered`` or ``mount`` either, which come back as 0, None and None.
 
 The ``.csv`` (:func:`export_csv`) is an export, not a second format: one row per acquisition
 with ``scan`` (index in the list), ``direction`` (CW/CCW), ``seq``, ``acq``, ``t_s`` (to the
 microsecond), ``azimuth_counts``, ``azimuth_deg``, ``closest_mm`` and ``range_1_mm`` ...
 ``range_N_mm`` (the profile, top row first). It leaves out intensities, ``dropped``,
-``elevation``, ``t_delivered`` and ``mount``; it is never read back.
+``elevation``, ``t_delivered``, ``mount``, ``acquisition`` and ``partial``; it is never read
+back.
 """
 
 from __future__ import annotations
@@ -43,8 +49,9 @@ from biris_hw.geometry import Mount
 
 __all__ = ["FORMAT_VERSION", "SAVED_FIELDS", "export_csv", "load_scans", "save_scans"]
 
-FORMAT_VERSION = 2
-"""Version 1 (no ``format_version`` key) kept the arrays, direction, seq and dropped only."""
+FORMAT_VERSION = 3
+"""Version 1 (no ``format_version`` key) kept the arrays, direction, seq and dropped only;
+version 2 added elevation, t_delivered and mount; version 3 added acquisition and partial."""
 
 SAVED_FIELDS = frozenset(
     {
@@ -59,10 +66,16 @@ SAVED_FIELDS = frozenset(
         "elevation",
         "t_delivered",
         "mount",
+        "acquisition",
+        "partial",
     }
 )
 """The :class:`~biris_hw.Scan` fields a ``.npz`` keeps: all of them (tests/test_scanfile.py
 holds this to ``dataclasses.fields(Scan)``, so a new field cannot be forgotten here)."""
+
+
+_MODE_DTYPE = np.dtype("<U10")
+"""``acquisition`` as fixed-width text: readable by any numpy program, no pickle needed."""
 
 
 def _with_suffix(path: str | os.PathLike[str], suffix: str) -> Path:
@@ -119,6 +132,8 @@ def save_scans(path: str | os.PathLike[str], scans: Sequence[Scan]) -> Path:
         "mount_offset_m": np.array([m[0] for m in mounts], dtype=np.float64).reshape(-1, 3),
         "mount_head_height_m": np.array([m[1] for m in mounts], dtype=np.float64),
         "mount_head_offset_m": np.array([m[2] for m in mounts], dtype=np.float64),
+        "acquisition": np.array([s.acquisition for s in scans], dtype=_MODE_DTYPE),
+        "partial": np.array([s.partial for s in scans], dtype=np.bool_),
         # per acquisition
         "scan_index": np.repeat(
             np.arange(len(scans), dtype=np.int32), [s.n_acq for s in scans]
@@ -138,7 +153,7 @@ def save_scans(path: str | os.PathLike[str], scans: Sequence[Scan]) -> Path:
 def load_scans(path: str | os.PathLike[str]) -> list[Scan]:
     """The scans a :func:`save_scans` ``.npz`` holds, in the order they were saved.
 
-    ``.npz`` is appended unless the path ends so. Reads format version 2 and the files of
+    ``.npz`` is appended unless the path ends so. Reads format version 3 and the files of
     earlier releases (see the module's notes). ValueError if the file is not a scan file.
     """
     source = _with_suffix(path, ".npz")
@@ -148,16 +163,17 @@ def load_scans(path: str | os.PathLike[str]) -> list[Scan]:
         if "format_version" not in arrays:
             return _load_v1(arrays)
         version = int(arrays["format_version"])
-        if version != FORMAT_VERSION:
-            raise ValueError(f"format version {version}; this release reads 1 and 2")
-        return _load_v2(arrays)
+        if version not in (2, FORMAT_VERSION):
+            raise ValueError(f"format version {version}; this release reads 1, 2 and 3")
+        return _load_v2(arrays, with_mode=version >= 3)
     except KeyError as exc:
         raise ValueError(f"{source} is not a file of BIRIS scans: no {exc.args[0]!r}") from None
     except ValueError as exc:
         raise ValueError(f"{source}: {exc}") from None
 
 
-def _load_v2(a: dict[str, NDArray[Any]]) -> list[Scan]:
+def _load_v2(a: dict[str, NDArray[Any]], *, with_mode: bool) -> list[Scan]:
+    """Versions 2 and 3 (``with_mode``: the file keeps ``acquisition`` and ``partial``)."""
     n_acq = a["n_acq"]
     total = int(n_acq.sum()) if n_acq.size else 0
     if a["azimuth"].shape[0] != total:
@@ -189,6 +205,8 @@ def _load_v2(a: dict[str, NDArray[Any]]) -> list[Scan]:
                 elevation=int(a["elevation"][i]),
                 t_delivered=float(a["t_delivered"][i]) if bool(a["has_t_delivered"][i]) else None,
                 mount=mount,
+                acquisition=str(a["acquisition"][i]) if with_mode else "single",
+                partial=bool(a["partial"][i]) if with_mode else False,
             )
         )
     return scans

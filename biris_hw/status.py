@@ -140,7 +140,9 @@ class ServerStatus(_ReadsAsMapping):
     continuous: bool
     """Continuous scanning is on."""
     acquisition: str
-    """"continuous" (Appendix D's ring) or "single" (one BI_ACQUIRE per scan)."""
+    """"continuous" (Appendix D's ring) or "single" (one BI_ACQUIRE per scan): the mode in force,
+    chosen by the init record's ``continuous_acquisition`` and switched at run time by
+    ``conn.start_continuous()`` / ``conn.stop_continuous()`` (:attr:`acquisition_pending`)."""
     ring: str
     """The ring's state: off, starting, live, stopping."""
     counters: Mapping[str, int]
@@ -153,6 +155,11 @@ class ServerStatus(_ReadsAsMapping):
     acquisitions_in_progress: int = 0
     """Acquisitions read and held by the scan under way (and a finished sweep's turn-around
     tail), not yet in any counter: the in-progress term of :meth:`accounts`."""
+    acquisition_pending: str | None = None
+    """The acquisition mode asked for and not yet in force, else None: ``"continuous"`` while a
+    START_CONTINUOUS waits for the scan under way (or continuous scanning) to end, as BIRIS_HOME
+    does. ``acquisition`` keeps saying the mode the data are taken in until then. Only a start
+    ever waits: STOP_CONTINUOUS takes effect at once (and withdraws a start that waits)."""
 
     def accounts(self) -> Accounts:
         """The acquisition counters reconciled (:class:`Accounts`): ``accounts().adds_up``

@@ -13,6 +13,10 @@ an HCTL-1000 or clearing a status bit under the driver's feet.
 One driver at a time, as on the robot: a second connection is told why and closed. The main
 thread serves the socket; SIGINT and SIGTERM only wake it, so Ctrl-C tears everything down in
 order (socket, mirror, simulator, segment) and exits 0.
+
+Its time scale defaults to every other command's (:data:`~biris_hw.commands.argtypes.
+DEFAULT_TIME_SCALE`), and a scale this host cannot keep up with is said once on stderr
+(:meth:`SimulatedBiris.lag_s <sim.rig.SimulatedBiris.lag_s>`), not silently used.
 """
 
 from __future__ import annotations
@@ -43,7 +47,12 @@ from biris_hw.bus.remote import (
     refusal,
     serve_request,
 )
-from biris_hw.commands.argtypes import add_simulator_arguments, seconds
+from biris_hw.commands.argtypes import (
+    DEFAULT_TIME_SCALE,
+    add_simulator_arguments,
+    seconds,
+    time_scale_warning,
+)
 from biris_hw.errors import BirisError
 from biris_hw.pan_reference import default_journal_path, forget_journal
 from regs.layout import BirisMemoryMap, ImageRegion, TargetImage
@@ -74,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--socket", metavar="PATH", default=None, help="Unix socket (default /tmp/biris-NAME.sock)"
     )
-    add_simulator_arguments(parser, default_time_scale=1.0)
+    add_simulator_arguments(parser, default_time_scale=DEFAULT_TIME_SCALE)
     parser.add_argument(
         "--duration", type=seconds, default=None, metavar="S",
         help="exit after S real seconds (default: until Ctrl-C)",
@@ -132,15 +141,26 @@ class _Segment:
 
 
 class _Mirror:
-    """Copies the board's and the coupler's registers into the image, side-effect free."""
+    """Copies the board's and the coupler's registers into the image, side-effect free.
+
+    Being the one thread of the process that wakes regularly anyway, it also watches whether
+    the simulator keeps up with its time scale, and says so once (``warn``) if it does not.
+    """
 
     def __init__(
-        self, rig: SimulatedBiris, segment: _Segment, image: TargetImage, period: float
+        self,
+        rig: SimulatedBiris,
+        segment: _Segment,
+        image: TargetImage,
+        period: float,
+        warn: Callable[[str], None] | None = None,
     ) -> None:
         self._rig = rig
         self._segment = segment
         self._image = image
         self._period = period
+        self._warn = warn
+        self._warned = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="biris-sim-mirror", daemon=True)
         self.failure: BaseException | None = None
@@ -157,8 +177,16 @@ class _Mirror:
         try:
             while not self._stop.wait(self._period):
                 self.copy()
+                self._check_lag()
         except BaseException as exc:  # reported at exit; the drivers keep their socket
             self.failure = exc
+
+    def _check_lag(self) -> None:
+        if self._warned or self._warn is None or not self._rig.behind():
+            return
+        self._warned = True
+        rig = self._rig
+        self._warn(time_scale_warning(rig.lag_s(), rig.lag_bound_s, rig.time_scale))
 
     def stop(self) -> None:
         self._stop.set()
@@ -393,7 +421,7 @@ def _serve(args: argparse.Namespace, stop_fd: int) -> int:
         )
         stack.callback(rig.close)
         rig.start()
-        mirror = _Mirror(rig, segment, image, MIRROR_PERIOD)
+        mirror = _Mirror(rig, segment, image, MIRROR_PERIOD, warn=_log)
         mirror.start()
         stack.callback(mirror.stop)
         port = _DriverPort(listener, rig, _handshake(segment.name, rig, image), stop_fd, _log)

@@ -313,5 +313,32 @@ class SimulatedBiris:
     ) -> None:
         self.close()
 
+    # -- keeping up ------------------------------------------------------------------------------
+    def lag_s(self) -> float:
+        """How far behind its own clock the simulator runs, in hardware seconds (0 when stopped).
+
+        The BIRIS supervisor's thread wakes at every video field; :meth:`SimClock.lateness
+        <sim.clock.SimClock.lateness>` averages how late those wakes come. A driver's reads
+        catch the simulation up, so what it reads stays right, but interrupts come that late:
+        beyond :data:`~sim.clock.LAG_WARNING_S` the host cannot keep up with
+        :attr:`time_scale`, and the driver's hardware-time deadlines (settling, watchdogs, the
+        BIRIS timeout) no longer mean what they would on the robot. Read-only.
+        """
+        if not self._started or self._closed:
+            return 0.0
+        return self.clock.lateness()
+
+    @property
+    def lag_bound_s(self) -> float:
+        """:data:`~sim.clock.LAG_WARNING_S`: the :meth:`lag_s` beyond which :meth:`behind`."""
+        from sim.clock import LAG_WARNING_S
+
+        return LAG_WARNING_S
+
+    def behind(self) -> bool:
+        """True while :meth:`lag_s` exceeds :attr:`lag_bound_s`: the time scale is more than
+        this host can simulate faithfully."""
+        return self.lag_s() > self.lag_bound_s
+
 
 _ = threading  # the rig's threads live in the board and the supervisor

@@ -23,6 +23,7 @@ from biris_hw.records import BirisInitRecord
 from biris_hw.server import messages as m
 from biris_hw.server.admin import Administrator
 from biris_hw.server.initialiser import InitResult
+from regs.biexec import BiCommand
 from regs.layout import FrameAddressing
 from regs.tech80 import Axis
 
@@ -63,6 +64,8 @@ class FakeTimer:
 class Core:
     """One administrator, its workers parked, driven by hand."""
 
+    PERIOD = 2 / 59.94
+    """The acquisition period the initialiser reports (2 fields)."""
     SAMPLES = 64
 
     def __init__(self, record: BirisInitRecord | None = None) -> None:
@@ -128,7 +131,7 @@ class Core:
     def init_done(self) -> InitResult:
         """A successful INIT_DONE from the initialiser (after a RESET_REQUEST); its result."""
         addressing = FrameAddressing(range_offset=0x1000, frame_size=130, azimuth_offset=0x8000)
-        result = InitResult(addressing, self.SAMPLES, 2 / 59.94)
+        result = InitResult(addressing, self.SAMPLES, self.PERIOD)
         self.send(m.InitDone(None, result))
         return result
 
@@ -141,14 +144,25 @@ class Core:
         return int(answer[0])
 
     # -- the command worker and notifier -----------------------------------------------------
-    def command(self) -> m.TransferOrder | None:
-        """The command biris_cmd_transfer was ordered to write (it then parks again), if any."""
+    def command(self, *, start: bool = True) -> m.TransferOrder | None:
+        """The command biris_cmd_transfer was ordered to write (it then parks again), if any.
+
+        A BI_ACQUIRE's start-up is taken to end at once (``start``): SEQUENCE_STARTED follows,
+        as the data notifier sends it at the first acquisition, and the scan's motor starts.
+        ``start=False`` leaves that to :meth:`started`.
+        """
         if not self.transfer.done:
             return None
         order = self.transfer.wait(0)
         assert isinstance(order, m.TransferOrder)
         self.transfer = self.send(m.CmdTransferRdy())
+        if start and order.code == BiCommand.BI_ACQUIRE:
+            self.started(order.seq_id)
         return order
+
+    def started(self, seq_id: int) -> None:
+        """SEQUENCE_STARTED: BI_ACQUIRE sequence ``seq_id`` has begun its first acquisition."""
+        self.send(m.SequenceStarted(seq_id, self.clock.now))
 
     def complete(self, order: m.TransferOrder, status: int = 0, param: bytes = b"") -> None:
         """BIRIS_CMD_COMPLETE for ``order``, from biris_cmd_notifier (which then parks)."""
@@ -181,9 +195,10 @@ class Core:
 
     # -- data --------------------------------------------------------------------------------
     def acquisitions(
-        self, seq_id: int, indices: range, azimuth: Callable[[int], int] = lambda k: k
+        self, seq_id: int, indices: range, azimuth: Callable[[int], int] = lambda k: 10 * (k + 1)
     ) -> None:
-        """NEW_POINT with acquisitions ``indices`` of sequence ``seq_id``."""
+        """NEW_POINT with acquisitions ``indices`` of sequence ``seq_id`` (by default made on the
+        way from 0 and away from it, so that none is taken for one made standing at the start)."""
         profile = np.full(self.SAMPLES, 1000, dtype=np.int16)
         profile.setflags(write=False)
         acqs = tuple(

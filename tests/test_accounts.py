@@ -412,7 +412,7 @@ def test_report_mode_scans_complete_or_are_aborted_whole() -> None:
     scans = ScanSequencer(counters, None)
     scan = scans.open_scan(512, 0, 0, 5)
     for k in range(5):
-        assert _feed(scans, counters, _acq(scan.seq_id, k, 100 * k)) is AcquisitionFate.KEPT
+        assert _feed(scans, counters, _acq(scan.seq_id, k, 100 * k + 50)) is AcquisitionFate.KEPT
         assert _balance(scans, counters).in_progress == k + 1
     assert _finish(scans)
     assert _balance(scans, counters).in_progress == 5  # finished, not yet a Scan
@@ -421,7 +421,7 @@ def test_report_mode_scans_complete_or_are_aborted_whole() -> None:
     # a scan a fault abandons: what it kept is aborted, what arrives later is stale
     scan = scans.open_scan(0, 512, 0, 5)
     for k in range(3):
-        _feed(scans, counters, _acq(scan.seq_id, k, 512 - 100 * k))
+        _feed(scans, counters, _acq(scan.seq_id, k, 462 - 100 * k))
     scans.forget()
     for k in range(3, 5):
         assert _feed(scans, counters, _acq(scan.seq_id, k, 0)) is AcquisitionFate.STALE
@@ -434,7 +434,7 @@ def test_a_finished_scan_never_completed_is_aborted_whole() -> None:
     scans = ScanSequencer(counters, None)
     scan = scans.open_scan(512, 0, 0, 4)
     for k in range(4):
-        _feed(scans, counters, _acq(scan.seq_id, k, 100 * k))
+        _feed(scans, counters, _acq(scan.seq_id, k, 100 * k + 50))
     assert _finish(scans, status=3)  # BI_ACQUIRE failed: the administrator faults, not completes
     scans.forget()
     assert _balance(scans, counters) == Accounts(4, 0, 0, 0, 4, 0, 0, 0)
@@ -554,7 +554,7 @@ def _check_drained(server: BirisServer, made: int, *, ring: bool) -> Accounts:
     assert accounts.in_progress == 0
     assert accounts.accounted == made, accounts
     if not ring:
-        assert accounts.idle == 0 and accounts.constant_azimuth == 0
+        assert accounts.idle == 0
     return accounts
 
 
@@ -614,7 +614,9 @@ def test_report_mode_scans_and_a_stop_account_for_every_acquisition(
 ) -> None:
     _scans_then_stop(server)
     accounts = _check_drained(server, rig.supervisor.acquisitions_made, ring=False)
-    assert accounts.in_scans == accounts.read > 0  # every acquisition is in a scan
+    # every acquisition is in a scan, but for the few made standing at a scan's ends
+    assert accounts.in_scans + accounts.constant_azimuth == accounts.read > 0
+    assert accounts.constant_azimuth <= 4 * server.status().counters["scans"]
 
 
 def test_report_mode_a_fault_mid_scan_then_reset_accounts_for_every_acquisition(

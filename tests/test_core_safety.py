@@ -15,9 +15,10 @@ import pytest
 from biris_hw import protocol as p
 from biris_hw.data import ConnectionKind
 from biris_hw.errors import HardwareFault, RequestError
-from biris_hw.records import BirisInitRecord, MotorParams, acquisitions_for
+from biris_hw.records import BirisInitRecord, MotorParams
 from biris_hw.server import messages as m
 from biris_hw.server.motion import ARRIVAL_TOLERANCE_COUNTS
+from biris_hw.server.scan_timing import ScanTiming
 from biris_hw.status import ServerState
 from regs.biexec import BiCommand
 from tests.core import Core
@@ -99,7 +100,7 @@ def test_reset_gives_the_server_the_parameters_the_chips_were_given(core: Core) 
     core.initialise()  # reset: the initialiser loads the record's parameters into the chip
     assert core.admin.az.motor == core.record.motor
     acquire, _ = _scan(core, conn, 2048)
-    assert acquire.n_acquisitions == acquisitions_for(2048, core.record)
+    assert acquire.n_acquisitions == ScanTiming(Core.PERIOD).acquisitions(2048, core.record.motor)
 
 
 def test_the_biris_timeout_is_on_unless_the_record_turns_it_off() -> None:

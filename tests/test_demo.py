@@ -81,6 +81,7 @@ def test_the_plotted_points_lie_on_the_true_walls(demo: tuple[int, str, Path]) -
     assert np.all(np.abs(cloud[:, 2] - 0.5) < RADIUS_M * np.tan(np.radians(11.0)) + 0.3)
 
 
+@pytest.mark.slow  # the fast tier runs the plain demo; continuous mode has fast tests of its own
 def test_the_continuous_demo_sweeps_whole_and_loses_nothing(tmp_path: Path) -> None:
     import contextlib
     import io

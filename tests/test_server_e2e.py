@@ -21,12 +21,16 @@ from biris_hw import (
     RequestError,
 )
 from biris_hw.errors import ConnectionClosed
-from biris_hw.records import acquisitions_for
 from biris_hw.server import BirisServer
+from biris_hw.server.scan_timing import trapezoid_s
+from regs.layout import acquisition_period_s
 from sim import POISON, SimulatedBiris
 from tests.conftest import RigFactory
 
 WAIT = 30.0  # generous real-time bound for anything that should take well under a second
+PERIOD = acquisition_period_s(64)
+"""The real acquisition period at 64 samples: 2 video fields."""
+DEFAULT_MOTOR = BirisInitRecord().motor
 
 
 def _true_deg(rig: SimulatedBiris) -> float:
@@ -50,7 +54,9 @@ def test_single_scan_either_way(rig: SimulatedBiris, server: BirisServer, dest_d
     assert scan is not None
     assert conn.request_scan_data(Direction(1 - direction)) is None
     assert scan.direction is direction and scan.seq == 1
-    assert scan.n_acq == acquisitions_for(abs(dest), BirisInitRecord())
+    # as many as the trapezoid lasts in real acquisition periods; the first on the way
+    assert abs(scan.n_acq - trapezoid_s(dest, DEFAULT_MOTOR) / PERIOD) <= 2
+    assert 0 < abs(int(scan.azimuth[0])) <= abs(dest) / scan.n_acq * 2.5
     assert scan.dropped == 0
     assert scan.samples == 64
     # azimuths run the scan's way, and end at the destination
@@ -217,7 +223,9 @@ def test_coalesced_and_lost_interrupts_lose_no_acquisition(
     rig.faults.coalesce_interrupts(False)
     scan = conn.request_scan_data(Direction.CCW)
     assert scan is not None
-    assert scan.n_acq == acquisitions_for(512, BirisInitRecord())
+    # every acquisition BIRIS made is in the scan or was made standing at one of its ends
+    standing = server.status()["counters"]["constant_azimuth"]
+    assert scan.n_acq + standing == rig.supervisor.acquisitions_made
     assert scan.dropped == 0
     assert not np.any(scan.range_mm == POISON)
     assert server.status()["counters"]["dropped_acquisitions"] == 0
@@ -257,8 +265,9 @@ def test_motor_parameters_change_speed_and_acquisition_count(
     conn.wait_idle(timeout=WAIT)
     scan = conn.request_scan_data(Direction.CCW)
     assert scan is not None
-    assert scan.n_acq == acquisitions_for(512, BirisInitRecord(motor=slow))
-    assert scan.n_acq > acquisitions_for(512, BirisInitRecord())
+    # twice as long at half the speed: twice the acquisitions
+    assert abs(scan.n_acq - trapezoid_s(512, slow) / PERIOD) <= 2
+    assert scan.n_acq > 1.8 * trapezoid_s(512, DEFAULT_MOTOR) / PERIOD
     assert rig.board.azimuth.max_velocity == 1
 
 

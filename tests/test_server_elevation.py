@@ -33,7 +33,7 @@ WAIT = 30.0
 
 @pytest.fixture
 def time_scale() -> float:
-    return 20.0
+    return 30.0
 
 
 def _deg(counts: float) -> float:
@@ -70,7 +70,15 @@ def test_the_tilt_runs_on_its_own_motor_parameters(rig: SimulatedBiris) -> None:
         assert conn.request_scan_data(Direction.CCW) is not None
 
 
-@pytest.mark.parametrize(("asked", "used"), [(10.0, 114), (-8.0, -91), (80.0, 512), (-90.0, -512)])
+@pytest.mark.parametrize(
+    ("asked", "used"),
+    [
+        (10.0, 114),
+        pytest.param(-8.0, -91, marks=pytest.mark.slow),
+        pytest.param(80.0, 512, marks=pytest.mark.slow),
+        (-90.0, -512),
+    ],
+)
 def test_set_elevation_tilts_loads_the_table_and_tags_the_data(
     rig: SimulatedBiris, asked: float, used: int
 ) -> None:

@@ -27,6 +27,7 @@ from typing import Any
 from regs.layout import SAMPLES_CHOICES
 
 __all__ = [
+    "DEFAULT_TIME_SCALE",
     "SAMPLES_CHOICES",
     "SAMPLES_METAVAR",
     "SIM_DEFAULTS",
@@ -42,14 +43,21 @@ __all__ = [
     "seconds",
     "seed",
     "time_scale",
+    "time_scale_warning",
 ]
 
 SAMPLES_METAVAR = "|".join(str(c) for c in SAMPLES_CHOICES)
 """How help shows a samples flag: ``64|128``."""
 
 SIM_DEFAULTS: dict[str, Any] = {"scene": "room", "samples": 64, "seed": 0}
-"""The simulator's defaults for ``--scene``, ``--samples`` and ``--seed`` (the time scale's
-default depends on who runs it: a person watching, or another process attaching)."""
+"""The simulator's defaults for ``--scene``, ``--samples`` and ``--seed``."""
+
+DEFAULT_TIME_SCALE = 4.0
+"""The simulator's default speed, the same for every command that starts one (``--sim``,
+``biris demo``, ``biris sim``): four hardware seconds per real second keeps a sweep readable on
+screen while initialisation (which turns the head to find its zero index) stays short. One
+default, so that ``biris sim`` followed by ``biris watch --attach`` looks like ``biris watch
+--sim``."""
 
 
 # -- numbers ---------------------------------------------------------------------------------------
@@ -83,6 +91,20 @@ seconds = positive_float
 
 time_scale = positive_float
 """The simulator's hardware seconds per real second: a finite number above 0."""
+
+
+def time_scale_warning(lag_s: float, bound_s: float, scale: float) -> str:
+    """What every command that runs a simulator says, once, when the host cannot keep up with
+    ``--time-scale`` (:meth:`sim.SimulatedBiris.behind`): how late the simulator runs
+    (``lag_s``, hardware seconds, beyond ``bound_s``), what that costs, and what to do. Not a
+    refusal: the run may still be what the person wanted, but they must not take its timings
+    for the robot's."""
+    return (
+        f"warning: the simulator runs {lag_s * 1e3:.0f} ms of hardware time late "
+        f"(more than {bound_s * 1e3:.0f} ms): this machine cannot keep up with "
+        f"--time-scale {scale:g}, so timings and faults (motor_stall, timeout) may be "
+        f"wrong; use a smaller --time-scale"
+    )
 
 
 def _whole(text: str, what: str) -> int:

@@ -2,10 +2,17 @@
 
 Every command that talks to the sensor takes the same flags, so that a person who learned one
 knows them all: ``--sim`` (with ``--scene``, ``--samples``, ``--time-scale``, ``--seed``),
-``--target FILE`` or ``--attach NAME`` (a ``biris sim`` process), ``--init FILE`` and
-``--debug``. :func:`open_session` turns them into a
-running :class:`~biris_hw.BirisServer` and takes everything down again, in order, however the
-command ends.
+``--target FILE`` or ``--attach NAME`` (a ``biris sim`` process), ``--init FILE``, ``--quiet``
+and ``--debug``; those that acquire take ``--continuous``, those that move the head ``--yes``.
+:func:`open_session` turns them into a running :class:`~biris_hw.BirisServer` and takes
+everything down again, in order, however the command ends.
+
+A command respects the person running it: it says what it is waiting for (the server's progress
+log, :func:`progress_to_stderr`, while a terminal watches), checks the files it will write before
+it touches the sensor (:func:`check_output_file`, :func:`check_output_folder`), says when an angle
+was clamped (:func:`note_clamped`), asks before turning a real head more than half a turn
+(:func:`confirm_moves`), and says when the simulator cannot keep up with its time scale
+(:class:`LagWatch`).
 
 Errors are for people: one line on stderr, ``biris <command>: <what went wrong>``, and an exit
 status a script can act on. 2 means "fix what you asked for" (a flag, a file, a device node or its
@@ -17,15 +24,27 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 import os
+import re
 import sys
+import threading
 import traceback
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, TextIO
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol, TextIO
 
-from biris_hw.commands.argtypes import SIM_DEFAULTS, add_simulator_arguments, path, seconds
+from biris_hw.angles import counts_to_deg, deg_to_counts
+from biris_hw.commands.argtypes import (
+    DEFAULT_TIME_SCALE,
+    SIM_DEFAULTS,
+    add_simulator_arguments,
+    path,
+    seconds,
+    time_scale_warning,
+)
 from biris_hw.errors import (
     BirisError,
     BusError,
@@ -37,6 +56,8 @@ from biris_hw.errors import (
 from biris_hw.hardware import BirisHardware
 from biris_hw.records import BirisInitRecord
 from biris_hw.server import BirisServer
+from regs.biexec import BiCommand
+from regs.hctl1000 import COUNTS_PER_REV
 
 if TYPE_CHECKING:
     from sim import Scene, SimulatedBiris
@@ -46,22 +67,38 @@ __all__ = [
     "EXIT_FAULT",
     "EXIT_INTERRUPTED",
     "EXIT_USAGE",
+    "HALF_TURN_COUNTS",
+    "LAG_CHECK_S",
+    "PROGRESS_LOGGER",
     "TARGET_ENV",
     "AuditFailure",
+    "LagWatch",
+    "Lagging",
     "Session",
     "SetupError",
     "UsageError",
+    "add_continuous_argument",
     "add_debug_argument",
+    "add_quiet_argument",
     "add_target_arguments",
     "add_timeout_argument",
+    "add_yes_argument",
+    "check_output_file",
+    "check_output_folder",
     "check_target_arguments",
+    "confirm_moves",
     "error_line",
     "exit_status",
     "is_terminal",
     "log_to_stderr",
     "make_scene",
+    "note_clamped",
     "open_session",
+    "prog_of",
+    "progress_to_stderr",
     "report_error",
+    "stderr_is_terminal",
+    "wants_progress",
 ]
 
 EXIT_FAULT = 1
@@ -71,11 +108,18 @@ EXIT_INTERRUPTED = 130
 TARGET_ENV = "BIRIS_TARGET"
 """A target file to use when neither --sim nor --target is given: set once on the robot."""
 
-DEFAULT_TIME_SCALE = 4.0
-"""The simulator's default speed: four hardware seconds per real second keeps a sweep readable
-on screen while initialisation (which turns the head to find its zero index) stays short."""
-
 DEFAULT_WAIT_S = 60.0
+
+PROGRESS_LOGGER = "biris_hw.progress"
+"""The logger on which the server says, in a short sentence per INFO record, what it is doing
+while a caller waits (homing the pan, booting BIRIS...): what a person sees during the seconds
+a server takes to start."""
+
+HALF_TURN_COUNTS = COUNTS_PER_REV // 2
+"""A move longer than this (180 degrees) on a real head asks for ``--yes``."""
+
+LAG_CHECK_S = 0.25
+"""Real seconds between two looks at whether the simulator keeps up (:class:`LagWatch`)."""
 
 
 class UsageError(BirisError, ValueError):
@@ -135,7 +179,37 @@ def add_target_arguments(parser: argparse.ArgumentParser) -> None:
     )
     sim = parser.add_argument_group("simulator (with --sim)")
     add_simulator_arguments(sim, default_time_scale=DEFAULT_TIME_SCALE, deferred=True)
+    add_quiet_argument(parser)
     add_debug_argument(parser)
+
+
+def add_quiet_argument(parser: argparse.ArgumentParser) -> None:
+    """``--quiet``: no progress lines on stderr (errors and warnings are still said)."""
+    parser.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress lines on stderr while waiting (shown only when stderr is a terminal)",
+    )
+
+
+def add_continuous_argument(parser: argparse.ArgumentParser) -> None:
+    """``--continuous``: Appendix D's continuous acquisition for this run (see open_session)."""
+    parser.add_argument(
+        "--continuous",
+        action="store_true",
+        help="Appendix D's continuous acquisition: BIRIS started once and acquiring until "
+        "stopped (default: the report's BI_ACQUIRE per scan)",
+    )
+
+
+def add_yes_argument(parser: argparse.ArgumentParser) -> None:
+    """``--yes``: allow a move of more than half a turn on a real head (:func:`confirm_moves`)."""
+    parser.add_argument(
+        "--yes",
+        action="store_true",
+        help="on a real target, allow a move of more than half a turn (180 deg) from where "
+        "the head stands (the simulator never asks)",
+    )
 
 
 def add_timeout_argument(parser: argparse.ArgumentParser) -> None:
@@ -185,6 +259,17 @@ class Session:
     record: BirisInitRecord
     rig: SimulatedBiris | None = None
     """The simulator, with --sim: its scene, true azimuth and audit."""
+    simulated: bool = True
+    """A simulator (--sim, or a ``biris sim`` process with --attach), not a real head: nothing
+    breaks if it turns a long way, so it is never asked for --yes."""
+    prog: str = "biris"
+    """``biris <command>``: what the command's own lines on stderr start with."""
+
+
+def prog_of(args: argparse.Namespace) -> str:
+    """``biris scan`` for a scan's arguments (the dispatcher records the command's name)."""
+    name = getattr(args, "command", None)
+    return f"biris {name}" if name else "biris"
 
 
 def _load_record(file: str | os.PathLike[str] | None) -> BirisInitRecord:
@@ -235,12 +320,19 @@ def _start_rig(args: argparse.Namespace) -> SimulatedBiris:
 def open_session(args: argparse.Namespace) -> Iterator[Session]:
     """Start the sensor (simulator or target) and a server on it; stop both on the way out.
 
-    The server is closed before the hardware under it. With --sim the audit is read last:
-    a rule the driver broke makes the command fail (:class:`AuditFailure`) even if it got
-    its data, because such a run would have misused real hardware.
+    ``--continuous`` builds the server with Appendix D's continuous acquisition
+    (``BirisInitRecord.continuous_acquisition``) on top of whatever ``--init`` says, so it works
+    the same on every sensor. The server is closed before the hardware under it. With --sim a
+    :class:`LagWatch` says if the host cannot keep up with the time scale, and the audit is
+    read last: a rule the driver broke makes the command fail (:class:`AuditFailure`) even if
+    it got its data, because such a run would have misused real hardware. A ``timeout`` fault
+    leaves naming the BIRIS command that was not answered (:func:`_name_unanswered`).
     """
     check_target_arguments(args)
     record = _load_record(args.init)
+    if getattr(args, "continuous", False):
+        record = dataclasses.replace(record, continuous_acquisition=True)
+    prog = prog_of(args)
     rig: SimulatedBiris | None = None
     with contextlib.ExitStack() as stack:
         if args.target is not None:
@@ -253,15 +345,221 @@ def open_session(args: argparse.Namespace) -> Iterator[Session]:
             rig = _start_rig(args)
             stack.callback(rig.close)
             hardware = rig.hardware
-        server = BirisServer(hardware, record)
-        stack.callback(server.close)
-        yield Session(server, hardware, record, rig)
+            watch = LagWatch(rig, prog)
+            watch.start()
+            stack.callback(watch.stop)
+        try:
+            server = BirisServer(hardware, record)
+            stack.callback(server.close)
+            yield Session(server, hardware, record, rig, args.target is None, prog)
+        except HardwareFault as exc:
+            named = _name_unanswered(exc, hardware)
+            if named is exc:
+                raise
+            raise named from exc
     if rig is not None and rig.audit.violations:
         found = rig.audit.violations
         raise AuditFailure(
             f"the simulator's audit recorded {len(found)} driver rule violation(s); "
             f"first: {found[0]}"
         )
+
+
+def _name_unanswered(exc: HardwareFault, hardware: BirisHardware) -> HardwareFault:
+    """A ``timeout`` fault, naming the BIRIS command that was not answered if it does not.
+
+    The server's message says what it waited for; if it names no command (an older server,
+    or a wait the message does not describe), BIRIS's COMMAND register still holds the one it
+    never finished, and a person needs its name (BI_STOP_CONTINUOUS), not its code, to know
+    what the sensor was doing. Reading COMMAND has no side effect; if even that fails, the
+    fault stays as it was.
+    """
+    if exc.kind != "timeout" or _COMMAND_NAME.search(exc.message):
+        return exc
+    try:
+        code = hardware.devices.link.command()
+    except (BirisError, OSError):
+        return exc
+    if code == 0:
+        return exc
+    return HardwareFault(exc.kind, f"{exc.message} (waiting for BIRIS to finish {_bi_name(code)})")
+
+
+def _bi_name(code: int) -> str:
+    try:
+        return BiCommand(code).name
+    except ValueError:
+        return f"unknown BIRIS command {code}"
+
+
+_COMMAND_NAME = re.compile(r"\bBI_[A-Z_]+")
+_COMMAND_CODE = re.compile(r"\b(COMMAND|command) (0x[0-9A-Fa-f]+|\d+)\b")
+
+
+# -- what a person is told ---------------------------------------------------------------------
+
+
+class Lagging(Protocol):
+    """What :class:`LagWatch` reads of a simulator (:class:`sim.SimulatedBiris` has it)."""
+
+    @property
+    def time_scale(self) -> float: ...
+
+    @property
+    def lag_bound_s(self) -> float: ...
+
+    def lag_s(self) -> float: ...
+
+    def behind(self) -> bool: ...
+
+
+class LagWatch:
+    """Says once, on stderr, that the simulator cannot keep up with its time scale.
+
+    A time scale is a promise that a hardware second takes ``1/scale`` real seconds; past what
+    the host can compute, the simulator runs late (:meth:`sim.SimulatedBiris.lag_s`) and the
+    driver's hardware-time deadlines stop meaning what they mean on the robot. The run goes
+    on (it may still be what the person wanted) but they are told, once. A thread of its own
+    looks every :data:`LAG_CHECK_S` and needs two looks in a row beyond the bound, so that one
+    stall of a busy host is not called falling behind.
+    """
+
+    def __init__(
+        self,
+        rig: Lagging,
+        prog: str,
+        *,
+        every_s: float | None = None,
+        err: TextIO | None = None,
+    ) -> None:
+        self._rig = rig
+        self._prog = prog
+        self._every = LAG_CHECK_S if every_s is None else every_s
+        self._err = err
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.warned = False
+
+    def start(self) -> LagWatch:
+        self._thread = threading.Thread(target=self._run, name="biris-lag-watch", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def _run(self) -> None:
+        behind_before = False
+        while not self._stop.wait(self._every):
+            behind = self._rig.behind()
+            if behind and behind_before:
+                self.warn()
+                return
+            behind_before = behind
+
+    def warn(self) -> None:
+        """Say it now (once)."""
+        if self.warned:
+            return
+        self.warned = True
+        stream = self._err or sys.stderr
+        rig = self._rig
+        text = time_scale_warning(rig.lag_s(), rig.lag_bound_s, rig.time_scale)
+        print(f"{self._prog}: {text}", file=stream, flush=True)
+
+
+def note_clamped(
+    prog: str, flag: str, asked_deg: float, used_counts: int, err: TextIO | None = None
+) -> bool:
+    """Say that ``flag``'s angle was clamped by _Scan_limit (+-360 degrees) to ``used_counts``,
+    the destination the server reports it used; True if it was. Silent otherwise: a person who
+    asked for 400 degrees must learn that the head went to 360, not find out from the data."""
+    if deg_to_counts(asked_deg) == used_counts:
+        return False
+    print(
+        f"{prog}: {flag} {asked_deg:g}\N{DEGREE SIGN} is beyond the head's travel: clamped to "
+        f"{counts_to_deg(used_counts):+.0f}\N{DEGREE SIGN}",
+        file=err or sys.stderr,
+        flush=True,
+    )
+    return True
+
+
+def confirm_moves(
+    session: Session, args: argparse.Namespace, moves: Sequence[tuple[str, int]]
+) -> None:
+    """Refuse (:class:`UsageError`, exit 2) a move of more than half a turn on a real head
+    unless ``--yes`` was given.
+
+    ``moves`` are (what the person asked, destination in counts after clamping); each is
+    measured from where the head stands now (``status().azimuth``) and, in order, from the
+    previous destination, so a sweep's limits count as the sweep they make. A real head carries
+    a cable and turns among real things; a long turn nobody expected is worth one flag. The
+    simulator never asks.
+    """
+    if session.simulated or getattr(args, "yes", False) or not moves:
+        return
+    here = int(session.server.status()["azimuth"])
+    start = here
+    for what, dest in moves:
+        for origin in dict.fromkeys((here, start)):
+            if abs(dest - origin) > HALF_TURN_COUNTS:
+                raise UsageError(
+                    f"{what} turns the head {counts_to_deg(abs(dest - origin)):.0f}\N{DEGREE SIGN} "
+                    f"(from {counts_to_deg(origin):+.1f}\N{DEGREE SIGN} to "
+                    f"{counts_to_deg(dest):+.1f}\N{DEGREE SIGN}), more than half a turn: make "
+                    f"sure the cable and the space around the head allow it, then add --yes"
+                )
+        start = dest
+
+
+# -- output files ----------------------------------------------------------------------------------
+
+
+def _writable_folder(flag: str, given: Path, folder: Path) -> None:
+    """``folder`` is, or can be made as, a folder we may write in; UsageError otherwise."""
+    probe = folder
+    while not probe.exists():
+        if probe.is_symlink():  # a dangling link: mkdir would fail
+            raise UsageError(f"{flag} {given}: {probe} is a broken link")
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if not probe.is_dir():
+        raise UsageError(f"{flag} {given}: {probe} is not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise UsageError(f"{flag} {given}: cannot write in {probe} (permission denied)")
+
+
+def check_output_file(flag: str, file: Path, *, suffixes: Collection[str] | None = None) -> Path:
+    """Refuse, before the sensor is touched, a file that cannot be written: ``file`` is a
+    folder, its folder cannot be made or written, or (with ``suffixes``) its extension is not
+    one of them. A missing folder is fine: the command makes it when it writes.
+
+    Returns ``file``. Raises :class:`UsageError` (exit 2) naming the flag and the reason.
+    """
+    if file.is_dir():
+        raise UsageError(f"{flag} {file}: is a folder; give a file name")
+    if suffixes is not None and file.suffix.lower() not in suffixes:
+        known = ", ".join(sorted(suffixes))
+        what = f"unknown extension {file.suffix!r}" if file.suffix else "no extension"
+        raise UsageError(f"{flag} {file}: {what}; use one of {known}")
+    _writable_folder(flag, file, file.parent)
+    if file.exists() and not os.access(file, os.W_OK):
+        raise UsageError(f"{flag} {file}: cannot overwrite it (permission denied)")
+    return file
+
+
+def check_output_folder(flag: str, folder: Path) -> Path:
+    """Refuse, before the sensor is touched, a folder that cannot be written into: it is a
+    file, or it (or the folder it would be made in) is not writable. Returns ``folder``."""
+    if folder.exists() and not folder.is_dir():
+        raise UsageError(f"{flag} {folder}: is a file, not a folder")
+    _writable_folder(flag, folder, folder)
+    return folder
 
 
 # -- output and errors -----------------------------------------------------------------------------
@@ -291,7 +589,7 @@ def exit_status(exc: BaseException) -> int:
 def error_line(exc: BaseException) -> str:
     """One line that says what went wrong, in the user's terms."""
     if isinstance(exc, HardwareFault):
-        text = f"hardware fault ({exc.kind}): {exc.message}"
+        text = f"hardware fault ({exc.kind}): {_named_commands(exc.message)}"
     elif isinstance(exc, TimeoutError):
         text = f"no answer in time: {exc}" if str(exc) else "no answer in time"
     elif isinstance(exc, ModuleNotFoundError):
@@ -306,6 +604,21 @@ def error_line(exc: BaseException) -> str:
         text = f"internal error: {type(exc).__name__}: {text} (--debug shows where)"
     lines = text.splitlines()
     return lines[0] if lines and lines[0] else type(exc).__name__
+
+
+def _named_commands(message: str) -> str:
+    """``COMMAND 7`` in a fault's message read as ``COMMAND 7 (BI_STOP_CONTINUOUS)``: a person
+    cannot look a code up, and the code table is ours, not the report's. A message that names
+    its commands already is left alone."""
+    if _COMMAND_NAME.search(message):
+        return message
+
+    def named(match: re.Match[str]) -> str:
+        digits = match.group(2)
+        code = int(digits, 16) if digits[:2] in ("0x", "0X") else int(digits)
+        return f"{match.group(0)} ({_bi_name(code)})"
+
+    return _COMMAND_CODE.sub(named, message)
 
 
 def _missing_module(exc: ModuleNotFoundError) -> str:
@@ -323,6 +636,68 @@ def report_error(prog: str, exc: BaseException, *, debug: bool, err: TextIO | No
     print(f"{prog}: {error_line(exc)}", file=stream)
     stream.flush()
     return exit_status(exc)
+
+
+def stderr_is_terminal() -> bool:
+    """A person watches stderr (progress lines are for them, never for a log or a pipe)."""
+    return is_terminal(sys.stderr)
+
+
+def wants_progress(args: argparse.Namespace) -> bool:
+    """Progress lines for this run: stderr is a terminal, and neither --quiet nor --debug (whose
+    log shows the same records, and more) was given."""
+    if getattr(args, "quiet", False) or getattr(args, "debug", False):
+        return False
+    return stderr_is_terminal()
+
+
+class _ProgressLines(logging.Handler):
+    """``biris scan: homing the pan...``: one line on stderr per progress record.
+
+    stderr is looked up at each record, not kept: a live display (rich) that takes stderr over
+    while it runs then prints the line above itself instead of being scribbled over.
+    """
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(logging.INFO)
+        self._prog = prog
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = record.getMessage().strip()
+            if not text:
+                return
+            if text[-1] not in ".!?:":
+                text += "..."
+            stream = sys.stderr
+            stream.write(f"{self._prog}: {text}\n")
+            stream.flush()
+        except Exception:
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def progress_to_stderr(prog: str, enabled: bool) -> Iterator[None]:
+    """While the block runs, the server's progress records (:data:`PROGRESS_LOGGER`) are shown
+    on stderr as ``prog: sentence...``, if ``enabled``; otherwise nothing changes.
+
+    The server starts by homing both axes and booting BIRIS, seconds in which a command that
+    says nothing looks hung; these lines say what it is doing instead.
+    """
+    if not enabled:
+        yield
+        return
+    logger = logging.getLogger(PROGRESS_LOGGER)
+    handler = _ProgressLines(prog)
+    level = logger.level
+    logger.addHandler(handler)
+    if logger.getEffectiveLevel() > logging.INFO:
+        logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
 
 
 @contextlib.contextmanager

@@ -15,6 +15,10 @@ it writes three pictures and the data behind them to ``--out``:
 The run ends with a summary line; the exit status is 1 if the server reported a hardware fault or
 the simulator's audit caught the driver breaking a hardware rule, since a demo that shows either
 has found a bug.
+
+``--out`` is checked before the simulator starts. Ctrl-C ends the sweeping early but keeps what
+was acquired: the pictures and data of the sweeps completed so far are written as at the end of
+a full run, the command says so, and the exit status is 130.
 """
 
 from __future__ import annotations
@@ -32,8 +36,13 @@ from biris_hw.angles import counts_to_deg
 from biris_hw.commands.argtypes import add_simulator_arguments, degrees, path, seconds
 from biris_hw.commands.common import (
     DEFAULT_TIME_SCALE,
+    EXIT_INTERRUPTED,
+    LagWatch,
     SetupError,
+    add_continuous_argument,
     add_debug_argument,
+    add_quiet_argument,
+    check_output_folder,
     is_terminal,
     make_scene,
 )
@@ -76,14 +85,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help=f"pictures go here ({DEFAULT_OUT})",
     )
-    parser.add_argument(
-        "--continuous",
-        action="store_true",
-        help="Appendix D's continuous acquisition: BIRIS started once, every sweep whole "
-        "(default: the report's BI_ACQUIRE per sweep)",
-    )
+    add_continuous_argument(parser)
     sim = parser.add_argument_group("simulator")
     add_simulator_arguments(sim, default_time_scale=DEFAULT_TIME_SCALE)
+    add_quiet_argument(parser)
     add_debug_argument(parser)
 
 
@@ -123,6 +128,8 @@ class DemoStatus:
     latest: Scan | None = None
     data_age_s: float | None = None
     """Hardware seconds since the newest delivered sweep's last acquisition."""
+    interrupted: bool = False
+    """Ctrl-C ended the sweeping before ``duration_s``."""
 
     @property
     def total_sweeps(self) -> int:
@@ -159,7 +166,19 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     stream = out or sys.stdout
     result = run_demo(config, stream)
     _print_summary(result, stream)
+    if result.status.interrupted:
+        print(f"biris demo: {_interrupted(result, config)}", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
     return 0 if result.ok else 1
+
+
+def _interrupted(result: DemoResult, config: DemoConfig) -> str:
+    """What Ctrl-C left: which sweeps the files hold, of how many completed, and where."""
+    made = result.status.total_sweeps
+    if not result.latest:
+        return "interrupted before the first sweep completed: nothing written"
+    kept = len(result.latest)
+    return f"interrupted: wrote the latest {kept} of {made} sweeps to {config.out}"
 
 
 def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
@@ -168,6 +187,7 @@ def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
         raise SetupError(f"--cw ({config.cw_deg:g}) must lie below --ccw ({config.ccw_deg:g})")
     import matplotlib  # noqa: F401  (fail before a minute of sweeping, not after)
 
+    check_output_folder("--out", config.out)
     _make_folder(config.out)
     from sim import SimulatedBiris
 
@@ -181,10 +201,14 @@ def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
             scene=scene, samples=config.samples, time_scale=config.time_scale, seed=config.seed
         ) as rig,
     ):
-        record = BirisInitRecord(continuous_acquisition=config.continuous)
-        with BirisServer(rig.hardware, record) as server:  # homes and boots first
-            started = time.monotonic()
-            _sweep(server, rig, status, latest, view, started)
+        watch = LagWatch(rig, "biris demo").start()
+        try:
+            record = BirisInitRecord(continuous_acquisition=config.continuous)
+            with BirisServer(rig.hardware, record) as server:  # homes and boots first
+                started = time.monotonic()
+                _sweep(server, rig, status, latest, view, started)
+        finally:
+            watch.stop()
         _refresh(status, None, rig, started)
         view.update(final=True)
     pictures: list[Path] = []
@@ -214,28 +238,34 @@ def _sweep(
     view: _View,
     started: float,
 ) -> None:
+    """Sweep until the deadline, or until Ctrl-C (``status.interrupted``): caught outside
+    :func:`sweeping`, so the sweep under way is abandoned, not waited for, and what completed
+    stays in ``latest`` for the pictures."""
     config = status.config
     deadline = started + config.duration_s
     wait_s = max(30.0, 60.0 / config.time_scale)
 
-    with sweeping(server, config.cw_deg, config.ccw_deg, timeout=wait_s) as sweeps:
+    try:
+        with sweeping(server, config.cw_deg, config.ccw_deg, timeout=wait_s) as sweeps:
 
-        def take(scan: Scan) -> None:
-            latest[scan.direction] = scan
-            status.latest = scan
-            status.sweeps[scan.direction] += 1
-            status.dropped_buffers = sweeps.dropped
+            def take(scan: Scan) -> None:
+                latest[scan.direction] = scan
+                status.latest = scan
+                status.sweeps[scan.direction] += 1
+                status.dropped_buffers = sweeps.dropped
 
-        while (remaining := deadline - time.monotonic()) > 0:
-            scan = sweeps.next(timeout=min(_POLL_S, remaining))
-            if scan is not None:
+            while (remaining := deadline - time.monotonic()) > 0:
+                scan = sweeps.next(timeout=min(_POLL_S, remaining))
+                if scan is not None:
+                    take(scan)
+                _refresh(status, server, rig, started)
+                view.update()
+            # STOP: the sweep under way completes; the head comes to rest. Keep the sweeps that
+            # completed meanwhile, so the pictures show the newest data.
+            for scan in sweeps.stop():
                 take(scan)
-            _refresh(status, server, rig, started)
-            view.update()
-        # STOP: the sweep under way completes; the head comes to rest. Keep the sweeps that
-        # completed meanwhile, so the pictures show the newest data.
-        for scan in sweeps.stop():
-            take(scan)
+    except KeyboardInterrupt:
+        status.interrupted = True
     _refresh(status, server, rig, started)
 
 

@@ -3,6 +3,8 @@
 Starting a server already homes the head: initialisation turns it until the encoder's zero index
 passes and then drives to it. The command then sends the report's BIRIS_HOME as a client would
 and waits until the head stands still, so what it prints is where the head has come to rest.
+On a real target, a head that stands more than half a turn from 0 degrees once the server has
+started is not driven home without ``--yes``.
 """
 
 from __future__ import annotations
@@ -12,12 +14,19 @@ import sys
 from typing import TextIO
 
 from biris_hw.angles import counts_to_deg
-from biris_hw.commands.common import add_target_arguments, add_timeout_argument, open_session
+from biris_hw.commands.common import (
+    add_target_arguments,
+    add_timeout_argument,
+    add_yes_argument,
+    confirm_moves,
+    open_session,
+)
 
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_yes_argument(parser)
     add_timeout_argument(parser)
     add_target_arguments(parser)
 
@@ -26,6 +35,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     stream = out or sys.stdout
     with open_session(args) as session:
         with session.server.open() as conn:
+            confirm_moves(session, args, [("driving home to 0\N{DEGREE SIGN}", 0)])
             conn.home()
             conn.wait_idle(timeout=args.timeout)
         counts = int(session.server.status()["azimuth"])

@@ -7,7 +7,8 @@ taking the writes, which is worth knowing before blaming the filter.
 
 Setting a value (``--gain 0x30``) sends BIRIS_MOTOR_PARAMS, as a client would, and waits until it
 is in force. A ``biris`` run lasts one command, so the next run starts from the init record again:
-``--save-init FILE`` writes the record with the new values, for ``--init FILE`` from then on.
+``--save-init FILE`` writes the record with the new values, for ``--init FILE`` from then on;
+FILE is checked before the sensor is touched.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from biris_hw.commands.common import (
     UsageError,
     add_target_arguments,
     add_timeout_argument,
+    check_output_file,
     open_session,
 )
 from biris_hw.errors import RequestError
@@ -88,6 +90,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     changes = _changes(args)
     if args.save_init is not None:
         import tomli_w  # noqa: F401  (fail now, not after the run, if the toml extra is missing)
+
+        check_output_file("--save-init", args.save_init)
     with open_session(args) as session:
         params = dataclasses.replace(session.record.motor, **changes)
         if changes:

@@ -2,8 +2,12 @@
 
 BIRIS acquires only while the head scans, and every ``biris`` run starts its own server, so a
 fresh server has no point to give. The command therefore runs a short single scan (``--to``,
-5 degrees by default: about one acquisition's worth of travel, so the head barely moves) and
+10 degrees by default: a few acquisitions' worth of travel, so that one is kept even when the
+motor starts a period or two after BIRIS's start-up, as a loaded host or a simulator in another
+process may make it; the head barely moves) and
 asks for the point once the scan has ended, which is the moment its last acquisition is in.
+``--continuous`` makes that scan with Appendix D's continuous acquisition; ``--to`` is clamped
+and confirmed (``--yes``) as ``biris scan --to`` is.
 """
 
 from __future__ import annotations
@@ -15,11 +19,16 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from biris_hw.angles import destination_counts
 from biris_hw.commands.argtypes import degrees
 from biris_hw.commands.common import (
     Session,
+    add_continuous_argument,
     add_target_arguments,
     add_timeout_argument,
+    add_yes_argument,
+    confirm_moves,
+    note_clamped,
     open_session,
 )
 from biris_hw.data import Point
@@ -31,12 +40,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--to",
         type=degrees,
-        default=5.0,
+        default=10.0,
         metavar="DEG",
-        help="where the short scan that makes the point ends (default 5)",
+        help="where the short scan that makes the point ends (default 10)",
     )
     parser.add_argument("--profile", action="store_true", help="also print every sample")
     parser.add_argument("--json", action="store_true", help="one JSON object")
+    add_continuous_argument(parser)
+    add_yes_argument(parser)
     add_timeout_argument(parser)
     add_target_arguments(parser)
 
@@ -44,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     stream = out or sys.stdout
     with open_session(args) as session:
-        point = latest_point(session, args.to, args.timeout)
+        point = latest_point(session, args.to, args.timeout, args)
     if args.json:
         print(json.dumps(point_to_json(point)), file=stream)
         return 0
@@ -55,12 +66,18 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     return 0
 
 
-def latest_point(session: Session, to_deg: float, timeout: float) -> Point:
-    """The server's latest point; scans to ``to_deg`` first when it has none yet."""
+def latest_point(
+    session: Session, to_deg: float, timeout: float, args: argparse.Namespace | None = None
+) -> Point:
+    """The server's latest point; scans to ``to_deg`` first when it has none yet (asking for
+    ``--yes`` in ``args`` first if that is more than half a turn on a real head)."""
     with session.server.open() as conn:
         point = conn.request_point()
         if point is None:
-            conn.single_scan(to_deg)
+            dest = destination_counts(to_deg, "--to")
+            confirm_moves(session, args or argparse.Namespace(), [(f"--to {to_deg:g}", dest)])
+            dest = conn.single_scan(to_deg)
+            note_clamped(session.prog, "--to", to_deg, dest)
             conn.wait_idle(timeout=timeout)
             point = conn.request_point()
     if point is None:
@@ -89,6 +106,7 @@ def point_to_json(point: Point) -> dict[str, Any]:
         "range_mm": point.range_mm,
         "acq": point.acq,
         "scan_seq": point.scan_seq,
+        "acquisition": point.acquisition,
         "t": point.t,
         "t_delivered": point.t_delivered,
         "profile": np.asarray(point.profile).tolist(),

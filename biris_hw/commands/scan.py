@@ -9,7 +9,13 @@ sweep runs from where the head stands to the CW limit, so it is shorter than the
 ``--save PATH`` writes PATH.npz (every scan whole, for programs:
 :func:`biris_hw.scanfile.load_scans` reads it back into equal :class:`~biris_hw.Scan` objects)
 and PATH.csv (one row per acquisition with its range profile, for spreadsheets); see
-:mod:`biris_hw.scanfile`.
+:mod:`biris_hw.scanfile`. ``--plot PATH`` draws every scan the command made. Both are checked
+before the sensor is touched, so a typo in a folder name costs nothing.
+
+An angle beyond _Scan_limit (+-360 degrees) is clamped by the server and the command says so; on
+a real target a move of more than half a turn needs ``--yes``. Ctrl-C during ``--sweeps N``
+keeps the sweeps completed so far: they are saved and drawn as asked, the command says how many
+of N it wrote, and the exit status is 130.
 """
 
 from __future__ import annotations
@@ -23,19 +29,38 @@ from typing import Any, TextIO
 import numpy as np
 
 from biris_hw import scanfile
+from biris_hw.angles import destination_counts
 from biris_hw.commands.argtypes import degrees, path, positive_int
 from biris_hw.commands.common import (
+    EXIT_INTERRUPTED,
     Session,
     UsageError,
+    add_continuous_argument,
     add_target_arguments,
     add_timeout_argument,
+    add_yes_argument,
+    check_output_file,
+    confirm_moves,
+    note_clamped,
     open_session,
+    prog_of,
 )
 from biris_hw.data import Direction, Scan
 from biris_hw.plots import closest_points_xy
 from biris_hw.sweeps import sweeping
 
-__all__ = ["add_arguments", "run", "save_files", "scan_summary", "scan_to_json"]
+__all__ = [
+    "DEFAULT_SWEEPS",
+    "add_arguments",
+    "picture_suffixes",
+    "run",
+    "save_files",
+    "save_paths",
+    "scan_summary",
+    "scan_to_json",
+]
+
+DEFAULT_SWEEPS = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,7 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=positive_int,
         default=None,
         metavar="N",
-        help="continuous: stop after N sweeps (default 2)",
+        help=f"continuous: stop after N sweeps (default {DEFAULT_SWEEPS}); Ctrl-C keeps "
+        "the sweeps completed so far",
     )
     out = parser.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="one JSON object per scan")
@@ -60,7 +86,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PATH",
         help="write PATH.npz (every scan, whole) and PATH.csv (ranges, for spreadsheets)",
     )
-    out.add_argument("--plot", type=path, metavar="PATH", help="write a polar picture (PNG)")
+    out.add_argument(
+        "--plot",
+        type=path,
+        metavar="PATH",
+        help="draw every scan made in one polar picture at PATH (.png, .svg, .pdf...)",
+    )
+    add_continuous_argument(parser)
+    add_yes_argument(parser)
     add_timeout_argument(parser)
     add_target_arguments(parser)
 
@@ -77,35 +110,76 @@ def _check(args: argparse.Namespace) -> None:
         raise UsageError(f"--cw ({args.cw:g}) must lie clockwise of (below) --ccw ({args.ccw:g})")
     if args.sweeps is not None and not continuous:
         raise UsageError("--sweeps goes with --cw/--ccw")
+    if args.save is not None:
+        if Path(args.save).is_dir():
+            raise UsageError(
+                f"--save {args.save}: is a folder; name the files, e.g. {Path(args.save) / 'run1'}"
+            )
+        for file in save_paths(args.save):
+            check_output_file("--save", file)
     if args.plot is not None:
-        import matplotlib  # noqa: F401  (fail now, not after the scan, if it is missing)
+        check_output_file("--plot", args.plot, suffixes=picture_suffixes())
+
+
+def picture_suffixes() -> frozenset[str]:
+    """The extensions ``--plot`` understands: what matplotlib can write (``.png``, ``.svg``,
+    ``.pdf``...). Importing matplotlib here also fails now, not after the scan, if it is
+    missing."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    return frozenset(f".{kind}" for kind in FigureCanvasBase.get_supported_filetypes())
 
 
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
-    """Scan, report, save and draw; 0 when every scan arrived."""
+    """Scan, report, save and draw; 0 when every scan arrived, 130 after Ctrl-C (with what was
+    completed by then saved and drawn)."""
     stream = out or sys.stdout
     _check(args)
+    scans: list[Scan] = []
+    interrupted = False
     with open_session(args) as session:
-        scans = _single(session, args) if args.to is not None else _sweeps(session, args, stream)
         if args.to is not None:
+            scans = _single(session, args)
             _report(scans[0], args, stream)
+        else:
+            interrupted = _sweeps(session, args, stream, scans)
         outline = session.rig.scene.outline_2d() if session.rig is not None else None
-    if args.save is not None:
+    written: list[Path] = []
+    if scans and args.save is not None:
         npz, table = save_files(args.save, scans)
         print(f"saved {npz} and {table}", file=stream)
-    if args.plot is not None:
+        written += [npz, table]
+    if scans and args.plot is not None:
         from biris_hw.plots import save_polar
 
-        latest = {scan.direction: scan for scan in scans}
-        picture = save_polar(args.plot, list(latest.values()), outline)
+        args.plot.parent.mkdir(parents=True, exist_ok=True)
+        picture = save_polar(args.plot, scans, outline)  # every sweep made, in order
         print(f"picture: {picture}", file=stream)
+        written.append(picture)
+    if interrupted:
+        print(f"{prog_of(args)}: {_interrupted(scans, args, written)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     return 0
+
+
+def _interrupted(scans: list[Scan], args: argparse.Namespace, written: list[Path]) -> str:
+    """What Ctrl-C left: how many of the sweeps asked for were completed, and where they are."""
+    wanted = args.sweeps or DEFAULT_SWEEPS
+    if not scans:
+        return f"interrupted before the first of {wanted} sweeps completed: nothing written"
+    if not written:
+        return f"interrupted after {len(scans)} of {wanted} sweeps (printed above)"
+    where = ", ".join(str(p) for p in written[:-1])
+    where = f"{where} and {written[-1]}" if where else str(written[-1])
+    return f"interrupted: wrote {len(scans)} of {wanted} sweeps to {where}"
 
 
 def _single(session: Session, args: argparse.Namespace) -> list[Scan]:
     with session.server.open() as conn:
         start = int(session.server.status()["azimuth"])
+        confirm_moves(session, args, [(f"--to {args.to:g}", destination_counts(args.to, "--to"))])
         dest = conn.single_scan(args.to)
+        note_clamped(session.prog, "--to", args.to, dest)
         conn.wait_idle(timeout=args.timeout)
         scan = conn.request_scan_data(Direction.of_motion(start, dest))
     if scan is None:
@@ -113,17 +187,32 @@ def _single(session: Session, args: argparse.Namespace) -> list[Scan]:
     return [scan]
 
 
-def _sweeps(session: Session, args: argparse.Namespace, stream: TextIO) -> list[Scan]:
-    wanted = args.sweeps or 2
-    scans: list[Scan] = []
-    # On leaving: STOP (the sweep under way completes), the head at rest, connections closed.
-    with sweeping(session.server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
-        for scan in sweeps:
-            scans.append(scan)
-            _report(scan, args, stream)
-            if len(scans) == wanted:
-                break
-    return scans
+def _sweeps(session: Session, args: argparse.Namespace, stream: TextIO, scans: list[Scan]) -> bool:
+    """Sweep until ``--sweeps`` are in ``scans``; True if Ctrl-C ended it first.
+
+    Ctrl-C is caught here, outside :func:`sweeping`, so the sweep under way is abandoned rather
+    than waited for (the server, closed next, stops the head) and the sweeps completed so far
+    stay in ``scans`` for the caller to write.
+    """
+    wanted = args.sweeps or DEFAULT_SWEEPS
+    limits = [
+        (f"--cw {args.cw:g}", destination_counts(args.cw, "--cw")),
+        (f"--ccw {args.ccw:g}", destination_counts(args.ccw, "--ccw")),
+    ]
+    confirm_moves(session, args, limits)
+    try:
+        # On leaving: STOP (the sweep under way completes), the head at rest, connections closed.
+        with sweeping(session.server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
+            note_clamped(session.prog, "--cw", args.cw, sweeps.limits[0])
+            note_clamped(session.prog, "--ccw", args.ccw, sweeps.limits[1])
+            for scan in sweeps:
+                scans.append(scan)
+                _report(scan, args, stream)
+                if len(scans) == wanted:
+                    break
+    except KeyboardInterrupt:
+        return True
+    return False
 
 
 def _report(scan: Scan, args: argparse.Namespace, stream: TextIO) -> None:
@@ -136,9 +225,10 @@ def _report(scan: Scan, args: argparse.Namespace, stream: TextIO) -> None:
 
 def scan_summary(scan: Scan) -> str:
     """One line: direction, sequence, extent, the closest return, how much of it is valid."""
+    partial = ", partial sweep (from where the head stood)" if scan.partial else ""
     head = f"{scan.direction.name} #{scan.seq}: {scan.n_acq} acquisitions"
     if scan.n_acq == 0:
-        return f"{head}, dropped {scan.dropped}"
+        return f"{head}, dropped {scan.dropped}{partial}"
     az = scan.azimuth_deg
     valid = scan.range_mm > 0
     text = f"{head} over {az[0]:+.1f}..{az[-1]:+.1f} deg"
@@ -149,7 +239,7 @@ def scan_summary(scan: Scan) -> str:
     text += f", {100.0 * valid.mean():.0f}% of samples valid"
     if np.any(valid):
         text += f", median {int(np.median(scan.range_mm[valid]))} mm"
-    return f"{text}, dropped {scan.dropped}"
+    return f"{text}, dropped {scan.dropped}{partial}"
 
 
 def scan_to_json(scan: Scan) -> dict[str, Any]:
@@ -160,6 +250,8 @@ def scan_to_json(scan: Scan) -> dict[str, Any]:
         "n_acq": scan.n_acq,
         "samples": scan.samples,
         "dropped": scan.dropped,
+        "acquisition": scan.acquisition,
+        "partial": scan.partial,
         "azimuth_counts": scan.azimuth.tolist(),
         "azimuth_deg": [round(float(a), 4) for a in scan.azimuth_deg],
         "t": scan.t.tolist(),
@@ -173,13 +265,18 @@ def scan_to_json(scan: Scan) -> dict[str, Any]:
 # -- files -----------------------------------------------------------------------------------------
 
 
-def save_files(path: str | Path, scans: list[Scan]) -> tuple[Path, Path]:
-    """``--save PATH``: PATH.npz and PATH.csv (a given .npz or .csv suffix is replaced), in a
-    folder made if need be; returns both paths."""
+def save_paths(path: str | Path) -> tuple[Path, Path]:
+    """The two files ``--save PATH`` writes: PATH.npz and PATH.csv (a given .npz or .csv suffix
+    is replaced)."""
     stem = Path(path)
     if stem.suffix in (".npz", ".csv"):
         stem = stem.with_suffix("")
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    npz = scanfile.save_scans(stem.with_name(stem.name + ".npz"), scans)
-    table = scanfile.export_csv(stem.with_name(stem.name + ".csv"), scans)
-    return npz, table
+    return stem.with_name(stem.name + ".npz"), stem.with_name(stem.name + ".csv")
+
+
+def save_files(path: str | Path, scans: list[Scan]) -> tuple[Path, Path]:
+    """``--save PATH``: PATH.npz and PATH.csv (:func:`save_paths`), in a folder made if need
+    be; returns both paths."""
+    npz, table = save_paths(path)
+    npz.parent.mkdir(parents=True, exist_ok=True)
+    return scanfile.save_scans(npz, scans), scanfile.export_csv(table, scans)

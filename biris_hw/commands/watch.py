@@ -4,7 +4,12 @@ What ``BirisServer.status()`` says (state, azimuth, counters, interrupts per log
 connections) is redrawn in place with rich when a person is watching, and printed as one line
 per refresh otherwise, so the same command feeds a log. With ``--cw``/``--ccw`` the head sweeps
 while it is watched (a server at rest has little to show); at the end the sweep under way is
-allowed to finish. A hardware fault seen while watching makes the exit status 1.
+allowed to finish.
+
+A server in a fault (``state=fault:<kind>``) stays in it until it is reset, and nothing in a
+``biris watch`` run resets it: watching on would print the same fault for ever. So the command
+shows that last status, says what the fault is (the server's own message) and that it gives
+up, and exits 1.
 """
 
 from __future__ import annotations
@@ -17,15 +22,22 @@ import time
 from collections.abc import Mapping
 from typing import Any, TextIO
 
-from biris_hw.angles import counts_to_deg
+from biris_hw.angles import counts_to_deg, destination_counts
 from biris_hw.commands.argtypes import degrees, seconds
 from biris_hw.commands.common import (
     UsageError,
+    add_continuous_argument,
     add_target_arguments,
     add_timeout_argument,
+    add_yes_argument,
+    confirm_moves,
     is_terminal,
+    note_clamped,
     open_session,
 )
+from biris_hw.errors import BirisError, HardwareFault
+from biris_hw.server import BirisServer
+from biris_hw.status import ServerState, ServerStatus
 from biris_hw.sweeps import sweeping
 
 __all__ = ["add_arguments", "run", "status_line", "status_table"]
@@ -50,6 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--ccw", type=degrees, metavar="DEG", help="sweep while watching: CCW limit"
     )
+    add_continuous_argument(parser)
+    add_yes_argument(parser)
     add_timeout_argument(parser)
     add_target_arguments(parser)
 
@@ -62,13 +76,25 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         server = session.server
         with contextlib.ExitStack() as stack:
             if args.cw is not None:  # on leaving: STOP, the sweep under way completes, idle
-                stack.enter_context(sweeping(server, args.cw, args.ccw, timeout=args.timeout))
+                limits = [
+                    (f"--cw {args.cw:g}", destination_counts(args.cw, "--cw")),
+                    (f"--ccw {args.ccw:g}", destination_counts(args.ccw, "--ccw")),
+                ]
+                confirm_moves(session, args, limits)
+                sweeps = stack.enter_context(
+                    sweeping(server, args.cw, args.ccw, timeout=args.timeout)
+                )
+                note_clamped(session.prog, "--cw", args.cw, sweeps.limits[0])
+                note_clamped(session.prog, "--ccw", args.ccw, sweeps.limits[1])
             show = stack.enter_context(_Live(stream) if is_terminal(stream) else _Lines(stream))
             pause = threading.Event()  # never set: waiting on it paces the refreshes
             started = time.monotonic()
             while True:
                 elapsed = time.monotonic() - started
-                show.update(server.status(), elapsed)
+                status = server.status()
+                show.update(status, elapsed)
+                if status.state is ServerState.FAULT:
+                    raise _giving_up(server, status)
                 if args.duration is not None and elapsed >= args.duration:
                     break
                 left = None if args.duration is None else args.duration - elapsed
@@ -76,6 +102,25 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         with server.open() as conn:
             conn.wait_idle(timeout=args.timeout)  # raises the fault, if the server is in one
     return 0
+
+
+def _giving_up(server: BirisServer, status: ServerStatus) -> HardwareFault:
+    """The fault the server is in, with its own message (a poll raises it), and why watching
+    stops: nothing in this run will reset the server, so the status would never change."""
+    kind = status.fault or "internal"
+    message = "reported by the server's status"
+    try:
+        with server.open() as conn:
+            conn.wait_idle(timeout=0)
+    except HardwareFault as exc:
+        kind, message = exc.kind, exc.message
+    except (BirisError, TimeoutError):
+        pass
+    return HardwareFault(
+        kind,
+        f"{message}; the server stays in this fault until it is reset, so watch gives up "
+        f"(check the sensor, then run the command again)",
+    )
 
 
 # -- rendering -------------------------------------------------------------------------------------
@@ -99,6 +144,7 @@ def status_line(status: Mapping[str, Any], elapsed: float) -> str:
         f"destination={_deg(status.get('azimuth'))}",
         f"elevation={_deg(status.get('elevation_live'))}",
         f"continuous={'yes' if status.get('continuous') else 'no'}",
+        f"acquisition={status.get('acquisition', '-')}",
         *(f"{k}={v}" for k, v in counters.items()),
         *(f"irq.{k}={v}" for k, v in irq.items()),
         f"connections={len(status.get('connections', {}))}",
@@ -125,6 +171,7 @@ def status_table(status: Mapping[str, Any], elapsed: float) -> Any:
         text = "-" if counts is None else f"{_deg(counts)} ({int(counts)} counts)"
         table.add_row(label, text)
     table.add_row("continuous", "yes" if status.get("continuous") else "no")
+    table.add_row("acquisition", str(status.get("acquisition", "-")))
     table.add_section()
     for key, value in status.get("counters", {}).items():
         table.add_row(key.replace("_", " "), str(value))

@@ -158,6 +158,11 @@ class Drained:
     """Continuous mode: ring frames BIRIS completed while no sweep wanted them, skipped unread
     (before the first sweep, between sweeps that do not follow straight on, after the last one
     until the ring stopped)."""
+    started: int = 0
+    """A BI_ACQUIRE sequence's seq_id, the first time a drain sees its start-up over (ACQ_LINE
+    no longer -1): the moment a report-mode scan's motor starts (SEQUENCE_STARTED)."""
+    started_at: float = 0.0
+    """With ``started``: the bound on when acquisition 0 began (hardware clock)."""
 
 
 _NOTHING = Drained((), 0, False)
@@ -188,6 +193,8 @@ class AcquisitionReader:
         """The next acquisition to read; in continuous mode, the first ring frame (numbered
         over the ring's life) not yet accounted for."""
         self._t0 = math.inf
+        self._started = False
+        """The BI_ACQUIRE sequence's start-up has been seen over (SEQUENCE_STARTED sent)."""
         # continuous mode
         self._ring_state = RingState.OFF
         self._ring = 0
@@ -243,6 +250,7 @@ class AcquisitionReader:
             self._n = n
             self._next = 0
             self._t0 = math.inf
+            self._started = False
 
     def drain(self, final: bool = False) -> Drained:
         """Read every acquisition completed since the last drain. Hold ``self.lock``.
@@ -287,7 +295,12 @@ class AcquisitionReader:
         if finished:
             lost = max(0, self._n - self._next) if final else 0
             self._active = False
-        return Drained(tuple(out), lost, finished)
+        started = 0
+        if not self._started and (line == ACQ_LINE_END or line >= 0 or finished):
+            self._started = True  # announced once, however late (an end with no interrupt)
+            started = self._seq_id
+        t0 = self._t0 if math.isfinite(self._t0) else now
+        return Drained(tuple(out), lost, finished, started=started, started_at=t0)
 
     def _observe(self, now: float, begun: float) -> None:
         """Acquisition ``begun`` has started by ``now``: tighten the bound on acquisition 0's."""
@@ -466,6 +479,10 @@ class AcquisitionReader:
         if self._halted:
             return [], 0
         done = self._frames_done(now)
+        if read and not math.isfinite(self._t0):
+            # a sweep opened as the stop landed (ACQ_LINE already -128): frame ``done``, the
+            # one the stop abandoned, had begun by now -- the only bound its frames' times have
+            self._observe(now, done)
         out, lost = self._read_frames(done, done - self._ring) if read else ([], 0)
         self._owed_idle += max(0, done - self._next)
         self._next = max(self._next, done)

@@ -30,7 +30,6 @@ of a BIRIS command or of a motion is found through the command's or order's *pur
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 from biris_hw import protocol as p
@@ -46,10 +45,16 @@ from biris_hw.errors import (
     RequestError,
 )
 from biris_hw.ipc import Envelope, Mailbox, TaskStopped
-from biris_hw.records import BirisInitRecord, MotorParams, acquisitions_for
+from biris_hw.records import BirisInitRecord, MotorParams
 from biris_hw.server import messages as m
 from biris_hw.server.acquisition import ring_length
-from biris_hw.server.cmd_transfer import BirisCommand, CommandChannel, CommandPurpose, Timer
+from biris_hw.server.cmd_transfer import (
+    BirisCommand,
+    CommandChannel,
+    CommandPurpose,
+    Timer,
+    command_name,
+)
 from biris_hw.server.cmd_transfer import status_name as status_name
 from biris_hw.server.connections import Connections
 from biris_hw.server.continuous_mode import Ring
@@ -61,6 +66,7 @@ from biris_hw.server.initialiser import InitResult
 from biris_hw.server.motion import ARRIVAL_TOLERANCE_COUNTS, AxisState, Motion, MotionPurpose
 from biris_hw.server.motor_control import MotorRequests
 from biris_hw.server.scan_assembly import ActiveScan
+from biris_hw.server.scan_timing import data_rate_mismatch
 from biris_hw.server.scanning import AcquisitionFate, ScanSequencer
 from biris_hw.status import ServerState, ServerStatus
 from regs.biexec import BiCommand, BiStatus
@@ -101,6 +107,8 @@ class Administrator:
         self.clients = Connections(clock, self.counters)
         self._init_syncs: list[Envelope] = []
         """The initialiser's InitSync, while the command worker is still writing."""
+        self._held_motion: Motion | None = None
+        """A report-mode scan's trapezoid, until BIRIS has begun its first acquisition."""
         self._handlers = self._cases()
 
     def _cases(self) -> dict[type, Case]:
@@ -131,6 +139,7 @@ class Administrator:
             m.InitCommand: self._on_init_command,
             m.InitMove: self._on_init_move,
             m.InitDone: self._on_init_done,
+            m.SequenceStarted: self._on_sequence_started,
             # from clients
             p.OpenRequest: self._on_open,  # OPEN_REQUEST
             p.CloseRequest: self._on_close,  # CLOSE_REQUEST
@@ -144,6 +153,8 @@ class Administrator:
             p.StopScanRqst: self._on_stop_scan,  # BIRIS_STOP_SCAN_RQST
             p.BirisHome: self._on_home,  # BIRIS_HOME
             p.SetElevation: self._on_set_elevation,  # the report's future elevation message
+            p.StartContinuous: self._on_start_continuous,  # START_CONTINUOUS (Appendix D)
+            p.StopContinuous: self._on_stop_continuous,  # STOP_CONTINUOUS (Appendix D)
             p.ReadyForData: self._on_ready_for_data,  # READY_FOR_DATA
             p.WaitIdle: self._on_wait_idle,  # beyond the report, as are the two below
             p.ResetRequest: self._on_reset,
@@ -301,7 +312,8 @@ class Administrator:
             elevation=self.el.position,
             calibration=self.tilt.lut,
             continuous=self.scans.continuous is not None,
-            acquisition="continuous" if self.ring.mode else "single",
+            acquisition=self.ring.name,
+            acquisition_pending=self.ring.pending_name,
             ring=self.ring.state.value,
             counters=counters,
             acquisitions_in_progress=self.scans.in_progress(),
@@ -382,8 +394,10 @@ class Administrator:
         if self.ring.mode:
             self._start_sweep(dest, after)
             return
-        n = acquisitions_for(abs(dest - self.position), self._record_with_motor())
+        motor = self.az.motor_for_next_move()
+        n = self.scans.timing.acquisitions(dest - self.position, motor)
         scan = self.scans.open_scan(dest, self.position, self.tilt.elevation, n)
+        scan.start_budget_s = self.scans.timing.start_delay_s
         self._submit_command(
             BirisCommand(
                 int(BiCommand.BI_ACQUIRE),
@@ -394,7 +408,31 @@ class Administrator:
                 scan=scan,
             )
         )
-        self._submit_motion(self.az, Motion(m.MoveOrder(dest), MotionPurpose.SCAN, scan=scan))
+        # the trapezoid waits for BIRIS's start-up to end (SEQUENCE_STARTED): scan_timing
+        self._held_motion = Motion(m.MoveOrder(dest), MotionPurpose.SCAN, scan=scan)
+
+    def _on_sequence_started(self, env: Envelope, msg: m.SequenceStarted) -> None:
+        """BIRIS has begun the first acquisition of a report-mode scan: start its motor now."""
+        env.reply(None)
+        held = self._held_motion
+        if held is None or held.scan is None or held.scan.seq_id != msg.seq_id:
+            return  # a sequence a reset or fault abandoned
+        self._held_motion = None
+        if self.scans.scan is not held.scan:
+            return
+        scan, timing = held.scan, self.scans.timing
+        delay = self.clock() - msg.began
+        timing.note_start_delay(delay)
+        self._submit_motion(self.az, held)
+        late = delay - scan.start_budget_s
+        if late > timing.period_s:  # said, not hidden: the scan's end will lack this much
+            log.warning(
+                "scan %d: BIRIS's start was seen %.0f ms late (interrupts slow or coalesced); "
+                "its acquisitions will end about %d short of the destination",
+                scan.seq_id,
+                late * 1000.0,
+                int(late / timing.period_s),
+            )
 
     def _start_sweep(self, dest: int, after: ActiveScan | None) -> None:
         """A continuous-acquisition scan: only the motor is ordered; the ring supplies data.
@@ -413,12 +451,6 @@ class Administrator:
         order = m.MoveOrder(dest, sweep=scan.seq_id, follows=follows)
         self._submit_motion(self.az, Motion(order, MotionPurpose.SCAN, scan=scan))
         self._rearm_timeout()
-
-    def _record_with_motor(self) -> BirisInitRecord:
-        """The record with the motor parameters the next move will run with: a parameter load
-        still queued ahead of it counts, since the motion queue is served in order."""
-        motor = self.az.motor_for_next_move()
-        return self.record if motor == self.record.motor else replace(self.record, motor=motor)
 
     def _on_new_point(self, env: Envelope, msg: m.NewPoint) -> None:
         env.reply(None)
@@ -547,9 +579,12 @@ class Administrator:
     def _on_timeout_err(self, env: Envelope, msg: m.BirisTimeoutErr) -> None:
         env.reply(None)
         if self.commands.timed_out(msg.generation, self._biris_owed()):
+            cmd = self.commands.current
+            waiting = f" to {command_name(cmd.code)}" if cmd is not None else ""
             self._fault(
                 "timeout",
-                f"BIRIS did not respond for {self.commands.timeout_s:g} s of hardware time",
+                f"BIRIS did not respond{waiting} for {self.commands.timeout_s:g} s of hardware "
+                "time",
             )
 
     def _on_timeout_enable(self, env: Envelope, msg: p.TimeoutEnable) -> None:
@@ -682,6 +717,7 @@ class Administrator:
 
     def _after_motion_settles(self) -> None:
         """Run a pending parameter load, then a pending HOME, once nothing else moves."""
+        self._take_pending_acquisition()  # a START_CONTINUOUS that waited for scanning to end
         if self.scans.scan is not None or self.az.busy() or self.life.fault is not None:
             return
         params = self.requests.take_params()
@@ -768,6 +804,59 @@ class Administrator:
         self._check_idle_waiters()
 
     # ============================================================================ the ring
+    def _on_start_continuous(self, env: Envelope, msg: p.StartContinuous) -> None:
+        """START_CONTINUOUS (Appendix D): continuous acquisition from now on.
+
+        With no scan running (nor waiting, nor continuous scanning on) the mode switches and
+        BI_START_CONTINUOUS is issued at once: Appendix D's START_CONTINUOUS "would produce a
+        continuous sequence of acquisitions", so the start-up is paid now, not by the next
+        scan, and ``wait_idle`` returns once the ring is live. During a tilt the ring starts
+        when the tilt is over, as after any tilt. While scanning, the switch is pending, as
+        BIRIS_HOME is (status's ``acquisition_pending``), and takes effect once scanning has
+        ended (:meth:`_take_pending_acquisition`): every sweep is acquired in one mode, and
+        continuous scanning keeps its mode until BIRIS_STOP_SCAN_RQST ends it. Idempotent.
+        Refused like every request in a fault (the HardwareFault) or while initialising
+        (RequestError), and then nothing changes.
+        """
+        self._usable_conn(msg.conn)
+        if self.ring.ask_start(scanning=self.scans.active()):
+            self._start_ring()
+        env.reply(None)
+        self._check_idle_waiters()
+
+    def _on_stop_continuous(self, env: Envelope, msg: p.StopContinuous) -> None:
+        """STOP_CONTINUOUS (Appendix D): "cease all acquisitions immediately".
+
+        Single acquisition from now on, a pending START_CONTINUOUS withdrawn, and
+        BI_STOP_CONTINUOUS issued now if the ring runs -- even under a sweep. That sweep's data
+        end with the last acquisition BIRIS completed before the stop; the head finishes its
+        move (the message stops acquisitions, not motion: BIRIS_STOP_SCAN_RQST does that) and
+        the sweep is delivered then, with what it holds (:meth:`_ring_stopped`), marked
+        ``partial`` unless its acquisition at the destination was in already, so no
+        acquisition is lost and the accounts add up. Continuous scanning goes on, its next
+        sweeps in single acquisition (a BI_ACQUIRE each). A scan waiting for the ring to go
+        live starts in single acquisition once the ring has stopped. Idempotent; in single
+        acquisition it changes nothing (a BI_ACQUIRE sequence is not stopped: BIRIS has no
+        command for it). Refused like every request in a fault or while initialising.
+        """
+        self._usable_conn(msg.conn)
+        if self.ring.ask_stop():
+            scan = self.scans.scan
+            if scan is not None and scan.ring and not scan.cmd_done and not scan.at_end:
+                # its data end at the stop, short of the destination: marked now, since the
+                # reader may end the sweep (SWEEP_DATA_DONE) before the stop's completion
+                scan.partial = True
+            self._stop_ring()
+        env.reply(None)
+        self._check_idle_waiters()
+
+    def _take_pending_acquisition(self) -> None:
+        """Scanning has ended: a START_CONTINUOUS that waited for it takes effect now."""
+        if self.scans.active() or self.life.fault is not None or self.life.initialising:
+            return
+        if self.ring.take_pending():
+            self._start_ring()
+
     def _start_ring(self) -> None:
         """BI_START_CONTINUOUS, unless BIRIS already acquires continuously (or may not now)."""
         if self.life.fault is not None or self.life.initialising or self.tilt.current is not None:
@@ -803,13 +892,27 @@ class Administrator:
             self._submit_command(BirisCommand(code, "", CommandPurpose.STOP_CONTINUOUS))
 
     def _ring_stopped(self) -> None:
-        """BI_STOP_CONTINUOUS completed: a tilt that waited for it goes on."""
+        """BI_STOP_CONTINUOUS completed: what waited for it goes on.
+
+        A sweep still acquiring (STOP_CONTINUOUS under it) has all its data: the reader has
+        handed over every frame BIRIS completed before it stopped, ahead of this completion,
+        and no SWEEP_DATA_DONE will come; so its data end here, and it completes when the
+        head arrives (marked ``partial`` by :meth:`_on_stop_continuous`). Then a tilt that
+        waited for the stop goes on, the ring starts again if START_CONTINUOUS came meanwhile,
+        and a scan that waited starts.
+        """
         if not self.ring.stopping:
             return  # a stop a reset has forgotten
         self.ring.stopped()
+        scan = self.scans.scan
+        if scan is not None and scan.ring and not scan.cmd_done:
+            self._scan_part_done(scan, cmd_status=int(BiStatus.OK))
         tilt = self.tilt.current
         if tilt is not None and tilt.phase is TiltPhase.AWAIT_RING_STOP:
             self._tilt_go(tilt)
+        if self.ring.mode:
+            self._start_ring()
+        self._run_deferred()
         self._check_idle_waiters()
 
     # ============================================================================ faults and reset
@@ -838,6 +941,7 @@ class Administrator:
 
     def _clear_activity(self) -> None:
         """Forget every scan, tilt and motion under way or waiting (reset, fault)."""
+        self._held_motion = None
         self.scans.forget()
         self.requests.forget()
         self.tilt.forget()
@@ -849,7 +953,10 @@ class Administrator:
             self._conn(msg.conn)
         self.life.begin_reset(env)
         self._clear_activity()
-        self.ring.forget()
+        # the ring is forgotten (the initialiser stops BIRIS) and the acquisition mode is the init
+        # record's again, a pending START_CONTINUOUS dropped: like the motor parameters, what a
+        # client switched at run time is undone by a reset
+        self.ring.reset()
         # Abort what runs: the command in flight is given up (its completion will be stale; the
         # initialiser waits, bounded, until BIRIS has finished it before its first command), and
         # no timer stays armed for it -- nothing is owed to this server any more.
@@ -886,6 +993,10 @@ class Administrator:
         result = msg.addressing
         assert isinstance(result, InitResult)
         self.scans.samples = result.samples
+        self.scans.timing.period_s = result.period_s
+        mismatch = data_rate_mismatch(self.record.data_rate_ms, result.period_s)
+        if mismatch is not None:  # harmless (the real period is used): said, not warned
+            log.info("%s", mismatch)
         self.az.position = 0
         self.el.position = 0
         # the chips now run the init record's parameters: so does the server (a reset undoes

@@ -28,13 +28,20 @@ from typing import TYPE_CHECKING, Protocol
 
 from biris_hw.ipc import Envelope
 from biris_hw.server.messages import TransferOrder
-from regs.biexec import BiStatus
+from regs.biexec import BiCommand, BiStatus
 
 if TYPE_CHECKING:
     from biris_hw.server.elevation import Tilt
     from biris_hw.server.scan_assembly import ActiveScan
 
-__all__ = ["BirisCommand", "CommandChannel", "CommandPurpose", "Timer", "status_name"]
+__all__ = [
+    "BirisCommand",
+    "CommandChannel",
+    "CommandPurpose",
+    "Timer",
+    "command_name",
+    "status_name",
+]
 
 
 TIMEOUT_REAL_SLACK_S = 0.1
@@ -81,6 +88,15 @@ class BirisCommand:
     """The initialiser's INIT_COMMAND, replied with (STATUS, PARAM)."""
     token: int = 0
     """Which transfer this is, so a late completion of an abandoned one is recognised."""
+
+
+def command_name(code: int) -> str:
+    """A BIEXEC_COM COMMAND's name (BI_STOP_CONTINUOUS, not 9), for a fault's message: the
+    operator holding the report finds it there."""
+    try:
+        return BiCommand(code).name
+    except ValueError:
+        return f"command {code}"
 
 
 def status_name(status: int) -> str:

@@ -60,7 +60,7 @@ from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
 from biris_hw.pan_reference import NARROW_WINDOW, index_search_range
 from biris_hw.records import BirisInitRecord
-from biris_hw.server.cmd_transfer import status_name
+from biris_hw.server.cmd_transfer import command_name, status_name
 from biris_hw.server.messages import InitCommand, InitMove, InitSync
 from regs.biexec import BiCommand, BiStatus, decode_param
 from regs.hctl1000 import COUNTS_PER_REV, MOTION_LIMIT_COUNTS
@@ -77,6 +77,9 @@ from regs.tech80 import DEFAULT_IRQ_VECTOR, Axis
 __all__ = ["InitResult", "Initialiser", "run_initialiser"]
 
 log = logging.getLogger(__name__)
+progress = logging.getLogger("biris_hw.progress")
+"""What initialisation is doing, one short sentence per step, for a person waiting for it (the
+``biris`` commands print these while the server starts): INFO records."""
 
 LEVEL2_VECTOR = 0x42
 """The vector we program for every level-2 (BIRIS) interrupt."""
@@ -141,10 +144,14 @@ class Initialiser:
     def run(self) -> InitResult:
         self.coupler.clear_errors()
         self.coupler.enable_interrupts(LEVEL2_VECTOR)
+        progress.info("stopping the motors")
         self.configure_axes()  # stops the motors first: nothing runs on while BIRIS is awaited
         self.stop_acquisition()
+        progress.info("homing the pan (its zero index)")
         self.find_zero_index()
+        progress.info("homing the tilt (its zero index: level)")
         self.find_zero_index(Axis.ELEVATION)
+        progress.info("booting BIRIS (BI_BOOT %s)", self.record.boot_file)
         return self.boot_biris()
 
     def stop_acquisition(self) -> None:
@@ -154,6 +161,7 @@ class Initialiser:
         self.link.set_flags(cmd_int=True, data_int=False, motor_access=True)
         self._send(InitSync())  # a command handed over before the reset is written by now
         self.wait_biris_idle()
+        progress.info("stopping BIRIS's acquisition (BI_STOP_CONTINUOUS)")
         self._command(BiCommand.BI_STOP_CONTINUOUS)
 
     def wait_biris_idle(self) -> None:
@@ -168,7 +176,7 @@ class Initialiser:
         code = self.link.command()
         if code == 0:
             return
-        name = _command_name(code)
+        name = command_name(code)
         limit = self.record.timeout_s
         if code == BiCommand.BI_ACQUIRE:
             count = self._running_acquisitions()
@@ -177,7 +185,7 @@ class Initialiser:
         clock, scale = self.hw.clock, self.hw.time_scale
         started = clock()
         deadline = started + limit
-        log.info("BIRIS still busy with %s: waiting up to %.1f s for it to finish", name, limit)
+        progress.info("waiting up to %.1f s for BIRIS to finish %s", limit, name)
         while True:
             if self.stop.wait(BUSY_POLL_S / scale):
                 return  # the server is closing: the next step finds the administrator gone
@@ -476,13 +484,6 @@ def _position_lost(detail: str) -> HardwareFault:
         f"homed. Check the head and its cable; turn it by hand to within +-180 deg of dead "
         f"ahead, unwinding the cable, then reset: homing then searches afresh around it",
     )
-
-
-def _command_name(code: int) -> str:
-    try:
-        return BiCommand(code).name
-    except ValueError:
-        return f"command {code}"
 
 
 def _parse_int(text: str, base: int, what: str) -> int:

@@ -105,6 +105,17 @@ class ElScanDone:
 
 
 @dataclass(frozen=True, slots=True)
+class SequenceStarted:
+    """SEQUENCE_STARTED: BI_ACQUIRE sequence ``seq_id`` has begun its first acquisition (its
+    240 ms start-up is over). A report-mode scan's motor starts now, so that its acquisitions
+    span the motion (:mod:`~biris_hw.server.scan_timing`)."""
+
+    seq_id: int
+    began: float
+    """When acquisition 0 began, at the latest (hardware clock)."""
+
+
+@dataclass(frozen=True, slots=True)
 class ContinuousLive:
     """CONTINUOUS_LIVE: after BI_START_CONTINUOUS, the first acquisition has begun (the 240 ms
     start-up is over), so a sweep started now loses nothing."""

@@ -22,8 +22,8 @@ log = logging.getLogger("biris_hw.server.admin")
 """The administrator thread's messages, whichever module writes them: one name to configure."""
 
 STILL_COUNTS = 2
-"""How near (counts) to where a continuous-mode sweep starts or ends an acquisition counts as made
-with the head standing there: a head at rest may sit a count or two off its command."""
+"""How near (counts) to where a scan starts or ends an acquisition counts as made with the head
+standing there: a head at rest may sit a count or two off its command."""
 
 
 @dataclass
@@ -37,6 +37,9 @@ class ActiveScan:
     elevation: int = 0
     ring: bool = False
     """Continuous acquisition: the sweep's data come from the ring, not from a BI_ACQUIRE."""
+    partial: bool = False
+    """A continuous scan's sweep that did not start at the opposite limit (the first one, from
+    wherever the head stood): its data cover only part of the span between the limits."""
     start: int = 0
     left_start: bool = False
     """Continuous acquisition: an acquisition away from the start has been kept -- or the sweep
@@ -49,6 +52,11 @@ class ActiveScan:
     the next sweep if one follows straight on."""
     acqs: dict[int, Acquisition] = field(default_factory=dict)
     lost: int = 0
+    start_budget_s: float = 0.0
+    """Report mode: the motor-start delay the scan's acquisition count allowed for."""
+    standing: int = 0
+    """Acquisitions made with the head standing at either end: dropped and counted
+    (``constant_azimuth``), not lost."""
     az_done: bool = False
     """AZ_SCAN_DONE has arrived: the motor has come to rest at the destination."""
     cmd_done: bool = False
@@ -58,6 +66,11 @@ class ActiveScan:
     """:meth:`~biris_hw.server.scanning.ScanSequencer.complete` has made it a Scan: its kept
     acquisitions are counted in ``acquisitions_in_scans`` (only its tail may still be pending)."""
 
+    @property
+    def acquisition(self) -> str:
+        """How BIRIS acquired the scan's data, as :class:`~biris_hw.data.Scan` says it."""
+        return "continuous" if self.ring else "single"
+
     def pending(self) -> int:
         """Acquisitions it holds that no counter has settled yet (the accounts' "in progress"):
         those it kept, until it completes or is abandoned, and its turn-around tail, until the
@@ -65,7 +78,7 @@ class ActiveScan:
         return len(self.tail) + (0 if self.completed else len(self.acqs))
 
     def head_moving(self, azimuth: int) -> bool:
-        """Whether a continuous-mode acquisition belongs to the sweep: not made while the head
+        """Whether an acquisition belongs to the scan: not made while the head
         still stood at the start (unless the sweep follows straight on from another, whose end
         that start is), nor after one was made with it standing at the end.
 
@@ -96,6 +109,7 @@ def point_of(acq: Acquisition, scan: ActiveScan, scan_seq: int, mount: Mount | N
         scan_seq=scan_seq,
         elevation=scan.elevation,
         mount=mount,
+        acquisition=scan.acquisition,
     )
 
 
@@ -117,7 +131,8 @@ def build_scan(scan: ActiveScan, samples: int, seq: int, mount: Mount | None) ->
     else:
         rng = np.zeros((0, samples), dtype=np.int16)
         inten = np.zeros((0, samples), dtype=np.int16)
-    dropped = scan.lost if scan.ring else max(0, scan.n - n)
+    # report mode: what BIRIS was asked for and neither kept nor dropped as standing was lost
+    dropped = scan.lost if scan.ring else max(0, scan.n - n - scan.standing)
     if dropped:
         log.warning(
             "scan %d (%s): %d acquisitions lost",
@@ -136,4 +151,6 @@ def build_scan(scan: ActiveScan, samples: int, seq: int, mount: Mount | None) ->
         dropped=dropped,
         elevation=scan.elevation,
         mount=mount,
+        acquisition=scan.acquisition,
+        partial=scan.partial,
     )

@@ -43,6 +43,7 @@ from biris_hw.geometry import Mount
 from biris_hw.server.counters import Counters
 from biris_hw.server.messages import Acquisition
 from biris_hw.server.scan_assembly import ActiveScan, build_scan, point_of
+from biris_hw.server.scan_timing import ScanTiming
 
 __all__ = ["AcquisitionFate", "DeferredScan", "ScanSequencer"]
 
@@ -86,6 +87,8 @@ class ScanSequencer:
         self._seq: dict[Direction, int] = {Direction.CW: 0, Direction.CCW: 0}
         self.latest_point: Point | None = None
         self.samples = 0
+        self.timing = ScanTiming()
+        """The acquisition period and motor-start delay report-mode scans are counted with."""
 
     # -- where scanning stands ---------------------------------------------------------------
     def busy(self) -> bool:
@@ -134,11 +137,20 @@ class ScanSequencer:
             self._seq_ids,
             elevation=elevation,
             ring=ring,
+            partial=self._partial(dest, position),
             start=position,
             left_start=follows,  # the turn-around's acquisitions begin it
         )
         self.scan = scan
         return scan
+
+    def _partial(self, dest: int, position: int) -> bool:
+        """A continuous scan's sweep that does not start at the limit opposite its destination
+        covers only part of the span (the first sweep, from wherever the head stood)."""
+        if self.continuous is None:
+            return False
+        cw, ccw = self.continuous
+        return position != (ccw if dest == cw else cw)
 
     def stop(self) -> bool:
         """BIRIS_STOP_SCAN_RQST; True when it ended continuous scanning at once (no sweep had
@@ -163,17 +175,22 @@ class ScanSequencer:
         scan = self.scan
         if scan is None or acq.seq_id != scan.seq_id:
             return AcquisitionFate.STALE
-        if scan.ring and not scan.head_moving(acq.azimuth):
-            if scan.at_end:
+        if not scan.head_moving(acq.azimuth):
+            if scan.ring and scan.at_end:
                 scan.tail.append(acq)
                 return AcquisitionFate.TAIL
+            scan.standing += 1
             return AcquisitionFate.STANDING
         return AcquisitionFate.KEPT
 
     def keep(self, scan: ActiveScan, acq: Acquisition) -> Point:
-        """Make ``acq`` part of ``scan`` (a ring sweep numbers its own) and the latest point."""
+        """Make ``acq`` part of ``scan`` and the latest point. The scan numbers its own rows:
+        a ring sweep's frames, and a BI_ACQUIRE's after the ones made standing at its start,
+        are not its row numbers (kept in order: the reader reads a sequence in order)."""
         if scan.ring:
             acq = dataclasses.replace(acq, seq_id=scan.seq_id, index=len(scan.acqs))
+        elif acq.index != len(scan.acqs):
+            acq = dataclasses.replace(acq, index=len(scan.acqs))
         scan.acqs[acq.index] = acq
         self._counters.acquisitions += 1
         self._counters.discarded_samples += acq.discarded

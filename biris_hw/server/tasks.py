@@ -61,6 +61,7 @@ from biris_hw.server.messages import (
     MoveOrder,
     NewPoint,
     ParamsOrder,
+    SequenceStarted,
     SweepDataDone,
     TaskFailed,
     TransferOrder,
@@ -326,6 +327,8 @@ def _post_drained(admin: Mailbox, drained: Drained) -> None:
     Called under the reader's lock (see the module notes); raises TaskStopped once the
     administrator has stopped.
     """
+    if drained.started:  # first: the motor waits for it
+        admin.post_oneway(SequenceStarted(drained.started, drained.started_at))
     if drained.acquisitions or drained.lost or drained.idle:
         admin.post_oneway(NewPoint(drained.acquisitions, drained.lost, drained.idle))
     if drained.live:

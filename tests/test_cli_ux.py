@@ -1,0 +1,619 @@
+"""The ``biris`` command for people: what it says while it waits and when it is interrupted, what
+it checks before touching the sensor, and what it refuses or warns about.
+
+Every command runs in-process against the simulator it starts (``--sim``), as in
+``tests/test_cli.py``; a "real target" is that same simulator handed to the command through
+``--target`` (``_open_target`` patched), so the questions a real head asks can be tested without
+one. Interruptions are a ``KeyboardInterrupt`` raised from inside the command's loop, not a
+signal: the same exception, at a known moment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from biris_hw.cli import build_parser, main
+from biris_hw.commands import argtypes, common, demo, watch
+from biris_hw.commands.common import EXIT_INTERRUPTED, HALF_TURN_COUNTS
+from biris_hw.errors import HardwareFault
+from biris_hw.hardware import BirisHardware
+from biris_hw.records import BirisInitRecord
+from biris_hw.scanfile import load_scans
+from biris_hw.server import BirisServer
+from biris_hw.sweeps import Sweeps
+from sim import Scene, SimulatedBiris
+from sim.clock import LAG_WARNING_S, SimClock
+
+SIM = ["--sim", "--time-scale", "30", "--scene", "circle:2", "--seed", "3"]
+PNG = b"\x89PNG\r\n\x1a\n"
+
+Run = Callable[..., tuple[int, str, str]]
+
+
+@pytest.fixture(autouse=True)
+def _no_target_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(common.TARGET_ENV, raising=False)
+
+
+@pytest.fixture
+def biris(capsys: pytest.CaptureFixture[str], no_leaks: None) -> Run:
+    """Run ``biris ARGS`` in-process: (exit status, stdout, stderr); nothing may be left running."""
+
+    def run(*argv: str) -> tuple[int, str, str]:
+        code = main(list(argv))
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run
+
+
+@pytest.fixture
+def rigs(monkeypatch: pytest.MonkeyPatch) -> list[SimulatedBiris]:
+    """The simulators the commands start with --sim, for the test to look at (or break)."""
+    started: list[SimulatedBiris] = []
+    start = common._start_rig
+
+    def keep(args: argparse.Namespace) -> SimulatedBiris:
+        rig = start(args)
+        started.append(rig)
+        return rig
+
+    monkeypatch.setattr(common, "_start_rig", keep)
+    return started
+
+
+@pytest.fixture
+def target(monkeypatch: pytest.MonkeyPatch, no_leaks: None) -> Iterator[list[SimulatedBiris]]:
+    """``--target FILE`` opens a simulator, as if it were a real head: what only a real target
+    asks (``--yes``) can be tested. The simulators are closed after the test."""
+    started: list[SimulatedBiris] = []
+
+    def open_target(file: object) -> BirisHardware:
+        rig = SimulatedBiris(scene=Scene.circle(2.0), time_scale=30.0, seed=3).start()
+        started.append(rig)
+        return rig.hardware
+
+    monkeypatch.setattr(common, "_open_target", open_target)
+    yield started
+    for rig in started:
+        rig.close()
+
+
+def _lines(err: str) -> list[str]:
+    return err.splitlines()
+
+
+# -- 1. --continuous -------------------------------------------------------------------------------
+
+
+def test_continuous_scan_runs_appendix_d(biris: Run, rigs: list[SimulatedBiris]) -> None:
+    """One BI_START_CONTINUOUS for the whole run, where report mode starts a BI_ACQUIRE per
+    sweep."""
+    argv = ["scan", "--cw", "-20", "--ccw", "20", "--sweeps", "3", *SIM]
+    code, out, err = biris(*argv, "--continuous")
+    assert code == 0, err
+    assert len([line for line in out.splitlines() if "#" in line]) == 3
+    code, _, err = biris(*argv)
+    assert code == 0, err
+    continuous, report = (rig.supervisor.sequences_started for rig in rigs)
+    assert continuous == 1
+    assert report >= 3
+
+
+def test_continuous_watch_says_the_acquisition_mode(biris: Run) -> None:
+    code, out, err = biris(
+        "watch", "--duration", "0.3", "--interval", "0.1", "--continuous",
+        "--cw", "-15", "--ccw", "15", *SIM,
+    )  # fmt: skip
+    assert code == 0, err
+    last = dict(word.split("=", 1) for word in out.splitlines()[-1].split() if "=" in word)
+    assert last["acquisition"] == "continuous"
+    code, out, err = biris("watch", "--duration", "0.1", "--interval", "0.1", *SIM)
+    assert code == 0, err
+    assert "acquisition=single" in out.splitlines()[-1]
+
+
+@pytest.mark.parametrize(
+    "command", [["point"], ["scan", "--to", "10"], ["watch", "--duration", "0.1"]]
+)
+def test_continuous_reaches_the_server_on_every_command(
+    biris: Run, monkeypatch: pytest.MonkeyPatch, command: list[str]
+) -> None:
+    records: list[BirisInitRecord] = []
+
+    def spy(hardware: BirisHardware, record: BirisInitRecord) -> Any:
+        records.append(record)
+        return BirisServer(hardware, record)
+
+    monkeypatch.setattr(common, "BirisServer", spy)
+    code, _, err = biris(*command, "--continuous", *SIM)
+    assert code == 0, err
+    assert [r.continuous_acquisition for r in records] == [True]
+
+
+def test_the_demo_takes_continuous() -> None:
+    parser = build_parser("demo")
+    assert parser.parse_args(["demo", "--continuous"]).continuous is True
+
+
+# -- 2. progress, and the command a silent target was waiting for ----------------------------------
+
+
+@pytest.fixture
+def says_progress(monkeypatch: pytest.MonkeyPatch, rigs: list[SimulatedBiris]) -> None:
+    """stderr is a terminal, and the server says something on the progress logger as soon as
+    its simulator has started (the sentence is the test's, not the server's)."""
+    monkeypatch.setattr(common, "stderr_is_terminal", lambda: True)
+    start = common._start_rig
+
+    def start_and_say(args: argparse.Namespace) -> SimulatedBiris:
+        rig = start(args)
+        logging.getLogger(common.PROGRESS_LOGGER).info("testing the progress line")
+        logging.getLogger(common.PROGRESS_LOGGER).info("%d things done.", 2)
+        return rig
+
+    monkeypatch.setattr(common, "_start_rig", start_and_say)
+
+
+def test_progress_is_shown_while_a_command_waits(biris: Run, says_progress: None) -> None:
+    code, out, err = biris("home", *SIM)
+    assert code == 0, err
+    assert "biris home: testing the progress line..." in _lines(err)
+    assert "biris home: 2 things done." in _lines(err)
+    assert "testing" not in out  # stdout stays the command's data
+    # the handler is gone once the command has ended
+    assert not logging.getLogger(common.PROGRESS_LOGGER).handlers
+
+
+def test_progress_is_not_shown_when_quiet(biris: Run, says_progress: None) -> None:
+    code, _, err = biris("home", "--quiet", *SIM)
+    assert code == 0, err
+    assert "progress" not in err
+
+
+def test_progress_is_not_shown_when_nobody_watches_stderr(biris: Run) -> None:
+    """Not a terminal (a log, a pipe, a script): stderr keeps its one-line error contract."""
+    logging.getLogger(common.PROGRESS_LOGGER).info("not for a pipe")  # outside any command
+    code, _, err = biris("home", *SIM)
+    assert code == 0, err
+    assert err == ""
+
+
+def test_a_fault_names_the_biris_command_not_its_code() -> None:
+    fault = HardwareFault("timeout", "BIRIS still busy after 4.0 s (COMMAND 7): it does not answer")
+    line = common.error_line(fault)
+    assert "COMMAND 7 (BI_STOP_CONTINUOUS)" in line
+    hex_code = common.error_line(HardwareFault("protocol", "command 0x05 and COMMAND 08 refused"))
+    assert "command 0x05 (BI_ACQUIRE) and COMMAND 08 (BI_LOAD_LUT) refused" in hex_code
+    named = HardwareFault("timeout", "BIRIS did not respond to BI_ACQUIRE (COMMAND 5)")
+    assert common.error_line(named) == f"hardware fault (timeout): {named.message}"
+
+
+def test_a_timeout_names_the_command_biris_still_holds() -> None:
+    """A timeout whose message names no command gets the one COMMAND still holds."""
+    hardware: Any = SimpleNamespace(
+        devices=SimpleNamespace(link=SimpleNamespace(command=lambda: 7))
+    )
+    fault = HardwareFault("timeout", "BIRIS did not respond for 4 s of hardware time")
+    named = common._name_unanswered(fault, hardware)
+    assert named.kind == "timeout"
+    assert named.message.endswith("(waiting for BIRIS to finish BI_STOP_CONTINUOUS)")
+    idle: Any = SimpleNamespace(devices=SimpleNamespace(link=SimpleNamespace(command=lambda: 0)))
+    assert common._name_unanswered(fault, idle) is fault  # nothing outstanding: nothing to add
+    stall = HardwareFault("motor_stall", "the shaft did not follow")
+    assert common._name_unanswered(stall, hardware) is stall
+
+
+def test_a_hung_biris_is_reported_by_the_command_it_was_waiting_for(
+    biris: Run, rigs: list[SimulatedBiris], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """BIRIS hangs under a single scan: the line names a BI_ command, never a bare code."""
+    from biris_hw.client import Connection
+
+    scan = Connection.single_scan
+
+    def scan_then_hang(self: Connection, to_deg: float) -> int:
+        dest = scan(self, to_deg)
+        rigs[-1].faults.hang_supervisor()
+        return dest
+
+    monkeypatch.setattr(Connection, "single_scan", scan_then_hang)
+    code, _, err = biris("scan", "--to", "90", *SIM)
+    assert code == 1
+    (line,) = _lines(err)
+    assert line.startswith("biris scan: hardware fault (timeout): ")
+    assert "BI_ACQUIRE" in line
+
+
+# -- 3. biris sim's time scale ---------------------------------------------------------------------
+
+
+def test_biris_sim_defaults_to_the_time_scale_of_the_other_commands() -> None:
+    sim_args = build_parser("sim").parse_args(["sim", "--shm", "x"])
+    scan_args = build_parser("scan").parse_args(["scan", "--sim", "--to", "10"])
+    common.check_target_arguments(scan_args)
+    demo_args = build_parser("demo").parse_args(["demo"])
+    assert sim_args.time_scale == scan_args.time_scale == demo_args.time_scale
+    assert sim_args.time_scale == argtypes.DEFAULT_TIME_SCALE == common.DEFAULT_TIME_SCALE
+
+
+# -- 4. clamped destinations and long moves --------------------------------------------------------
+
+
+def test_a_clamped_destination_is_reported(biris: Run) -> None:
+    code, out, err = biris("scan", "--to", "400", *SIM)
+    assert code == 0, err
+    assert _lines(err) == [
+        "biris scan: --to 400\N{DEGREE SIGN} is beyond the head's travel: clamped to "
+        "+360\N{DEGREE SIGN}"
+    ]
+    assert out.startswith("CCW #1: ")
+
+
+def test_clamped_sweep_limits_are_reported(biris: Run) -> None:
+    code, _, err = biris("scan", "--cw=-1e9", "--ccw", "-350", "--sweeps", "1", *SIM)
+    assert code == 0, err
+    assert _lines(err) == [
+        "biris scan: --cw -1e+09\N{DEGREE SIGN} is beyond the head's travel: clamped to "
+        "-360\N{DEGREE SIGN}"
+    ]
+
+
+def test_an_unclamped_destination_says_nothing(biris: Run) -> None:
+    code, _, err = biris("scan", "--to", "-30", *SIM)
+    assert (code, err) == (0, "")
+
+
+def test_a_long_move_on_a_real_head_needs_yes(
+    biris: Run, target: list[SimulatedBiris], tmp_path: Path
+) -> None:
+    robot = str(tmp_path / "robot.toml")
+    code, out, err = biris("scan", "--target", robot, "--to", "200")
+    assert (code, out) == (2, "")
+    (line,) = _lines(err)
+    assert line.startswith("biris scan: --to 200 turns the head 200\N{DEGREE SIGN} (from +0.0")
+    assert line.endswith("more than half a turn: make sure the cable and the space around the "
+                         "head allow it, then add --yes")  # fmt: skip
+    assert abs(target[-1].azimuth_counts) < 16  # the head stayed home
+    code, out, err = biris("scan", "--target", robot, "--to", "200", "--yes")
+    assert code == 0, err
+    assert out.startswith("CCW #1: ") and "+200.0 deg" in out.splitlines()[0]
+
+
+def test_a_sweep_wider_than_half_a_turn_on_a_real_head_needs_yes(
+    biris: Run, target: list[SimulatedBiris], tmp_path: Path
+) -> None:
+    robot = str(tmp_path / "robot.toml")
+    code, _, err = biris("scan", "--target", robot, "--cw", "-100", "--ccw", "100")
+    assert code == 2
+    assert "--ccw 100 turns the head 200\N{DEGREE SIGN} (from -100.0" in err
+    code, _, err = biris("scan", "--target", robot, "--cw", "-80", "--ccw", "80", "--sweeps", "1")
+    assert code == 0, err  # 160 degrees: no question
+
+
+def test_the_simulator_never_asks(biris: Run) -> None:
+    code, _, err = biris("scan", "--to", "200", *SIM)
+    assert (code, err) == (0, "")
+
+
+def test_home_asks_only_for_a_head_more_than_half_a_turn_away() -> None:
+    def session(azimuth: int, simulated: bool = False) -> Any:
+        server = SimpleNamespace(status=lambda: {"azimuth": azimuth})
+        return SimpleNamespace(server=server, simulated=simulated)
+
+    move = [("driving home to 0\N{DEGREE SIGN}", 0)]
+    no = argparse.Namespace(yes=False)
+    common.confirm_moves(session(HALF_TURN_COUNTS), no, move)  # exactly half a turn: fine
+    with pytest.raises(common.UsageError, match="driving home to 0° turns the head 190°"):
+        common.confirm_moves(session(-2162), no, move)
+    common.confirm_moves(session(-2162), argparse.Namespace(yes=True), move)
+    common.confirm_moves(session(-2162, simulated=True), no, move)
+
+
+# -- 5. output paths, checked before anything starts -----------------------------------------------
+
+
+@pytest.fixture
+def fonts_open(tmp_path: Path) -> None:
+    """matplotlib keeps the font files it has used open for the life of the process: draw once
+    before the leak check takes its snapshot."""
+    from biris_hw.plots import save_polar
+
+    save_polar(tmp_path / "warm-up.png", [])
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--save", "{file}/run"], "is not a folder"),
+        (["--save", "{dir}"], "is a folder; name the files"),
+        (["--plot", "{dir}"], "is a folder; give a file name"),
+        (["--plot", "{dir}/run.txt"], "unknown extension '.txt'; use one of"),
+        (["--plot", "{dir}/run"], "no extension; use one of"),
+        (["--plot", "{file}/deeper/run.png"], "is not a folder"),
+    ],
+)
+def test_a_bad_output_path_is_refused_before_the_sensor_is_touched(
+    biris: Run, tmp_path: Path, _leak_and_audit_check: Any, argv: list[str], words: str
+) -> None:
+    file = tmp_path / "a-file"
+    file.write_text("")
+    given = [word.format(file=file, dir=tmp_path) for word in argv]
+    code, out, err = biris("scan", "--to", "10", *given, *SIM)
+    assert (code, out) == (2, "")
+    (line,) = _lines(err)
+    assert line.startswith(f"biris scan: {given[0]} {given[1]}") and words in line
+    assert _leak_and_audit_check.rigs == []  # no simulator was started
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes anywhere")
+def test_an_unwritable_folder_is_refused_before_the_sensor_is_touched(
+    biris: Run, tmp_path: Path, _leak_and_audit_check: Any
+) -> None:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        code, _, err = biris("scan", "--to", "10", "--save", str(locked / "new" / "run"), *SIM)
+    finally:
+        locked.chmod(0o700)
+    assert code == 2
+    assert f"cannot write in {locked} (permission denied)" in err
+    assert _leak_and_audit_check.rigs == []
+
+
+def test_a_folder_without_write_permission_is_refused(
+    biris: Run, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, _leak_and_audit_check: Any
+) -> None:
+    """The same as above for any user (root may write anywhere): the permission is asked of
+    the operating system, which here says no."""
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    code, _, err = biris("scan", "--to", "10", "--plot", str(tmp_path / "new" / "run.png"), *SIM)
+    assert code == 2
+    assert _lines(err) == [
+        f"biris scan: --plot {tmp_path / 'new' / 'run.png'}: cannot write in {tmp_path} "
+        "(permission denied)"
+    ]
+    assert _leak_and_audit_check.rigs == []
+
+
+def test_demo_out_must_be_a_folder(biris: Run, tmp_path: Path, _leak_and_audit_check: Any) -> None:
+    file = tmp_path / "pictures"
+    file.write_text("")
+    code, out, err = biris("demo", "--out", str(file), "--duration", "1")
+    assert (code, out) == (2, "")
+    assert _lines(err) == [f"biris demo: --out {file}: is a file, not a folder"]
+    assert _leak_and_audit_check.rigs == []
+
+
+def test_motor_params_save_init_is_checked_first(
+    biris: Run, tmp_path: Path, _leak_and_audit_check: Any
+) -> None:
+    code, _, err = biris("motor-params", "--save-init", str(tmp_path), *SIM)
+    assert code == 2
+    assert "is a folder; give a file name" in err
+    assert _leak_and_audit_check.rigs == []
+
+
+def test_missing_folders_are_made(fonts_open: None, biris: Run, tmp_path: Path) -> None:
+    picture = tmp_path / "new" / "deeper" / "run.svg"
+    code, out, err = biris("scan", "--to", "20", "--plot", str(picture), *SIM)
+    assert code == 0, err
+    assert f"picture: {picture}" in out.splitlines()
+    assert picture.read_text().lstrip().startswith("<?xml")
+
+
+# -- 6. Ctrl-C keeps what was acquired -------------------------------------------------------------
+
+
+def test_ctrl_c_during_sweeps_writes_the_sweeps_completed(
+    fonts_open: None, biris: Run, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    take = Sweeps._take
+    taken: list[int] = []
+
+    def interrupt_the_third(self: Sweeps, timeout: float) -> Any:
+        if len(taken) == 2:
+            raise KeyboardInterrupt
+        taken.append(1)
+        return take(self, timeout)
+
+    monkeypatch.setattr(Sweeps, "_take", interrupt_the_third)
+    run, picture = tmp_path / "run", tmp_path / "run.png"
+    code, out, err = biris(
+        "scan", "--cw", "-20", "--ccw", "20", "--sweeps", "5",
+        "--save", str(run), "--plot", str(picture), *SIM,
+    )  # fmt: skip
+    assert code == EXIT_INTERRUPTED
+    assert [line.split(":")[0] for line in out.splitlines() if "#" in line] == ["CW #1", "CCW #1"]
+    assert _lines(err) == [
+        f"biris scan: interrupted: wrote 2 of 5 sweeps to {run}.npz, {run}.csv and {picture}"
+    ]
+    assert [(s.direction.name, s.seq) for s in load_scans(f"{run}.npz")] == [("CW", 1), ("CCW", 1)]
+    assert picture.read_bytes()[:8] == PNG
+
+
+def test_ctrl_c_before_any_sweep_writes_nothing(
+    biris: Run, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def interrupted(self: Sweeps, timeout: float) -> Any:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Sweeps, "_take", interrupted)
+    code, _, err = biris(
+        "scan", "--cw", "-20", "--ccw", "20", "--save", str(tmp_path / "run"), *SIM
+    )
+    assert code == EXIT_INTERRUPTED
+    assert _lines(err) == [
+        "biris scan: interrupted before the first of 2 sweeps completed: nothing written"
+    ]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_in_the_demo_draws_what_it_has(
+    fonts_open: None, biris: Run, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    refresh = demo._refresh
+    fired: list[int] = []
+
+    def interrupt_after_two_sweeps(status: demo.DemoStatus, *args: Any) -> None:
+        refresh(status, *args)
+        if status.total_sweeps >= 2 and not fired:
+            fired.append(status.total_sweeps)
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo, "_refresh", interrupt_after_two_sweeps)
+    out_dir = tmp_path / "demo"
+    code, out, err = biris(
+        "demo", "--duration", "60", "--time-scale", "30", "--scene", "circle:2",
+        "--cw", "-20", "--ccw", "20", "--out", str(out_dir),
+    )  # fmt: skip
+    assert code == EXIT_INTERRUPTED, err
+    made = fired[0]
+    assert _lines(err) == [
+        f"biris demo: interrupted: wrote the latest 2 of {made} sweeps to {out_dir}"
+    ]
+    assert f"biris demo: {made} sweeps (" in out
+    for name in ("demo-polar.png", "demo-top.png", "demo-3d.png"):
+        assert (out_dir / name).read_bytes()[:8] == PNG
+    scans = load_scans(out_dir / "latest-scans.npz")
+    assert sorted(s.direction.name for s in scans) == ["CCW", "CW"]
+
+
+# -- 7. watch gives up on a fault ------------------------------------------------------------------
+
+
+def test_watch_gives_up_on_a_fault_the_server_cannot_leave(
+    biris: Run, rigs: list[SimulatedBiris], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    update = watch._Lines.update
+    shown: list[str] = []
+
+    def update_then_break(self: watch._Lines, status: Any, elapsed: float) -> None:
+        update(self, status, elapsed)
+        shown.append(str(status["state"]))
+        if len(shown) == 2:
+            rigs[-1].faults.parity_error()
+
+    monkeypatch.setattr(watch._Lines, "update", update_then_break)
+    code, out, err = biris("watch", "--interval", "0.02", "--duration", "30", *SIM)
+    assert code == 1
+    (line,) = _lines(err)
+    assert line.startswith("biris watch: hardware fault (parity): ")
+    assert "the server stays in this fault until it is reset, so watch gives up" in line
+    assert shown[-1] == "fault:parity" and shown.count("fault:parity") == 1  # shown, then left
+    assert "state=fault:parity" in out.splitlines()[-1]
+
+
+# -- 8. a time scale the host cannot keep up with --------------------------------------------------
+
+
+class _FakeTime:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+
+def test_the_clock_measures_how_late_its_waits_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    fake = _FakeTime()
+    monkeypatch.setattr("sim.clock.time", fake)
+    clock, stop = SimClock(10.0), threading.Event()
+    assert clock.lateness() == 0.0
+    fake.now += 1.0  # a second of real time: ten of hardware time
+    assert clock.wait_until(clock.now() - 2.0, stop)  # due two hardware seconds ago
+    assert clock.lateness() == pytest.approx(2.0 * (1.0 - np.exp(-2.0)))
+    assert clock.lateness() > LAG_WARNING_S
+    fake.now += 5.0
+    assert clock.wait_until(clock.now(), stop)  # on time
+    assert clock.lateness() < 0.001
+
+
+def test_a_rig_that_keeps_up_is_not_behind(no_leaks: None) -> None:
+    rig = SimulatedBiris(time_scale=4.0)
+    assert rig.lag_s() == 0.0  # not started
+    with rig:
+        assert rig.lag_s() < LAG_WARNING_S and not rig.behind()
+    assert rig.lag_s() == 0.0  # closed
+
+
+class _LaggingRig:
+    """Behind or not, look by look, as the test says; ``done`` once the looks have run out or
+    the warning has been given (the only reader of :meth:`lag_s`)."""
+
+    time_scale = 300.0
+    lag_bound_s = LAG_WARNING_S
+
+    def __init__(self, looks: list[bool]) -> None:
+        self._looks = list(looks)
+        self.done = threading.Event()
+
+    def lag_s(self) -> float:
+        self.done.set()
+        return 0.5
+
+    def behind(self) -> bool:
+        if not self._looks:
+            self.done.set()
+            return False
+        return self._looks.pop(0)
+
+
+@pytest.mark.parametrize(
+    ("looks", "warned"),
+    [([True, False, True, False, False], False), ([False, True, True, False], True)],
+)
+def test_the_lag_watch_needs_two_looks_in_a_row(
+    looks: list[bool], warned: bool, capsys: pytest.CaptureFixture[str], no_leaks: None
+) -> None:
+    rig = _LaggingRig(looks)
+    lag = common.LagWatch(rig, "biris test", every_s=0.001).start()
+    assert rig.done.wait(5.0)
+    lag.stop()
+    err = capsys.readouterr().err
+    assert lag.warned is warned
+    if warned:
+        assert _lines(err) == [
+            "biris test: warning: the simulator runs 500 ms of hardware time late (more than "
+            "33 ms): this machine cannot keep up with --time-scale 300, so timings and faults "
+            "(motor_stall, timeout) may be wrong; use a smaller --time-scale"
+        ]
+    else:
+        assert err == ""
+
+
+def test_a_command_warns_once_when_the_simulator_falls_behind(
+    biris: Run, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(common, "LAG_CHECK_S", 0.005)
+    monkeypatch.setattr(SimulatedBiris, "behind", lambda self: True)
+    monkeypatch.setattr(SimulatedBiris, "lag_s", lambda self: 0.25)
+    code, _, err = biris("home", *SIM)
+    assert code == 0, err
+    assert _lines(err) == [
+        "biris home: warning: the simulator runs 250 ms of hardware time late (more than 33 ms): "
+        "this machine cannot keep up with --time-scale 30, so timings and faults (motor_stall, "
+        "timeout) may be wrong; use a smaller --time-scale"
+    ]
+
+
+def test_biris_sim_warns_once_too() -> None:
+    from sim.process import _Mirror
+
+    said: list[str] = []
+    rig: Any = _LaggingRig([True])
+    mirror = _Mirror(rig, None, None, 0.02, warn=said.append)  # type: ignore[arg-type]
+    mirror._check_lag()
+    mirror._check_lag()
+    assert len(said) == 1 and said[0].startswith("warning: the simulator runs 500 ms")
