@@ -110,6 +110,7 @@ def test_continuous_scan_runs_appendix_d(biris: Run, rigs: list[SimulatedBiris])
     assert report >= 3
 
 
+@pytest.mark.slow  # scan --continuous covers the flag in the fast tier
 def test_continuous_watch_says_the_acquisition_mode(biris: Run) -> None:
     code, out, err = biris(
         "watch", "--duration", "0.3", "--interval", "0.1", "--continuous",

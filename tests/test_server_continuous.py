@@ -212,6 +212,7 @@ def test_a_hung_biris_times_out_during_a_sweep(rig: SimulatedBiris, cserver: Bir
     _check_sweep(conn.request_scan_data(Direction.CW), 0, -114)
 
 
+@pytest.mark.slow  # test_init_busy covers a busy BIRIS at start-up in the fast tier
 def test_a_new_server_finds_biris_still_acquiring(make_rig: RigFactory) -> None:
     rig = make_rig(scene=Scene.room())
     with BirisServer(rig.hardware, CONTINUOUS) as first:

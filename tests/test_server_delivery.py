@@ -63,6 +63,7 @@ def test_every_buffer_keeps_the_newest_depth_scans_and_counts_the_rest(
     assert server.status()["connections"][slow.ident]["dropped"] == total - 2
 
 
+@pytest.mark.slow  # LATEST is the default every e2e test already reads through
 def test_latest_keeps_only_the_newest_scan(server: BirisServer) -> None:
     slow = server.open(ConnectionKind.DATA)  # LATEST is the default
     assert slow.policy is DeliveryPolicy.LATEST and slow.depth == 1

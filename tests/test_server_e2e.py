@@ -169,7 +169,9 @@ def test_home_during_continuous_scanning_waits_for_stop(
     assert abs(rig.azimuth_counts) <= 3.0
 
 
-@pytest.mark.parametrize(("asked", "used"), [(720.0, 0x1000), (-1000.0, -0x1000)])
+@pytest.mark.parametrize(
+    ("asked", "used"), [(720.0, 0x1000), pytest.param(-1000.0, -0x1000, marks=pytest.mark.slow)]
+)
 def test_destinations_are_clamped_to_plus_minus_360(
     rig: SimulatedBiris, server: BirisServer, asked: float, used: int
 ) -> None:
@@ -273,7 +275,7 @@ def test_motor_parameters_change_speed_and_acquisition_count(
 
 @pytest.mark.parametrize(
     ("inject", "kind"),
-    [("parity_error", "parity"), ("bus_error", "bus")],
+    [("parity_error", "parity"), pytest.param("bus_error", "bus", marks=pytest.mark.slow)],
 )
 def test_coupler_faults_reach_every_caller_and_reset_recovers(
     rig: SimulatedBiris, server: BirisServer, inject: str, kind: str

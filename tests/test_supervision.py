@@ -304,7 +304,7 @@ CASES: dict[str, Case] = {
 
 # one notifier and the command notifier in the fast tier; the rest are slow (the fast suite's
 # budget), and the x10 variants of all are slow through the time_scale fixture
-FAST_CASES = ("biris_cmd_notifier", "biris_az_notifier")
+FAST_CASES = ("biris_cmd_notifier",)
 
 
 @pytest.mark.parametrize(
