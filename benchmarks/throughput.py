@@ -217,7 +217,8 @@ def _trial(time_scale: float, window: float) -> Trial:
             conn.wait_idle(timeout=max(10.0, 30.0 / time_scale))
             counters = bench.server.status()["counters"]
             trial.made = bench.rig.supervisor.acquisitions_made - made0
-            trial.received = int(counters["acquisitions"])
+            # kept in scans, or made with the head standing at a scan's end (dropped, counted)
+            trial.received = int(counters["acquisitions"]) + int(counters["constant_azimuth"])
             trial.lost = (
                 int(counters["dropped_acquisitions"])
                 + int(counters["stale_acquisitions"])
