@@ -461,6 +461,7 @@ def test_ctrl_c_before_any_sweep_writes_nothing(
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow  # scan --sweeps keeps the Ctrl-C rule in the fast tier
 def test_ctrl_c_in_the_demo_draws_what_it_has(
     fonts_open: None, biris: Run, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

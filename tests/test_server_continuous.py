@@ -113,6 +113,7 @@ def test_data_interrupts_are_off_between_sweeps(rig: SimulatedBiris, cserver: Bi
     _check_sweep(scan, 228, -228)
 
 
+@pytest.mark.slow  # x10 end to end; the ring's sweeps are checked at x30 by the fast tests
 def test_continuous_scanning_over_the_ring(make_rig: RigFactory) -> None:
     # x10: a scan's times may be late by the promptest wake of its sweep, and telling which
     # acquisition a time is needs that under a period (3.3 ms of real time here)
