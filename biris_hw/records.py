@@ -406,11 +406,13 @@ def acq_rate_counts_per_acq(record: BirisInitRecord) -> float:
 
 
 def acquisitions_for(scan_counts: int, record: BirisInitRecord) -> int:
-    """How many acquisitions to ask BIRIS for so that a scan of ``scan_counts`` is covered.
+    """The report's count of acquisitions for a scan of ``scan_counts`` (``_Get_acq_rate()``).
 
-    scan length / :func:`acq_rate_counts_per_acq`, rounded *up* so that the sequence ends as the
-    motor arrives rather than short of it; at least 1 for any non-zero scan, 0 for none. The sign
-    of ``scan_counts`` (the direction) does not matter. Like the report, this ignores the
+    scan length / :func:`acq_rate_counts_per_acq`, rounded *up*; at least 1 for any non-zero
+    scan, 0 for none. The server no longer counts with it: it ignores BIRIS's start-up and the
+    real acquisition period (whole video fields), so a scan counted so misses its start and
+    stands at its end; :mod:`biris_hw.server.scan_timing` counts from the trapezoid instead.
+    The sign of ``scan_counts`` (the direction) does not matter. Like the report, this ignores the
     trapezoid's ramps: at the default acceleration the head reaches speed within one sample.
     Computed in exact integers, so an exact multiple of the rate does not gain a spurious extra
     acquisition from float rounding.

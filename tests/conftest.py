@@ -15,6 +15,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
@@ -25,6 +26,7 @@ from sim.scene import Scene
 
 if TYPE_CHECKING:
     from biris_hw.server import BirisServer
+    from tests.core import Core
 
 if "BIRIS_STATE_DIR" not in os.environ:
     # a target's pan journal (biris_hw.pan_reference) goes to a directory of this run's own,
@@ -244,6 +246,52 @@ def make_rig(time_scale: float) -> Iterator[RigFactory]:
 @pytest.fixture
 def rig(make_rig: RigFactory) -> SimulatedBiris:
     return make_rig()
+
+
+@pytest.fixture
+def core() -> Core:
+    """The administrator without threads (tests.core), initialised: the thread-free tier."""
+    from tests.core import Core  # here, so tests below the server collect without it
+
+    c = Core()
+    c.initialise()
+    return c
+
+
+@pytest.fixture
+def fonts_open(tmp_path: Path) -> None:
+    """matplotlib keeps the font files it has used open for the life of the process (a cache,
+    not a leak): draw once before a leak check (``no_leaks``) takes its snapshot."""
+    from biris_hw.plots import save_polar
+
+    save_polar(tmp_path / "warm-up.png", [])
+
+
+# -- the biris command, in-process -----------------------------------------------------------------
+
+Run = Callable[..., tuple[int, str, str]]
+"""``biris ARGS`` run in-process: (exit status, stdout, stderr)."""
+
+
+@pytest.fixture
+def no_target_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No BIRIS_TARGET from the shell running the tests: a command without --target means it."""
+    from biris_hw.commands import common
+
+    monkeypatch.delenv(common.TARGET_ENV, raising=False)
+
+
+@pytest.fixture
+def biris(capsys: pytest.CaptureFixture[str], no_leaks: None) -> Run:
+    """Run ``biris ARGS`` in-process: (exit status, stdout, stderr); nothing may be left running."""
+    from biris_hw.cli import main
+
+    def run(*argv: str) -> tuple[int, str, str]:
+        code = main(list(argv))
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run
 
 
 @pytest.fixture

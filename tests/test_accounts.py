@@ -491,13 +491,6 @@ def test_continuous_sweeps_count_standing_tails_carried_dropped_and_aborted() ->
 # == the administrator, without threads ==========================================================
 
 
-@pytest.fixture
-def core() -> Core:
-    c = Core()
-    c.initialise()
-    return c
-
-
 def _accounts(core: Core) -> Accounts:
     accounts = core.admin.status().accounts()
     assert accounts.adds_up, accounts

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from biris_hw import cli
-from biris_hw.cli import COMMANDS, Command, main
+from biris_hw.cli import COMMANDS, Command
 from biris_hw.client import Connection
 from biris_hw.commands import argtypes, common
 from biris_hw.plots import closest_points_xy
@@ -27,6 +27,7 @@ from biris_hw.records import BirisInitRecord
 from biris_hw.scanfile import load_scans
 from sim import Scene, SimulatedBiris
 from sim.audit import Rule
+from tests.conftest import Run
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -38,24 +39,7 @@ SIM = ["--sim", "--time-scale", "30", "--scene", "circle:2", "--seed", "3"]
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
-Run = Callable[..., tuple[int, str, str]]
-
-
-@pytest.fixture(autouse=True)
-def _no_target_env(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(common.TARGET_ENV, raising=False)
-
-
-@pytest.fixture
-def biris(capsys: pytest.CaptureFixture[str], no_leaks: None) -> Run:
-    """Run ``biris ARGS`` in-process: (exit status, stdout, stderr); nothing may be left running."""
-
-    def run(*argv: str) -> tuple[int, str, str]:
-        code = main(list(argv))
-        out, err = capsys.readouterr()
-        return code, out, err
-
-    return run
+pytestmark = pytest.mark.usefixtures("no_target_env")
 
 
 def _error(result: tuple[int, str, str], status: int, prefix: str) -> str:
@@ -243,15 +227,6 @@ def test_the_argument_types_do_not_load_the_simulator_or_the_server() -> None:
 
 
 # -- scan ------------------------------------------------------------------------------------------
-
-
-@pytest.fixture
-def fonts_open(tmp_path: Path) -> None:
-    """matplotlib keeps the font files it has used open for the life of the process (a cache,
-    not a leak): draw once before the leak check takes its snapshot."""
-    from biris_hw.plots import save_polar
-
-    save_polar(tmp_path / "warm-up.png", [])
 
 
 def test_single_scan_summary_and_picture(fonts_open: None, biris: Run, tmp_path: Path) -> None:

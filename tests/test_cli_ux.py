@@ -14,7 +14,7 @@ import argparse
 import logging
 import os
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from biris_hw.cli import build_parser, main
+from biris_hw.cli import build_parser
 from biris_hw.commands import argtypes, common, demo, watch
 from biris_hw.commands.common import EXIT_INTERRUPTED, HALF_TURN_COUNTS
 from biris_hw.errors import HardwareFault
@@ -33,28 +33,10 @@ from biris_hw.server import BirisServer
 from biris_hw.sweeps import Sweeps
 from sim import Scene, SimulatedBiris
 from sim.clock import LAG_WARNING_S, SimClock
+from tests.conftest import Run
+from tests.test_cli import PNG, SIM
 
-SIM = ["--sim", "--time-scale", "30", "--scene", "circle:2", "--seed", "3"]
-PNG = b"\x89PNG\r\n\x1a\n"
-
-Run = Callable[..., tuple[int, str, str]]
-
-
-@pytest.fixture(autouse=True)
-def _no_target_env(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(common.TARGET_ENV, raising=False)
-
-
-@pytest.fixture
-def biris(capsys: pytest.CaptureFixture[str], no_leaks: None) -> Run:
-    """Run ``biris ARGS`` in-process: (exit status, stdout, stderr); nothing may be left running."""
-
-    def run(*argv: str) -> tuple[int, str, str]:
-        code = main(list(argv))
-        out, err = capsys.readouterr()
-        return code, out, err
-
-    return run
+pytestmark = pytest.mark.usefixtures("no_target_env")
 
 
 @pytest.fixture

@@ -22,13 +22,6 @@ from regs.tech80 import Axis
 from tests.core import Core
 
 
-@pytest.fixture
-def core() -> Core:
-    c = Core()
-    c.initialise()
-    return c
-
-
 def _scan(core: Core, conn: int, dest: int) -> tuple[m.TransferOrder, m.MoveOrder]:
     """Start a report-mode single scan; returns BI_ACQUIRE and the move as the workers got them."""
     assert core.call(p.SingleScanRqst(conn, dest)) == dest

@@ -24,13 +24,6 @@ from regs.biexec import BiCommand
 from tests.core import Core
 
 
-@pytest.fixture
-def core() -> Core:
-    c = Core()
-    c.initialise()
-    return c
-
-
 def _scan(core: Core, conn: int, dest: int) -> tuple[m.TransferOrder, m.MoveOrder]:
     assert core.call(p.SingleScanRqst(conn, dest)) == dest
     acquire, move = core.command(), core.move()

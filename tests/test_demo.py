@@ -81,16 +81,6 @@ def test_the_plotted_points_lie_on_the_true_walls(demo: tuple[int, str, Path]) -
     assert np.all(np.abs(cloud[:, 2] - 0.5) < RADIUS_M * np.tan(np.radians(11.0)) + 0.3)
 
 
-@pytest.fixture
-def fonts_open(tmp_path: Path) -> None:
-    """matplotlib keeps the font files it has used open for the life of the process (a cache,
-    not a leak): draw once before ``no_leaks`` takes its snapshot (in the slow tier this test
-    may be the process's first to draw)."""
-    from biris_hw.plots import save_polar
-
-    save_polar(tmp_path / "warm-up.png", [])
-
-
 @pytest.mark.slow  # the fast tier runs the plain demo; continuous mode has fast tests of its own
 def test_the_continuous_demo_sweeps_whole_and_loses_nothing(
     fonts_open: None, no_leaks: None, tmp_path: Path

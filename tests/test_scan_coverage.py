@@ -95,13 +95,6 @@ def test_biris_data_rate_is_checked_against_the_real_period() -> None:
 
 
 # -- the ordering, without threads ---------------------------------------------------------------
-@pytest.fixture
-def core() -> Core:
-    core = Core()
-    core.initialise()
-    return core
-
-
 def test_the_motor_waits_for_biris_to_begin_acquiring(core: Core) -> None:
     conn = core.open()
     assert core.call(p.SingleScanRqst(conn, 1024)) == 1024
@@ -117,7 +110,7 @@ def test_the_motor_waits_for_biris_to_begin_acquiring(core: Core) -> None:
     assert core.admin.scans.timing.start_delay_s == pytest.approx(0.0)
 
 
-def test_a_reset_forgets_a_motor_start_it_was_holding(core: Core) -> None:
+def test_a_fault_forgets_a_motor_start_it_was_holding(core: Core) -> None:
     conn = core.open()
     core.call(p.SingleScanRqst(conn, 1024))
     acquire = core.command(start=False)

@@ -295,12 +295,12 @@ class AcquisitionReader:
         if finished:
             lost = max(0, self._n - self._next) if final else 0
             self._active = False
-        started = 0
+        drained = Drained(tuple(out), lost, finished)
         if not self._started and (line == ACQ_LINE_END or line >= 0 or finished):
             self._started = True  # announced once, however late (an end with no interrupt)
-            started = self._seq_id
-        t0 = self._t0 if math.isfinite(self._t0) else now
-        return Drained(tuple(out), lost, finished, started=started, started_at=t0)
+            began = self._t0 if math.isfinite(self._t0) else now
+            drained = dataclasses.replace(drained, started=self._seq_id, started_at=began)
+        return drained
 
     def _observe(self, now: float, begun: float) -> None:
         """Acquisition ``begun`` has started by ``now``: tighten the bound on acquisition 0's."""

@@ -28,6 +28,7 @@ import math
 from collections import deque
 
 from biris_hw.records import MotorParams
+from regs.layout import SAMPLES_CHOICES, acquisition_period_s
 
 __all__ = [
     "DATA_RATE_TOLERANCE",
@@ -126,7 +127,7 @@ class ScanTiming:
             return 0
         period = self.period_s
         if period <= 0.0:  # not initialised: nothing can acquire; keep the arithmetic sane
-            period = 2.0 / 59.94
+            period = acquisition_period_s(SAMPLES_CHOICES[0])
         arrival = self.start_delay_s + trapezoid_s(distance, params) + SETTLE_PERIODS * period
         last = max(0, math.ceil(arrival / period - 0.5))  # the first exposed at the arrival
         return last + 2
