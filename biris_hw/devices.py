@@ -39,13 +39,27 @@ from regs.hctl1000 import (
 )
 from regs.tech80 import AXIS_BASE, Axis, AxisBit, BoardReg
 
-__all__ = ["SETTLE_LIMIT_S", "AxisDriver", "BirisLink", "Coupler", "Devices", "MotionBoard"]
+__all__ = [
+    "SETTLE_HOLD_S",
+    "SETTLE_LIMIT_S",
+    "AxisDriver",
+    "BirisLink",
+    "Coupler",
+    "Devices",
+    "MotionBoard",
+]
 
 log = logging.getLogger(__name__)
 
 SETTLE_LIMIT_S = 1.0
 """Longest :meth:`AxisDriver.wait_settled` polls by default for the head to come to rest
 (hardware seconds)."""
+
+SETTLE_HOLD_S = 0.015
+"""How long the head must stand still at its command position to count as settled (hardware
+seconds, about ten chip samples at the record's sample timer). Counted on the hardware clock,
+not in polls: a head ringing under a filter it cannot follow passes its destination slowly at
+a turning point, and three polls close together on a busy host saw it "settled" there."""
 
 _AXIS_BIT = {Axis.AZIMUTH: int(AxisBit.AZIMUTH), Axis.ELEVATION: int(AxisBit.ELEVATION)}
 
@@ -239,31 +253,42 @@ class AxisDriver:
         limit_s: float = SETTLE_LIMIT_S,
         sample_s: float = 0.0015,
     ) -> bool:
-        """Poll until the actual position equals the command position and holds for 3 samples.
+        """Poll until the actual position equals the command position and holds there.
 
         Polling is how the HCTL-1000 datasheet says to tell that the motor has stopped (the
-        profile flag clears before it does). Bounded by ``limit_s`` of hardware time, polled
-        every ``sample_s`` (about one chip sample); False if not settled, or if ``stop`` is set.
+        profile flag clears before it does). Held means the same reading, within a count of the
+        command position, for at least 3 polls and SETTLE_HOLD_S of hardware time. Bounded by
+        ``limit_s`` of hardware time, polled every ``sample_s`` (about one chip sample); False
+        if not settled, or if ``stop`` is set.
+
+        A head seen standing at its command position when ``limit_s`` runs out is watched until
+        the hold is complete or it moves (at most ``2 * SETTLE_HOLD_S`` more): a notifier that a
+        busy host wakes late must not call a still head unsettled, because the administrator
+        takes an unsettled head for a fault.
         """
         clock = self._clock
         deadline = clock() + limit_s
         last: int | None = None
         steady = 0
-        while clock() < deadline:
+        since = 0.0
+        while True:
+            now = clock()
             pos = self.actual_position()
-            target = self.command_position()
-            if abs(pos - target) <= 1 and pos == last:
+            at_target = abs(pos - self.command_position()) <= 1
+            if at_target and pos == last:
                 steady += 1
-                if steady >= 3:
+                if steady >= 3 and now - since >= SETTLE_HOLD_S:
                     if self.reference is not None:
                         self.reference.settled(pos)
                     return True
             else:
                 steady = 0
+                since = now
+            if now >= deadline and (not at_target or now >= deadline + 2 * SETTLE_HOLD_S):
+                return False
             last = pos
             if stop.wait(sample_s / self._scale):
                 return False
-        return False
 
     def wait_still(
         self, stop: threading.Event, limit_s: float = 2.0, sample_s: float = 0.002

@@ -633,8 +633,9 @@ class Administrator:
     ) -> None:
         """AZ_SCAN_DONE / EL_SCAN_DONE: the profile has ended and the notifier has read where
         the axis came to rest. The chip ends its profile whatever the shaft does, so the move is
-        done only if the head stands at the destination (within ARRIVAL_TOLERANCE_COUNTS);
-        otherwise it is a motor_stall fault, never a completed scan."""
+        done only if the head came to rest (the notifier's hold) at the destination (within
+        ARRIVAL_TOLERANCE_COUNTS); otherwise it is a motor_stall fault, never a completed
+        scan."""
         env.reply(None)
         job = axis.current
         if not axis.ends_current(msg.token) or job is None:
@@ -642,12 +643,16 @@ class Administrator:
             return
         assert isinstance(job.order, m.MoveOrder)  # ends_current says so
         dest = job.order.destination  # clamped by dispatch
-        if not msg.settled:  # judged by where it stands; a busy host may have polled late
-            log.warning(
-                "%s: the head had not come to rest %g s after its profile",
-                axis.name,
-                SETTLE_LIMIT_S,
+        if not msg.settled:
+            # still hunting: a reading near the destination is a ringing head passing it (a
+            # filter it cannot hold), never an arrival (issue 11's random requests, seed 273)
+            self._fault(
+                "motor_stall",
+                f"the {axis.name} motor had not come to rest {SETTLE_LIMIT_S:g} s after its "
+                f"profile (last read at {msg.position} counts, destination {dest}): the "
+                "filter cannot hold it or the shaft did not follow",
             )
+            return
         if msg.position is not None:
             miss = msg.position - dest
             if abs(miss) > ARRIVAL_TOLERANCE_COUNTS:
