@@ -10,7 +10,7 @@ LINT_DIRS := biris_hw regs sim benchmarks tests $(wildcard tools)
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev,demo,toml]'
+	$(PY) -m pip install -q -e '.[dev,demo,toml,bench,can]'
 	@touch $(STAMP)
 
 test: $(STAMP)
@@ -29,7 +29,6 @@ lint: $(STAMP)
 	$(VENV)/bin/lint-imports --no-cache
 
 bench: $(STAMP)
-	$(PY) -m pip install -q -e '.[bench]'
 	$(PY) -m benchmarks
 
 clean:

@@ -40,6 +40,9 @@ from regs.hctl1000 import (
 from regs.tech80 import AXIS_BASE, Axis, AxisBit, BoardReg
 
 __all__ = [
+    "LEVEL2_PREFETCH",
+    "LEVEL2_VECTOR",
+    "LEVEL3_PREFETCH",
     "SETTLE_HOLD_S",
     "SETTLE_LIMIT_S",
     "AxisDriver",
@@ -47,6 +50,7 @@ __all__ = [
     "Coupler",
     "Devices",
     "MotionBoard",
+    "prefetch_reads",
 ]
 
 log = logging.getLogger(__name__)
@@ -60,6 +64,35 @@ SETTLE_HOLD_S = 0.015
 seconds, about ten chip samples at the record's sample timer). Counted on the hardware clock,
 not in polls: a head ringing under a filter it cannot follow passes its destination slowly at
 a turning point, and three polls close together on a busy host saw it "settled" there."""
+
+LEVEL2_VECTOR = 0x42
+"""The vector the driver programs for every level-2 (BIRIS) interrupt; a transport that matches
+interrupts by vector (the VM-USB's ISV entries) is told it."""
+
+LEVEL2_PREFETCH = (("coupler", int(Bit3Reg.LOCAL_STATUS), 8), ("biexec", biexec.OFF_COMMAND, 16))
+"""What a line that reads registers at interrupt time (a VM-USB IRQ stack) reads for level 2,
+in this order: the coupler's LOCAL_STATUS (D8) and COMMAND (D16, at that offset from
+BIEXEC_COM in BIRIS memory). :class:`~biris_hw.server.isr.Level2Demux` decides from them."""
+
+LEVEL3_PREFETCH = (("motion", int(BoardReg.IRQ_STATUS), 8),)
+"""The same for level 3: the Model 7600's IRQ_STATUS (D8), which
+:class:`~biris_hw.server.isr.Level3Demux` decides from."""
+
+
+def prefetch_reads(
+    level: int, *, biris: BusWindow, motion: BusWindow, coupler: BusWindow, biexec_offset: int
+) -> list[tuple[BusWindow, int, int]]:
+    """``(window, offset, width_bits)`` of each register the interrupt of ``level`` (2 or 3)
+    should read as it is serviced, for lines that can (``VmUsbLine(reads=...)``)."""
+    table = {2: LEVEL2_PREFETCH, 3: LEVEL3_PREFETCH}.get(level)
+    if table is None:
+        raise ValueError(f"no interrupt level {level} in BIRIS (2 or 3)")
+    windows = {"biris": biris, "biexec": biris, "motion": motion, "coupler": coupler}
+    return [
+        (windows[name], offset + (biexec_offset if name == "biexec" else 0), width)
+        for name, offset, width in table
+    ]
+
 
 _AXIS_BIT = {Axis.AZIMUTH: int(AxisBit.AZIMUTH), Axis.ELEVATION: int(AxisBit.ELEVATION)}
 
@@ -87,6 +120,12 @@ class MotionBoard:
 
     def clear_index(self, axis: Axis) -> None:
         self.window.write8(BoardReg.INDEX_STATUS, _AXIS_BIT[axis])
+
+    def ended_axes(self) -> int:
+        """IRQ_STATUS: the axes (AxisBit) whose profile ended and is not acknowledged yet."""
+        return self.window.read8(BoardReg.IRQ_STATUS) & (
+            int(AxisBit.AZIMUTH) | int(AxisBit.ELEVATION)
+        )
 
     def acknowledge(self, axis: Axis) -> None:
         self.window.write8(BoardReg.IRQ_STATUS, _AXIS_BIT[axis])
@@ -142,17 +181,48 @@ class AxisDriver:
 
     def actual_position(self) -> int:
         """Counts; R14H is read first because that read latches R13H and R12H."""
+        base = self._base
+        with self._latch:  # one bus transaction where the window can (a VM-USB list)
+            lsb, mid, msb = self.window.read_many(
+                [
+                    (base + Reg.ACT_POS_LSB, 1),
+                    (base + Reg.ACT_POS_MID, 1),
+                    (base + Reg.ACT_POS_MSB, 1),
+                ]
+            )
+        return pos24_from_msb_first(msb[0], mid[0], lsb[0])
+
+    def positions(self) -> tuple[int, int]:
+        """(actual, command) in one bus transaction where the window can: what a settling poll
+        compares."""
+        base = self._base
         with self._latch:
-            lsb = self._rd(Reg.ACT_POS_LSB)
-            mid = self._rd(Reg.ACT_POS_MID)
-            msb = self._rd(Reg.ACT_POS_MSB)
-        return pos24_from_msb_first(msb, mid, lsb)
+            lsb, mid, msb, cmd_msb, cmd_mid, cmd_lsb = self.window.read_many(
+                [
+                    (base + Reg.ACT_POS_LSB, 1),
+                    (base + Reg.ACT_POS_MID, 1),
+                    (base + Reg.ACT_POS_MSB, 1),
+                    (base + Reg.CMD_POS_MSB, 1),
+                    (base + Reg.CMD_POS_MID, 1),
+                    (base + Reg.CMD_POS_LSB, 1),
+                ]
+            )
+        return (
+            pos24_from_msb_first(msb[0], mid[0], lsb[0]),
+            pos24_from_msb_first(cmd_msb[0], cmd_mid[0], cmd_lsb[0]),
+        )
 
     def command_position(self) -> int:
+        base = self._base
         with self._latch:
-            return pos24_from_msb_first(
-                self._rd(Reg.CMD_POS_MSB), self._rd(Reg.CMD_POS_MID), self._rd(Reg.CMD_POS_LSB)
+            msb, mid, lsb = self.window.read_many(
+                [
+                    (base + Reg.CMD_POS_MSB, 1),
+                    (base + Reg.CMD_POS_MID, 1),
+                    (base + Reg.CMD_POS_LSB, 1),
+                ]
             )
+        return pos24_from_msb_first(msb[0], mid[0], lsb[0])
 
     # -- configuration -------------------------------------------------------------------------
     def configure(self, params: MotorParams) -> None:
@@ -161,7 +231,7 @@ class AxisDriver:
         The pan chip's values are read back and reported to the reference: a chip that still
         holds them later has not been reset or power-cycled, so its count is still good.
         """
-        with self._latch:
+        with self._latch, self.window.transaction():
             self._wr(Reg.SAMPLE_TIMER, params.sample)
             self._wr(Reg.FILTER_ZERO, params.zero)
             self._wr(Reg.FILTER_POLE, params.pole)
@@ -203,6 +273,10 @@ class AxisDriver:
         Called in init/idle only: the command position is made equal to the actual one (or both
         zeroed, when ``zero_counter`` defines this spot as the origin) before control starts.
         """
+        with self.window.transaction():
+            self._hold_here(zero_counter)
+
+    def _hold_here(self, zero_counter: bool) -> None:
         if zero_counter:
             self._wr(Reg.ACT_POS_MID, 0)  # any write to R13H clears the counter
             target = 0
@@ -227,6 +301,10 @@ class AxisDriver:
         only while the counter is not yet referenced, during initialisation), and the move is
         recorded before F0 starts it: a driver that dies mid-move leaves its span behind.
         """
+        with self.window.transaction():
+            return self._start_trapezoid(destination)
+
+    def _start_trapezoid(self, destination: int) -> int:
         dest = clamp_counts(destination)
         if self.reference is not None:
             dest = self.reference.safe_destination(dest)
@@ -273,8 +351,8 @@ class AxisDriver:
         since = 0.0
         while True:
             now = clock()
-            pos = self.actual_position()
-            at_target = abs(pos - self.command_position()) <= 1
+            pos, target = self.positions()
+            at_target = abs(pos - target) <= 1
             if at_target and pos == last:
                 steady += 1
                 if steady >= 3 and now - since >= SETTLE_HOLD_S:
@@ -341,8 +419,9 @@ class BirisLink:
     def issue(self, code: int, param: str) -> None:
         """Copy the parameter string to PARAM, then write COMMAND (in that order: BIRIS acts on
         the COMMAND write)."""
-        self.window.write(self.base + biexec.OFF_PARAM, biexec.encode_param(param))
-        self.window.write16(self.base + biexec.OFF_COMMAND, code)
+        with self.window.transaction():
+            self.window.write(self.base + biexec.OFF_PARAM, biexec.encode_param(param))
+            self.window.write16(self.base + biexec.OFF_COMMAND, code)
 
     def command(self) -> int:
         return _s16(self.window.read16(self.base + biexec.OFF_COMMAND))

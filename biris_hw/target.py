@@ -30,6 +30,7 @@ from typing import Any
 
 from biris_hw.bus.base import BusWindow
 from biris_hw.bus.registry import open_window
+from biris_hw.devices import LEVEL2_VECTOR, prefetch_reads
 from biris_hw.errors import BusError, RequestError, UnknownKind
 from biris_hw.hardware import BirisHardware
 from biris_hw.irq.base import InterruptLine
@@ -38,7 +39,7 @@ from biris_hw.irq.registry import open_line
 from biris_hw.pan_reference import default_journal_path
 from regs.biexec import BIEXEC_COM_SIZE
 from regs.bit3 import BIT3_SPACE
-from regs.tech80 import MOTION_WINDOW_SIZE
+from regs.tech80 import DEFAULT_IRQ_VECTOR, MOTION_WINDOW_SIZE
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -236,13 +237,41 @@ def _writer(window: BusWindow, width: int) -> Callable[[int, int], None]:
     return {8: window.write8, 16: window.write16, 32: window.write32}[width]
 
 
-def _open_line(key: str, spec: object, windows: Mapping[str, BusWindow]) -> InterruptLine:
+def _vmusb_line_options(
+    key: str, options: dict[str, Any], windows: Mapping[str, BusWindow], biexec_offset: int
+) -> dict[str, Any]:
+    """A VM-USB line: its level is the key's, its vector the one the driver programs (both
+    may be given, and must then agree), and its IRQ stack reads what the key's interrupt
+    routine decides from (:func:`~biris_hw.devices.prefetch_reads`)."""
+    level = int(key.removeprefix("level"))
+    if "reads" in options:
+        raise RequestError(f"{key}.reads: not an option (the driver chooses what its stack reads)")
+    given = options.setdefault("level", level)
+    if given != level:
+        raise RequestError(f"{key}.level: the {key} line is level {level}, not {given!r}")
+    options.setdefault("vector", LEVEL2_VECTOR if level == 2 else DEFAULT_IRQ_VECTOR)
+    options["reads"] = prefetch_reads(
+        level,
+        biris=windows["biris"],
+        motion=windows["motion"],
+        coupler=windows["coupler"],
+        biexec_offset=biexec_offset,
+    )
+    return options
+
+
+def _open_line(
+    key: str, spec: object, windows: Mapping[str, BusWindow], biexec_offset: int = 0
+) -> InterruptLine:
     table = _table(key, spec)
     kind = _kind(key, table)
     if kind == "poll":
         return _poll_line(key, table, windows)
+    options = _options(key, table)
+    if kind == "vmusb":
+        options = _vmusb_line_options(key, options, windows, biexec_offset)
     try:
-        return open_line(kind, **_options(key, table))
+        return open_line(kind, **options)
     except RequestError:
         raise
     except (UnknownKind, TypeError, ValueError, OSError) as exc:
@@ -306,7 +335,7 @@ def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> Biris
             opened.callback(windows[key].close)
         lines: dict[str, InterruptLine] = {}
         for key in ("level2", "level3"):
-            lines[key] = _open_line(key, data[key], windows)
+            lines[key] = _open_line(key, data[key], windows, biexec_offset)
             opened.callback(lines[key].close)
         hardware = BirisHardware(
             biris=windows["biris"],

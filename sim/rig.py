@@ -11,18 +11,21 @@ from __future__ import annotations
 import math
 import threading
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from biris_hw.bus.base import BusWindow
 from biris_hw.bus.memory import MemoryWindow
+from biris_hw.devices import LEVEL2_VECTOR
 from biris_hw.hardware import BirisHardware
 from biris_hw.irq.eventfd import EventFdLine
 from regs import biexec
+from regs.bit3 import Bit3Reg
 from regs.hctl1000 import COUNTS_PER_REV
 from regs.layout import BirisMemoryMap
-from regs.tech80 import MOTION_WINDOW_SIZE
+from regs.tech80 import DEFAULT_IRQ_VECTOR, MOTION_WINDOW_SIZE, BoardReg
 from sim.audit import Audit
 from sim.bit3 import Bit3Coupler
 from sim.clock import SimClock
@@ -34,7 +37,30 @@ from sim.scene import Scene
 from sim.supervisor import BirisSupervisor
 from sim.tech80 import Model7600
 
-__all__ = ["SimulatedBiris"]
+if TYPE_CHECKING:
+    from sim.vmusb import SimulatedVmUsb, VmUsbBackend
+
+__all__ = ["TRANSPORTS", "USB_ROUND_TRIP_S", "VME_MAP", "VMUSB_SERIAL", "SimulatedBiris"]
+
+TRANSPORTS = ("memory", "vmusb")
+"""How ``rig.hardware`` reaches the simulated target: in-process windows and eventfd lines, or
+pyusb through a simulated Wiener VM-USB (``transport="vmusb"``)."""
+
+USB_ROUND_TRIP_S = 250e-6
+"""Default modelled cost of one USB transfer pair (OUT, then IN), hardware seconds: two
+high-speed microframes (125 us each)."""
+
+VMUSB_SERIAL = "VM0412"
+"""The simulated VM-USB's serial number string."""
+
+VME_MAP = {
+    "biris": (0x0800_0000, 0x09, 32),
+    "motion": (0x0000_7600, 0x29, 16),
+    "coupler": (0x0000_C000, 0x29, 16),
+}
+"""Where the crate behind the simulated VM-USB puts each window: (VME base, address modifier,
+address bits). BIRIS memory through the coupler's A32 window (user data; BLT for frames), the
+Model 7600 and the coupler's node registers in A16 short I/O space."""
 
 _TWO_PI_PER_COUNT = 2.0 * math.pi / COUNTS_PER_REV
 
@@ -110,6 +136,14 @@ class SimulatedBiris:
     ``initial_azimuth_counts`` (true counts from the zero index; seeded within half a revolution
     by default) must lie within the pan head's stops, +-(4096 + 256): start it near +-4096 to
     play a head left wound round by a previous driver.
+
+    ``transport="vmusb"`` puts the boards in a VME crate behind a simulated Wiener VM-USB
+    (:data:`VME_MAP`): :attr:`hardware` is then made of the driver's ``vmusb`` windows and
+    lines, found through pyusb and :attr:`usb_backend`, so every register access is a USB
+    transfer and every interrupt an IRQ-stack buffer; :attr:`usb_device` is the device (its
+    counters, its audit of protocol misuse, ``unplug()``). ``usb_round_trip_s`` sets the
+    modelled cost of an OUT and IN pair in hardware seconds (default: the device's, two
+    high-speed microframes).
     """
 
     def __init__(
@@ -124,7 +158,17 @@ class SimulatedBiris:
         memory_map: BirisMemoryMap | None = None,
         biris_buffer: bytearray | memoryview | None = None,
         initial_elevation_counts: float = 0.0,
+        transport: str = "memory",
+        usb_round_trip_s: float | None = None,
     ) -> None:
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, not {transport!r}")
+        self.transport = transport
+        self._usb_round_trip_s = usb_round_trip_s
+        self.usb_device: SimulatedVmUsb | None = None
+        """The simulated VM-USB (``transport="vmusb"``): its counters and audit of the USB side."""
+        self.usb_backend: VmUsbBackend | None = None
+        """The pyusb backend the driver finds the VM-USB through (``transport="vmusb"``)."""
         self.scene = scene if scene is not None else Scene.room()
         self._initial_elevation = float(initial_elevation_counts)
         self.samples = samples
@@ -159,8 +203,13 @@ class SimulatedBiris:
         biris_buffer: bytearray | memoryview | None,
         rngs: list[np.random.Generator],
     ) -> None:
-        self.level2_gate = InterruptGate(self._level2.trigger, self.clock)
-        self.level3_gate = InterruptGate(self._level3.trigger, self.clock)
+        if self.transport == "vmusb":
+            # VME interrupts go to the bridge, which runs the driver's IRQ stacks
+            self.level2_gate = InterruptGate(lambda n: self._vme_irq(2, n), self.clock)
+            self.level3_gate = InterruptGate(lambda n: self._vme_irq(3, n), self.clock)
+        else:
+            self.level2_gate = InterruptGate(self._level2.trigger, self.clock)
+            self.level3_gate = InterruptGate(self._level3.trigger, self.clock)
 
         az_plant = MotorPlant(rngs[0], initial_azimuth_counts=initial_azimuth_counts)
         # the tilt wakes where it was left (level by default): a tilt head rests on its stops
@@ -204,6 +253,10 @@ class SimulatedBiris:
         )
         self._motion_window: BusWindow = self.board.window()
         self._coupler_window: BusWindow = self.coupler.window()
+        assert self._motion_window.size == MOTION_WINDOW_SIZE
+        if self.transport == "vmusb":
+            self.hardware = self._vmusb_hardware(time_scale)
+            return
         self.hardware = BirisHardware(
             biris=self._driver_window,
             motion=self._motion_window,
@@ -215,7 +268,89 @@ class SimulatedBiris:
             clock=self.clock.now,
             time_scale=time_scale,
         )
-        assert self._motion_window.size == MOTION_WINDOW_SIZE
+
+    # -- the VM-USB transport ----------------------------------------------------------------------
+    def _vmusb_hardware(self, time_scale: float) -> BirisHardware:
+        """The crate behind a simulated VM-USB: BIRIS memory (through the coupler), the Model
+        7600 and the coupler's registers at :data:`VME_MAP`; the driver's windows and lines
+        are the ``vmusb`` kinds, found through pyusb and :attr:`usb_backend`."""
+        from biris_hw.bus.vmusb import VmUsbWindow
+        from biris_hw.devices import prefetch_reads
+        from biris_hw.irq.vmusb import VmUsbLine
+        from sim.vmusb import SimulatedVmUsb, VmUsbBackend
+
+        round_trip = self._usb_round_trip_s
+        device = SimulatedVmUsb(
+            serial=VMUSB_SERIAL,
+            clock=self.clock.now,
+            time_scale=time_scale,
+            transfer_latency_s=USB_ROUND_TRIP_S / 2.0 if round_trip is None else round_trip / 2.0,
+        )
+        self.usb_device = device
+        self.usb_backend = VmUsbBackend(device)
+        far = {
+            "biris": self._driver_window,
+            "motion": self._motion_window,
+            "coupler": self._coupler_window,
+        }
+        near: dict[str, BusWindow] = {}
+        lines: list[VmUsbLine] = []
+        try:
+            for name, (base, am, bits) in VME_MAP.items():
+                device.map(name, far[name], base, bits)
+                near[name] = VmUsbWindow(
+                    far[name].size, base=base, am=am, serial=VMUSB_SERIAL, backend=self.usb_backend
+                )
+            for level, vector in ((2, LEVEL2_VECTOR), (3, DEFAULT_IRQ_VECTOR)):
+                reads = prefetch_reads(
+                    level,
+                    biris=near["biris"],
+                    motion=near["motion"],
+                    coupler=near["coupler"],
+                    biexec_offset=self.memory_map.biexec_offset,
+                )
+                lines.append(
+                    VmUsbLine(
+                        level=level,
+                        vector=vector,
+                        reads=reads,
+                        serial=VMUSB_SERIAL,
+                        backend=self.usb_backend,
+                    )
+                )
+        except BaseException:
+            for line in lines:
+                line.close()
+            for window in near.values():
+                window.close()
+            device.close()
+            raise
+        # the eventfd lines of the memory transport are not used
+        self._level2.close()
+        self._level3.close()
+        return BirisHardware(
+            biris=near["biris"],
+            motion=near["motion"],
+            coupler=near["coupler"],
+            level2=lines[0],
+            level3=lines[1],
+            biexec_offset=self.memory_map.biexec_offset,
+            biris_base=self.memory_map.biris_base,
+            clock=self.clock.now,
+            time_scale=time_scale,
+        )
+
+    def _vme_irq(self, level: int, count: int) -> None:
+        """A VME interrupt of ``level``: the bridge answers its IACK with the vector the
+        interrupter presents (the coupler's LEVEL2_VECTOR, the board's IRQ_VECTOR)."""
+        device = self.usb_device
+        if device is None:
+            return
+        if level == 2:
+            vector = self._coupler_window.read8(Bit3Reg.LEVEL2_VECTOR)
+        else:
+            vector = self._motion_window.read8(BoardReg.IRQ_VECTOR)
+        device.irq(level, vector, count)
 
     # -- what BIRIS sees -----------------------------------------------------------------------
     def _encoder_azimuth(self, t: float) -> float:
@@ -301,6 +436,8 @@ class SimulatedBiris:
         self.level3_gate.close()
         self.hardware.close()
         self._supervisor_window.close()
+        if self.usb_device is not None:
+            self.usb_device.close()
 
     def __enter__(self) -> SimulatedBiris:
         return self.start()

@@ -133,6 +133,11 @@ class _Watch:
                         "the simulator's audit recorded driver rule violations:\n  "
                         + "\n  ".join(map(str, rig.audit.violations))
                     )
+                if rig.usb_device is not None and rig.usb_device.violations:
+                    found.append(
+                        "the simulated VM-USB recorded protocol misuse:\n  "
+                        + "\n  ".join(map(str, rig.usb_device.violations))
+                    )
         if self.check_leaks or self.rigs:
             left = [t for t in _threads() - self.threads if t.is_alive()]
             if left:

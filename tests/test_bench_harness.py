@@ -223,6 +223,7 @@ def test_an_unwritable_report_exits_1(reg: Registry, tmp_path: Path) -> None:
     assert main(["--quick", "--only", "fanout", "--out", str(blocker)], reg=reg) == 1
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_the_module_and_the_tools_script_run_from_a_checkout(tmp_path: Path) -> None:
     bad = subprocess.run(
         [sys.executable, "-m", "benchmarks", "--only", "nosuch"],

@@ -210,6 +210,41 @@ def _slice(tmp_path: Path) -> Rig:
     return Rig(make(), make, peek, None)
 
 
+VMUSB_BASE = 0x30_0000
+
+
+@pytest.fixture(autouse=True)
+def _quick_vmusb_bring_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bring-up's silence check on the IN endpoint waits 20 ms for a real bridge's stale
+    data; the simulated one owes none, and the suite opens a window per test."""
+    from biris_hw.bus.vmusb import VmUsbBridge
+
+    monkeypatch.setattr(VmUsbBridge, "drain_timeout_s", 0.002)
+
+
+def _vmusb(tmp_path: Path) -> Rig:
+    """A24 memory of a board in a simulated VM-USB's crate, reached through real pyusb."""
+    from sim.vmusb import SimulatedVmUsb, VmUsbBackend
+
+    backing = bytearray(SIZE)
+    device = SimulatedVmUsb(serial="VM0042", transfer_latency_s=0.0)
+    device.map("board", MemoryWindow(SIZE, buffer=backing), VMUSB_BASE, 24)
+    backend = VmUsbBackend(device)
+
+    def make() -> BusWindow:
+        return open_window("vmusb", size=SIZE, base=VMUSB_BASE, am=0x39, backend=backend)
+
+    def cleanup() -> None:
+        violations = device.violations
+        device.close()
+        assert violations == [], violations
+
+    def peek(off: int, n: int) -> bytes:
+        return bytes(backing[off : off + n])
+
+    return Rig(make(), make, peek, None, views=False, cleanup=cleanup)
+
+
 FACTORIES: dict[str, dict[str, Callable[[Path], Rig]]] = {
     "memory": {"memory": _memory},
     "shm": {"shm": _shm},
@@ -221,6 +256,7 @@ FACTORIES: dict[str, dict[str, Callable[[Path], Rig]]] = {
     },
     "remote": {"remote": _remote},
     "slice": {"slice": _slice},
+    "vmusb": {"vmusb": _vmusb},
 }
 """Registered kind -> the ways of opening one the suite runs (test id -> factory)."""
 

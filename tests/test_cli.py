@@ -270,6 +270,7 @@ def test_continuous_scans_save_npz_and_csv(biris: Run, tmp_path: Path) -> None:
     assert [int(v) for v in rows[1][8:]] == first.range_mm[0].tolist()
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_room_scans_lie_on_the_walls(biris: Run, tmp_path: Path) -> None:
     """The closest of 64 noisy samples reads short (by about 2.4 sigma: 12 cm at 3 m), so in
     the room the 2-D points sit just inside the walls; 20 cm bounds that, not 10."""
@@ -347,6 +348,7 @@ def test_point_json(biris: Run) -> None:
     assert len(data["profile"]) == len(data["intensity"]) == 64
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_watch_prints_status_while_sweeping(biris: Run) -> None:
     code, out, err = biris(
         "watch", "--duration", "0.6", "--interval", "0.2", "--cw", "-15", "--ccw", "15", *SIM

@@ -41,6 +41,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, str, Path]:
     return code, stdout.getvalue(), out
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_the_demo_sweeps_and_sums_up(demo: tuple[int, str, Path]) -> None:
     code, text, out = demo
     assert code == 0, text

@@ -50,6 +50,7 @@ def _boot(rig: SimulatedBiris, record: BirisInitRecord) -> None:
         pass
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_a_restarted_driver_waits_for_the_old_drivers_scan(
     make_rig: RigFactory, monkeypatch: pytest.MonkeyPatch
 ) -> None:

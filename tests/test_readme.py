@@ -56,6 +56,7 @@ def test_example_runs_as_written(
     assert "Traceback" not in out
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_the_first_example_shows_the_whole_session(capsys: pytest.CaptureFixture[str]) -> None:
     exec(compile(_complete_examples(README)[0], str(README), "exec"), {"__name__": "__readme__"})
     out = capsys.readouterr().out

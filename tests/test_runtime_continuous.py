@@ -132,6 +132,7 @@ def test_start_continuous_during_continuous_scanning_waits_for_its_end(
     assert server.status().accounts().adds_up
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_stop_continuous_mid_sweep_ceases_acquisitions_at_once(make_rig: RigFactory) -> None:
     rig = make_rig()
     with BirisServer(rig.hardware, SLOW_CONTINUOUS) as server:

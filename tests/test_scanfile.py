@@ -79,6 +79,7 @@ def test_every_field_of_scan_is_saved() -> None:
     assert {f.name for f in dataclasses.fields(Scan)} == SAVED_FIELDS
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 @settings(max_examples=80, deadline=None)
 @given(st.lists(scans(), max_size=4))
 def test_save_then_load_gives_equal_scans(saved: list[Scan]) -> None:

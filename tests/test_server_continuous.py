@@ -84,6 +84,7 @@ def test_the_startup_is_paid_once_and_every_sweep_is_whole(
     assert counters["constant_azimuth"] >= 3  # the still head at the ends: dropped, counted
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_single_acquisition_covers_the_start_of_each_sweep_too(rig: SimulatedBiris) -> None:
     """The comparison: BI_ACQUIRE per scan used to start with the head (the first acquisition
     some 4 acquisitions' travel in); the motor now waits for BIRIS's start-up to end."""

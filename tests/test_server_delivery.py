@@ -72,6 +72,7 @@ def test_latest_keeps_only_the_newest_scan(server: BirisServer) -> None:
     assert scan.seq == (total + 1) // 2 and slow.dropped == total - 1
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_every_acquisition_streams_points_as_they_are_read(make_rig: RigFactory) -> None:
     rig = make_rig(time_scale=10.0)  # slower: the sweep lasts ~70 ms of real time
     with BirisServer(rig.hardware) as server:

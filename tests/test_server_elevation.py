@@ -220,6 +220,7 @@ def test_elevation_limits_come_from_the_init_record(rig: SimulatedBiris) -> None
         assert abs(rig.elevation_counts + 100) <= 3.0
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_a_reset_under_a_hung_acquisition_at_a_tilt_leaves_the_calibration_right(
     make_rig: RigFactory,
 ) -> None:

@@ -92,6 +92,7 @@ def test_initialising_and_fault_states(rig: SimulatedBiris, server: BirisServer)
     assert server.status()["state"] == "idle"
 
 
+@pytest.mark.slow  # fast-tier budget (issue 13 added the transports); make test-slow
 def test_live_positions_are_the_encoders_not_the_destinations(make_rig: RigFactory) -> None:
     # x10 and half a turn: the head is between the ends for ~0.14 s of real time, so a busy
     # machine still catches it there

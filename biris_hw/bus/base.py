@@ -7,10 +7,12 @@ access raises :class:`~biris_hw.errors.BusError` and changes nothing.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import struct
 import threading
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from types import TracebackType
 from typing import Any, ClassVar, Generic, TypeVar
 
@@ -122,6 +124,18 @@ class BusWindow(ABC):
         self._check(offset, len(raw), 1)
         self._write(offset, raw)
 
+    def read_many(self, spans: Sequence[tuple[int, int]]) -> list[bytes]:
+        """Several reads the caller needs together, as ``(offset, n)`` spans, in order.
+
+        A window that can do them in one bus transaction does so (the VM-USB builds one list:
+        one USB round trip instead of one per span); this default reads them one by one. Every
+        span is checked before anything is read, so a bad one raises and reads nothing.
+        """
+        checked = list(spans)
+        for offset, n in checked:
+            self._check(offset, n, 1)
+        return [self.read(offset, n) for offset, n in checked]
+
     # -- width-explicit registers (one access each) ----------------------------------------------
     def read8(self, offset: int) -> int:
         if self._closed or not 0 <= offset < self._size:
@@ -149,6 +163,13 @@ class BusWindow(ABC):
     def write32(self, offset: int, value: int) -> None:
         self._check(offset, 4, 4)
         self._write(offset, _pack(_U32, value, 32))
+
+    def transaction(self) -> contextlib.AbstractContextManager[None]:
+        """Several accesses the caller makes together (a move's start, one drain of the data
+        path): a window whose every access has a fixed cost of its own pays it once for all of
+        them (the VM-USB stops data taking once, not around each list). Nothing is batched or
+        delayed: each access still happens when it is made. A no-op by default; nests."""
+        return contextlib.nullcontext()
 
     # -- structures ------------------------------------------------------------------------------
     def view(self, struct_type: type[S], offset: int = 0) -> StructView[S]:

@@ -21,6 +21,7 @@ _REGISTRY: KindRegistry[BusWindow] = KindRegistry(
         "mmap": "biris_hw.bus.mmapwin:MmapWindow",
         "remote": "biris_hw.bus.remote:RemoteWindow",
         "slice": "biris_hw.bus.remote:SliceWindow",
+        "vmusb": "biris_hw.bus.vmusb:VmUsbWindow",
     },
     "biris_hw.windows",
 )

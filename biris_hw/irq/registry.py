@@ -20,6 +20,7 @@ _REGISTRY: KindRegistry[InterruptLine] = KindRegistry(
         "eventfd": "biris_hw.irq.eventfd:EventFdLine",
         "uio": "biris_hw.irq.uio:UioLine",
         "poll": "biris_hw.irq.poll:PollLine",
+        "vmusb": "biris_hw.irq.vmusb:VmUsbLine",
     },
     "biris_hw.lines",
 )

@@ -11,11 +11,11 @@ from typing import TextIO
 from biris_hw import regdump as package
 from biris_hw.commands.argtypes import SAMPLES_METAVAR, offset, positive_int, samples
 from biris_hw.errors import BirisError
-from biris_hw.regdump.decode import snapshot
+from biris_hw.regdump.decode import snapshot, snapshot_hardware
 from biris_hw.regdump.images import image_layout, images
 from biris_hw.regdump.model import Dump, DumpError, changed_rows
 from biris_hw.regdump.render import format_table, to_json
-from regs.layout import TargetImage
+from regs.layout import BirisMemoryMap, TargetImage
 
 __all__ = ["add_arguments", "run"]
 
@@ -26,6 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--file", metavar="PATH", help="a raw image file")
     src.add_argument("--mmap", metavar="PATH", help="map a file or device (see --offset)")
     src.add_argument("--shm", metavar="NAME", help="a shared-memory segment (the simulator's)")
+    src.add_argument(
+        "--target",
+        metavar="FILE",
+        help="the windows of a target file, any kind (mmap, vmusb, ...): docs/target-example.toml",
+    )
     parser.add_argument(
         "--offset", type=offset, default=0, metavar="N", help="where the image starts (bytes)"
     )
@@ -86,9 +91,39 @@ def _emit(
     out.flush()
 
 
+def _target_loop(args: argparse.Namespace, out: TextIO) -> int:
+    """``--target``: the three windows a target file opens (a VM-USB's too), dumped where the
+    file puts them; its interrupt lines are opened with it and touched by nothing."""
+    from biris_hw.target import load_target  # only when asked: it opens devices
+
+    hardware = load_target(args.target)
+    try:
+        memory_map = BirisMemoryMap(
+            samples=args.samples,
+            biris_base=hardware.biris_base,
+            biexec_offset=hardware.biexec_offset,
+            range_offset=args.range_base,
+        )
+        previous: Dump | None = None
+        n = 0
+        while True:
+            n += 1
+            dump = snapshot_hardware(hardware, memory_map, frame_size=args.frame_size)
+            dump = Dump(f"target {args.target}", dump.layout, dump.sections)
+            _emit(dump, changed_rows(previous, dump), n, args, out)
+            previous = dump
+            if args.watch is None or (args.count is not None and n >= args.count):
+                return 0
+            package._sleep(args.watch / 1000.0)
+    finally:
+        hardware.close()
+
+
 def _dump_loop(args: argparse.Namespace, out: TextIO) -> int:
     if args.count is not None and args.watch is None:
         raise DumpError("--count needs --watch")
+    if getattr(args, "target", None) is not None:
+        return _target_loop(args, out)
     image = image_layout(args)
     context, base, label = images(args, image.size)
     with context as next_window:

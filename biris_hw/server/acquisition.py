@@ -258,9 +258,10 @@ class AcquisitionReader:
         In continuous mode this is the ring's drain; otherwise the sequence's (see
         :meth:`drain_sequence`).
         """
-        if self._ring_state is not RingState.OFF:
-            return self._hand(self._drain_ring())
-        return self.drain_sequence(final)
+        with self._window.transaction():  # ACQ_LINE and the frames: one stop of a VM-USB
+            if self._ring_state is not RingState.OFF:
+                return self._hand(self._drain_ring())
+            return self.drain_sequence(final)
 
     def drain_sequence(self, final: bool = False) -> Drained:
         """The BI_ACQUIRE sequence's drain. Hold ``self.lock``.
@@ -541,20 +542,22 @@ class AcquisitionReader:
         start = addr.range_frame(slot)
         gap = addr.frame_size  # intensity(k) starts one frame after range(k)
         window = self._window
+        # one read_many: the frames and the azimuth entry in one bus transaction where the
+        # window can (the VM-USB builds one list of them: one round trip per acquisition)
+        azimuth_span = (addr.azimuth_entry(slot), AZIMUTH_DTYPE.itemsize)
         if gap % 2 == 0 and nbytes <= gap <= 2 * nbytes:
-            # the two frames (nearly) abut: one bus read, one conversion
-            words = np.frombuffer(window.read(start, gap + nbytes), dtype=FRAME_DTYPE)
-            both = words.astype(np.int16)
+            # the two frames (nearly) abut: one span, one conversion
+            frames, raw_az = window.read_many([(start, gap + nbytes), azimuth_span])
+            both = np.frombuffer(frames, dtype=FRAME_DTYPE).astype(np.int16)
             rng, inten = both[:count], both[gap // 2 : gap // 2 + count]
         else:
-            raw = window.read(start, nbytes)
+            raw, raw_i, raw_az = window.read_many(
+                [(start, nbytes), (addr.intensity_frame(slot), nbytes), azimuth_span]
+            )
             rng = np.frombuffer(raw, dtype=FRAME_DTYPE, count=count).astype(np.int16)
-            raw_i = window.read(addr.intensity_frame(slot), nbytes)
             inten = np.frombuffer(raw_i, dtype=FRAME_DTYPE, count=count).astype(np.int16)
         # AZIMUTH_DTYPE is a big-endian signed integer
-        azimuth = int.from_bytes(
-            window.read(addr.azimuth_entry(slot), AZIMUTH_DTYPE.itemsize), "big", signed=True
-        )
+        azimuth = int.from_bytes(raw_az, "big", signed=True)
         max_range = self._max_range
         profile = rng[1:].copy()
         if max_range >= 0:

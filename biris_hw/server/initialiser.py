@@ -54,7 +54,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from biris_hw.angles import counts_to_deg
-from biris_hw.devices import AxisDriver
+from biris_hw.devices import LEVEL2_VECTOR, AxisDriver
 from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
@@ -80,9 +80,6 @@ log = logging.getLogger(__name__)
 progress = logging.getLogger("biris_hw.progress")
 """What initialisation is doing, one short sentence per step, for a person waiting for it (the
 ``biris`` commands print these while the server starts): INFO records."""
-
-LEVEL2_VECTOR = 0x42
-"""The vector we program for every level-2 (BIRIS) interrupt."""
 
 HOMING_CHUNK = 256
 """Counts per coarse homing move: small enough to stop soon after the index, large enough to

@@ -60,6 +60,14 @@ Each set bit is written back (write 1 to acknowledge) *before* its logical inter
 so the acknowledgement can never clear the end of a move the woken notifier has already started:
 azimuth raises MOTOR_END_OF_SCAN, elevation ELEVATION_END_OF_SCAN. An interrupt with no bit set
 is spurious: counted, nothing raised.
+
+**Registers read by the interrupt itself.** A line that reads registers at interrupt time
+(the VM-USB runs an IRQ stack and sends what it read with the interrupt:
+:class:`~biris_hw.irq.vmusb.VmUsbLine`) offers them through ``prefetched()``: level 2's stack
+reads LOCAL_STATUS and COMMAND (:data:`LEVEL2_PREFETCH`), level 3's IRQ_STATUS
+(:data:`LEVEL3_PREFETCH`). The routines then decide from those values, which are the ones the
+registers held when the interrupt was serviced, and spend no bus round trip on deciding; a line
+without them (or a wake that brought none) is served by reading the registers as above.
 """
 
 from __future__ import annotations
@@ -70,6 +78,7 @@ import threading
 from collections.abc import Callable
 
 from biris_hw.bus.base import BusWindow
+from biris_hw.devices import LEVEL2_PREFETCH, LEVEL3_PREFETCH
 from biris_hw.errors import BusError
 from biris_hw.irq.base import InterruptLine
 from biris_hw.irq.demux import Demultiplexer
@@ -77,7 +86,16 @@ from regs.biexec import OFF_COMMAND
 from regs.bit3 import Bit3Reg, LocalStatus
 from regs.tech80 import AxisBit, BoardReg
 
-__all__ = ["LEVEL2_LOGICALS", "LEVEL3_LOGICALS", "Level2Demux", "Level3Demux", "Logical"]
+__all__ = [
+    "LEVEL2_LOGICALS",
+    "LEVEL2_PREFETCH",
+    "LEVEL3_LOGICALS",
+    "LEVEL3_PREFETCH",
+    "Level2Demux",
+    "Level3Demux",
+    "Logical",
+    "prefetched",
+]
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +126,18 @@ LEVEL3_THREAD = "level3_isr"
 
 _PERR = int(LocalStatus.PARITY_ERROR)
 _BERR = int(LocalStatus.REMOTE_BUS_ERROR)
+
+
+def prefetched(line: InterruptLine, n: int) -> tuple[int, ...] | None:
+    """The ``n`` values ``line`` read at interrupt time for its last wake, or None when it
+    reads nothing itself (every kind but the VM-USB's) or brought a different count."""
+    get = getattr(line, "prefetched", None)
+    if get is None:
+        return None
+    values = get()
+    if values is None or len(values) != n:
+        return None
+    return tuple(int(v) for v in values)
 
 
 class Level2Demux(Demultiplexer[Logical]):
@@ -156,11 +186,12 @@ class Level2Demux(Demultiplexer[Logical]):
         self._continuous = bool(on)
 
     def _service(self, count: int) -> None:
-        error_raised = self._coupler_errors()
+        pre = prefetched(self._line, len(LEVEL2_PREFETCH))
+        error_raised = self._coupler_errors(None if pre is None else pre[0])
         if error_raised and count == 1:
             return  # the coupler's own interrupt
         try:
-            command = self._biris.read16(self._command_offset)
+            command = self._biris.read16(self._command_offset) if pre is None else pre[1]
         except BusError as exc:
             log.error("level 2: COMMAND unreadable (%s); raising BIT3_BERR", exc)
             self._raise(Logical.BIT3_BERR)
@@ -201,10 +232,12 @@ class Level2Demux(Demultiplexer[Logical]):
                 if self._data_notifier is notifier:  # not one attached since it was called
                     self._data_notifier = None
 
-    def _coupler_errors(self) -> bool:
-        """Raise the error interrupts newly shown in LOCAL_STATUS; True if any was raised."""
+    def _coupler_errors(self, status: int | None = None) -> bool:
+        """Raise the error interrupts newly shown in LOCAL_STATUS (``status`` when the line
+        read it at interrupt time); True if any was raised."""
         try:
-            status = self._coupler.read8(Bit3Reg.LOCAL_STATUS)
+            if status is None:
+                status = self._coupler.read8(Bit3Reg.LOCAL_STATUS)
         except BusError as exc:
             log.error("level 2: coupler status unreadable (%s); raising BIT3_BERR", exc)
             self._raise(Logical.BIT3_BERR)
@@ -240,7 +273,8 @@ class Level3Demux(Demultiplexer[Logical]):
         report a lost board as a stalled motor. Under the server's supervisor it is a ``bus``
         fault at once.
         """
-        status = self._motion.read8(BoardReg.IRQ_STATUS)
+        pre = prefetched(self._line, len(LEVEL3_PREFETCH))
+        status = self._motion.read8(BoardReg.IRQ_STATUS) if pre is None else pre[0]
         ended = [(bit, logical) for bit, logical in _AXES if status & bit]
         if not ended:
             self._count_spurious(count)

@@ -1,0 +1,199 @@
+"""The axis interface: what the server asks of one servo axis and of the board that signals ends.
+
+Written from what the server calls today on the Model 7600's HCTL-1000s
+(:class:`~biris_hw.devices.AxisDriver`, :class:`~biris_hw.devices.MotionBoard`), so that a
+second kind of axis (a CiA 402 drive over CANopen, :mod:`biris_hw.axes.cia402`) can stand in for
+them without the server knowing which it drives. Both are structural :class:`typing.Protocol`\\ s:
+the HCTL classes satisfy them without inheriting anything.
+
+The settling rules (:func:`wait_settled`, :func:`wait_still`) are here too, as functions of a
+position reader, because they are the server's rules about a head coming to rest, not a chip's:
+every axis kind must answer "settled" on the same evidence, or the administrator would judge
+one kind of head by a looser test than the other.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Protocol, runtime_checkable
+
+from biris_hw.records import MotorParams
+from regs.tech80 import Axis
+
+__all__ = [
+    "SETTLE_HOLD_S",
+    "SETTLE_LIMIT_S",
+    "MotionAxis",
+    "MotionController",
+    "wait_settled",
+    "wait_still",
+]
+
+SETTLE_LIMIT_S = 1.0
+"""Longest :meth:`MotionAxis.wait_settled` polls by default (hardware seconds); the same value
+as :data:`biris_hw.devices.SETTLE_LIMIT_S`."""
+
+SETTLE_HOLD_S = 0.015
+"""How long a head must stand at its command position to count as settled (hardware seconds);
+the same value and the same reason as :data:`biris_hw.devices.SETTLE_HOLD_S`."""
+
+
+@runtime_checkable
+class MotionAxis(Protocol):
+    """One servo axis as the server drives it: positions, parameters, hold, move, settle.
+
+    Positions are encoder counts (4096 per head revolution). ``start_trapezoid`` clamps its
+    destination to +-0x1000 whatever it is given, and an axis with a pan reference records the
+    move there before it starts it.
+    """
+
+    def actual_position(self) -> int:
+        """Where the encoder says the head is now (counts)."""
+        ...
+
+    def command_position(self) -> int:
+        """Where the axis's position loop is taking the head now (counts)."""
+        ...
+
+    def configure(self, params: MotorParams) -> None:
+        """Load BIRIS_MOTOR_PARAMS' six values (sample, filter, profile limits)."""
+        ...
+
+    def read_params(self) -> dict[str, int]:
+        """The six values as the axis holds them now, raw, in :meth:`MotorParams.to_dict`'s
+        keys: they must round-trip exactly (the pan reference compares them)."""
+        ...
+
+    def idle(self) -> None:
+        """No torque: the head coasts and stays where friction leaves it."""
+        ...
+
+    def hold_here(self, zero_counter: bool = False) -> None:
+        """Enter position control holding the present position (zeroed first if asked): no
+        jump. Called with the axis idle."""
+        ...
+
+    def start_trapezoid(self, destination: int) -> int:
+        """Start a trapezoidal move; returns the destination actually commanded."""
+        ...
+
+    def profile_active(self) -> bool:
+        """A move started here has not yet been reported ended."""
+        ...
+
+    def wait_settled(
+        self,
+        stop: threading.Event,
+        limit_s: float = SETTLE_LIMIT_S,
+        sample_s: float = 0.0015,
+    ) -> bool:
+        """Poll until the head stands at its command position (see :func:`wait_settled`)."""
+        ...
+
+    def wait_still(
+        self, stop: threading.Event, limit_s: float = 2.0, sample_s: float = 0.002
+    ) -> None:
+        """Poll until the encoder stops changing (see :func:`wait_still`)."""
+        ...
+
+
+@runtime_checkable
+class MotionController(Protocol):
+    """The board beside the axes: end-of-motion interrupt, resets, index latches.
+
+    ``ended_axes`` is what the level-3 routine reads to tell which axes' profiles ended (the
+    IRQ_STATUS bits of the Model 7600, :class:`regs.tech80.AxisBit`); ``acknowledge`` clears one.
+    """
+
+    def reset_chip(self, axis: Axis) -> None:
+        """Stop the axis (no torque) and restart its count at 0 where the head stands."""
+        ...
+
+    def enable_end_of_scan(self, axis: Axis, vector: int, enabled: bool = True) -> None:
+        """Let (or stop) the end of ``axis``'s profile raise the level-3 interrupt."""
+        ...
+
+    def disable_all(self) -> None:
+        """No axis raises the level-3 interrupt."""
+        ...
+
+    def index_seen(self, axis: Axis) -> bool:
+        """The index latch of ``axis`` is set: the head crossed its zero index since cleared."""
+        ...
+
+    def clear_index(self, axis: Axis) -> None:
+        """Clear (re-arm) the index latch of ``axis``."""
+        ...
+
+    def acknowledge(self, axis: Axis) -> None:
+        """Clear ``axis``'s bit in :meth:`ended_axes`."""
+        ...
+
+    def ended_axes(self) -> int:
+        """Bitmask (:class:`regs.tech80.AxisBit`) of axes whose profile ended, unacknowledged."""
+        ...
+
+
+def wait_settled(
+    position: Callable[[], int],
+    command: Callable[[], int],
+    clock: Callable[[], float],
+    time_scale: float,
+    stop: threading.Event,
+    limit_s: float = SETTLE_LIMIT_S,
+    sample_s: float = 0.0015,
+    holding: Callable[[], bool] | None = None,
+) -> int | None:
+    """The settling rule of :meth:`biris_hw.devices.AxisDriver.wait_settled`, for any axis.
+
+    Held means the same reading, within a count of the command position, for at least 3 polls
+    and :data:`SETTLE_HOLD_S` of hardware time (``clock``); bounded by ``limit_s`` of hardware
+    time, polled every ``sample_s`` (hardware seconds, waited as ``sample_s / time_scale`` real
+    ones on ``stop``). A head seen standing at its command position when the limit runs out is
+    watched up to ``2 * SETTLE_HOLD_S`` longer, so a late wake does not call a still head
+    unsettled. ``holding``, when given, says whether the axis's loop holds the head at all (a
+    faulted drive's demand follows the head, so it would "settle" anywhere). Returns the
+    settled position, or None (not settled, or ``stop`` set).
+    """
+    deadline = clock() + limit_s
+    last: int | None = None
+    steady = 0
+    since = 0.0
+    while True:
+        now = clock()
+        pos = position()
+        at_target = abs(pos - command()) <= 1 and (holding is None or holding())
+        if at_target and pos == last:
+            steady += 1
+            if steady >= 3 and now - since >= SETTLE_HOLD_S:
+                return pos
+        else:
+            steady = 0
+            since = now
+        if now >= deadline and (not at_target or now >= deadline + 2 * SETTLE_HOLD_S):
+            return None
+        last = pos
+        if stop.wait(sample_s / time_scale):
+            return None
+
+
+def wait_still(
+    position: Callable[[], int],
+    clock: Callable[[], float],
+    time_scale: float,
+    stop: threading.Event,
+    limit_s: float = 2.0,
+    sample_s: float = 0.002,
+) -> None:
+    """Poll until the encoder stops changing (5 equal samples), bounded by ``limit_s`` of
+    hardware time: a head let go coasts, and nothing is commanded to compare it with."""
+    deadline = clock() + limit_s
+    last = position()
+    steady = 0
+    while clock() < deadline and steady < 5:
+        if stop.wait(sample_s / time_scale):
+            return
+        pos = position()
+        steady = steady + 1 if pos == last else 0
+        last = pos

@@ -1,0 +1,1120 @@
+"""CiA 402 servo drives in profile-position mode over CANopen, as an alternative to the HCTL-1000s.
+
+One :class:`Cia402Bus` owns the CAN network (python-can underneath, any interface); one
+:class:`Cia402Axis` per drive implements :class:`~biris_hw.axes.base.MotionAxis`; one
+:class:`Cia402Controller` stands in for the Model 7600's board
+(:class:`~biris_hw.axes.base.MotionController`) and raises its ``end_of_motion`` line -- the
+"level 3 interrupt" -- when a drive's event TPDO says a move reached its target.
+
+**What the driver sets up on a drive** (:meth:`Cia402Axis.start`, once, before the first use):
+NMT pre-operational; heartbeat producer 0x1017 (``heartbeat_period_s``) and, when the bus
+produces a heartbeat of its own, consumer 0x1016 sub 1 (its id and ``heartbeat_timeout_s``;
+skipped on a drive without it); RPDO1 = controlword 0x6040 + target position 0x607A
+(transmission type 255), TPDO1 = statusword 0x6041 + position actual 0x6064, event-driven
+(type 255, sent when the statusword changes); RPDO2-4 and TPDO2-4 disabled where they exist;
+modes of operation 0x6060 = 1 (profile position); following error window 0x6065/0x6066,
+position window 0x6067/0x6068; touch probe 1 armed on the encoder's zero impulse (0x60B8);
+then NMT operational.
+
+**Moves** go by RPDO1: the target with the new-set-point bit (controlword bit 4) rising, a wait
+for set-point acknowledge (statusword bit 12, seen in TPDO1), then bit 4 cleared (single
+set-point, absolute, not "change immediately"). A move *ends* at the first TPDO1 after that
+acknowledge with bit 12 clear and target reached (bit 10) set: only then does the controller
+set the axis's bit of :meth:`Cia402Controller.ended_axes` and trigger ``end_of_motion``, so a
+status sent before the set-point was taken can never end it. Every destination is clamped to
++-0x1000 (and cut by the pan reference, which records it first), as on the HCTL-1000.
+
+**Holding never jumps**: :meth:`Cia402Axis.hold_here` reads the position actual and sends it as
+the target in every controlword frame that walks the state machine up to OPERATION ENABLED.
+``hold_here(zero_counter=True)`` homes by method 35 (or 37, ``homing_method``: "on the current
+position") with home offset 0, so the position actual becomes 0 where the head stands; the
+board's chip reset (:meth:`Cia402Controller.reset_chip`) does the same after a fault reset and
+a disable, because the pan reference takes a reset to restart the count where the head stood.
+:meth:`Cia402Axis.idle` is "disable operation" (SWITCHED ON: no torque, the head coasts).
+
+**Index latch**: touch probe 1 (0x60B8 = 0x0015: enabled, first event, zero impulse, positive
+edge); :meth:`Cia402Controller.index_seen` reads 0x60B9 bit 1, :meth:`clear_index` re-arms it
+(0x60B8 = 0, then 0x0015). 0x60BA holds the latched position (:meth:`Cia402Axis.index_position`).
+
+**BIRIS_MOTOR_PARAMS** (``[motor]`` of the init record) map as follows, with the HCTL sample
+period T = 16 (sample + 1) / 2 MHz:
+
+==========  ==========================  ================================================
+parameter   drive object                value written
+==========  ==========================  ================================================
+max_vel     0x6081 profile velocity     round(max_vel / T) counts/s
+max_accel   0x6083 / 0x6084 acc / dec   round(max_accel / 256 / T^2) counts/s^2 (both)
+sample      0x2000 sub 1 (U16)          raw: the drive's position-loop sample period
+zero        0x2000 sub 2 (U16)          raw: filter zero A
+pole        0x2000 sub 3 (U16)          raw: filter pole B
+gain        0x2000 sub 4 (U16)          raw: filter gain K
+max_vel     0x2000 sub 5 (U16)          raw, as well: so that read_params round-trips
+max_accel   0x2000 sub 6 (U16)          raw, as well
+==========  ==========================  ================================================
+
+:meth:`Cia402Axis.read_params` reads 0x2000 sub 1-6 back, exactly what was written: the pan
+reference compares them with what it loaded to tell a drive that kept its count from one that
+was power-cycled, so the drive must hold them in RAM only (the driver never stores 0x1010). A
+drive maps the filter onto its own position loop (the simulated one runs the HCTL-1000's filter
+at that sample period); ``params_index`` moves the record elsewhere.
+
+**Faults.** An EMCY becomes a :class:`DriveFault` in :attr:`Cia402Axis.faults` (and the
+controller's), handed to every fault listener: communication codes (0x81xx, 0x82xx) are kind
+``bus``, every other code ``motor_stall`` (the head can no longer be trusted to move: a
+following error, a blocked motor, over-current, a drive fault); an error reset (0x00xx) is only
+logged. A drive in FAULT refuses moves with HardwareFault("motor_stall") and never reports the
+interrupted move as ended. **Heartbeat loss** (no heartbeat for ``heartbeat_timeout_s``, or a
+boot-up message: the drive restarted and lost its set-up) makes every later access of that axis
+raise :class:`DriveBusError` -- a :class:`~biris_hw.errors.BusError` *and* a
+``HardwareFault("bus")`` -- and closes the controller's ``end_of_motion`` line, so the server's
+supervisor reports a ``bus`` fault. SDO aborts and timeouts are DriveBusErrors too, naming the
+node and the object.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import struct
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import can
+import canopen
+from canopen.emcy import EmcyError
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from biris_hw.angles import clamp_counts
+from biris_hw.axes.base import (
+    SETTLE_LIMIT_S,
+    MotionAxis,
+    MotionController,
+    wait_settled,
+    wait_still,
+)
+from biris_hw.errors import BusError, FaultKind, HardwareFault
+from biris_hw.irq.eventfd import EventFdLine
+from biris_hw.pan_reference import PanReference
+from biris_hw.records import MotorParams
+from regs.hctl1000 import F_CLK_HZ, sample_period
+from regs.tech80 import Axis, AxisBit
+
+__all__ = [
+    "CIA402_PROFILE",
+    "DEFAULT_MASTER_ID",
+    "PARAM_KEYS",
+    "TOUCH_PROBE_INDEX",
+    "Cia402Axis",
+    "Cia402Bus",
+    "Cia402Controller",
+    "Cw",
+    "DriveBusError",
+    "DriveFault",
+    "DriveState",
+    "Obj",
+    "Sw",
+    "fault_kind",
+    "profile_for",
+    "state_of",
+    "stop_periodic_task",
+]
+
+log = logging.getLogger(__name__)
+
+CIA402_PROFILE = 402
+"""The device profile number in the low word of 0x1000 (device type)."""
+
+DEFAULT_MASTER_ID = 0x7F
+"""The node id the bus's own heartbeat is sent under (0x77F), which drives consume (0x1016)."""
+
+NOTIFIER_CYCLE_S = 0.02
+"""How long the network's receive thread blocks in one read: how long closing waits for it."""
+
+PARAM_KEYS = ("sample", "zero", "pole", "gain", "max_vel", "max_accel")
+"""BIRIS_MOTOR_PARAMS in :meth:`MotorParams.to_dict` order: sub-indices 1-6 of the record."""
+
+
+class Obj(enum.IntEnum):
+    """Object dictionary indices the driver uses (CiA 301 and CiA 402)."""
+
+    DEVICE_TYPE = 0x1000
+    CONSUMER_HEARTBEAT = 0x1016
+    PRODUCER_HEARTBEAT = 0x1017
+    RPDO1_COMM = 0x1400
+    RPDO1_MAP = 0x1600
+    TPDO1_COMM = 0x1800
+    TPDO1_MAP = 0x1A00
+    MOTOR_PARAMS = 0x2000
+    CONTROLWORD = 0x6040
+    STATUSWORD = 0x6041
+    MODES_OF_OPERATION = 0x6060
+    MODES_DISPLAY = 0x6061
+    POSITION_DEMAND = 0x6062
+    POSITION_ACTUAL = 0x6064
+    FOLLOWING_ERROR_WINDOW = 0x6065
+    FOLLOWING_ERROR_TIMEOUT = 0x6066
+    POSITION_WINDOW = 0x6067
+    POSITION_WINDOW_TIME = 0x6068
+    TARGET_POSITION = 0x607A
+    HOME_OFFSET = 0x607C
+    PROFILE_VELOCITY = 0x6081
+    PROFILE_ACCELERATION = 0x6083
+    PROFILE_DECELERATION = 0x6084
+    QUICK_STOP_DECELERATION = 0x6085
+    HOMING_METHOD = 0x6098
+    TOUCH_PROBE_FUNCTION = 0x60B8
+    TOUCH_PROBE_STATUS = 0x60B9
+    TOUCH_PROBE_1_POSITIVE = 0x60BA
+    SUPPORTED_MODES = 0x6502
+
+
+_NAMES = {
+    int(Obj.DEVICE_TYPE): "device type",
+    int(Obj.CONSUMER_HEARTBEAT): "consumer heartbeat time",
+    int(Obj.PRODUCER_HEARTBEAT): "producer heartbeat time",
+    int(Obj.RPDO1_COMM): "RPDO1 communication",
+    int(Obj.RPDO1_MAP): "RPDO1 mapping",
+    int(Obj.TPDO1_COMM): "TPDO1 communication",
+    int(Obj.TPDO1_MAP): "TPDO1 mapping",
+    int(Obj.CONTROLWORD): "controlword",
+    int(Obj.STATUSWORD): "statusword",
+    int(Obj.MODES_OF_OPERATION): "modes of operation",
+    int(Obj.MODES_DISPLAY): "modes of operation display",
+    int(Obj.POSITION_DEMAND): "position demand value",
+    int(Obj.POSITION_ACTUAL): "position actual value",
+    int(Obj.FOLLOWING_ERROR_WINDOW): "following error window",
+    int(Obj.FOLLOWING_ERROR_TIMEOUT): "following error time out",
+    int(Obj.POSITION_WINDOW): "position window",
+    int(Obj.POSITION_WINDOW_TIME): "position window time",
+    int(Obj.TARGET_POSITION): "target position",
+    int(Obj.HOME_OFFSET): "home offset",
+    int(Obj.PROFILE_VELOCITY): "profile velocity",
+    int(Obj.PROFILE_ACCELERATION): "profile acceleration",
+    int(Obj.PROFILE_DECELERATION): "profile deceleration",
+    int(Obj.HOMING_METHOD): "homing method",
+    int(Obj.TOUCH_PROBE_FUNCTION): "touch probe function",
+    int(Obj.TOUCH_PROBE_STATUS): "touch probe status",
+    int(Obj.TOUCH_PROBE_1_POSITIVE): "touch probe 1 positive edge",
+}
+
+
+def _object_name(index: int, subindex: int, params_index: int = Obj.MOTOR_PARAMS) -> str:
+    if index == params_index and 1 <= subindex <= len(PARAM_KEYS):
+        return f"motor parameter {PARAM_KEYS[subindex - 1]}"
+    if 0x1400 <= index <= 0x1BFF:
+        kind = {0x14: "RPDO communication", 0x16: "RPDO mapping", 0x18: "TPDO communication"}
+        return f"{kind.get(index >> 8, 'TPDO mapping')} {(index & 0x1FF) + 1}"
+    return _NAMES.get(index, "object")
+
+
+class Cw(enum.IntFlag):
+    """Controlword 0x6040 bits (CiA 402)."""
+
+    SWITCH_ON = 0x0001
+    ENABLE_VOLTAGE = 0x0002
+    QUICK_STOP = 0x0004
+    """Active low: clear to quick-stop."""
+    ENABLE_OPERATION = 0x0008
+    NEW_SET_POINT = 0x0010
+    """Profile position: a rising edge takes the target. Homing: a rising edge starts homing."""
+    CHANGE_SET_IMMEDIATELY = 0x0020
+    RELATIVE = 0x0040
+    FAULT_RESET = 0x0080
+    HALT = 0x0100
+
+
+SHUTDOWN = 0x0006
+SWITCH_ON = 0x0007
+DISABLE_OPERATION = 0x0007
+ENABLE_OPERATION = 0x000F
+DISABLE_VOLTAGE = 0x0000
+FAULT_RESET = 0x0080
+
+
+class Sw(enum.IntFlag):
+    """Statusword 0x6041 bits (CiA 402)."""
+
+    READY_TO_SWITCH_ON = 0x0001
+    SWITCHED_ON = 0x0002
+    OPERATION_ENABLED = 0x0004
+    FAULT = 0x0008
+    VOLTAGE_ENABLED = 0x0010
+    QUICK_STOP = 0x0020
+    """Active low: clear while a quick stop is active."""
+    SWITCH_ON_DISABLED = 0x0040
+    WARNING = 0x0080
+    REMOTE = 0x0200
+    TARGET_REACHED = 0x0400
+    INTERNAL_LIMIT = 0x0800
+    SET_POINT_ACKNOWLEDGE = 0x1000
+    """Profile position: the set-point was taken. Homing: homing attained."""
+    FOLLOWING_ERROR = 0x2000
+    """Profile position: following error. Homing: homing error."""
+
+
+class DriveState(enum.Enum):
+    """The CiA 402 power state machine's states, as the statusword shows them."""
+
+    NOT_READY_TO_SWITCH_ON = "NOT READY TO SWITCH ON"
+    SWITCH_ON_DISABLED = "SWITCH ON DISABLED"
+    READY_TO_SWITCH_ON = "READY TO SWITCH ON"
+    SWITCHED_ON = "SWITCHED ON"
+    OPERATION_ENABLED = "OPERATION ENABLED"
+    QUICK_STOP_ACTIVE = "QUICK STOP ACTIVE"
+    FAULT_REACTION_ACTIVE = "FAULT REACTION ACTIVE"
+    FAULT = "FAULT"
+
+
+_STATE_MASKS = (
+    (0x4F, 0x00, DriveState.NOT_READY_TO_SWITCH_ON),
+    (0x4F, 0x40, DriveState.SWITCH_ON_DISABLED),
+    (0x6F, 0x21, DriveState.READY_TO_SWITCH_ON),
+    (0x6F, 0x23, DriveState.SWITCHED_ON),
+    (0x6F, 0x27, DriveState.OPERATION_ENABLED),
+    (0x6F, 0x07, DriveState.QUICK_STOP_ACTIVE),
+    (0x4F, 0x0F, DriveState.FAULT_REACTION_ACTIVE),
+    (0x4F, 0x08, DriveState.FAULT),
+)
+
+
+def state_of(statusword: int) -> DriveState | None:
+    """The state a statusword shows (CiA 402's masks), None for an impossible combination."""
+    for mask, value, state in _STATE_MASKS:
+        if statusword & mask == value:
+            return state
+    return None
+
+
+class Mode(enum.IntEnum):
+    """Modes of operation 0x6060 the driver uses."""
+
+    PROFILE_POSITION = 1
+    HOMING = 6
+
+
+TOUCH_PROBE_INDEX = 0x0015
+"""0x60B8: touch probe 1 enabled (bit 0), first event only (bit 1 clear), triggered by the
+encoder's zero impulse (bits 2-3 = 01), latching on the positive edge (bit 4)."""
+TOUCH_PROBE_STORED = 0x0002
+"""0x60B9 bit 1: touch probe 1 has latched a positive edge."""
+
+_FRAME = struct.Struct("<Hi")
+"""RPDO1 (controlword, target) and TPDO1 (statusword, position actual): U16 then I32."""
+
+_PDO_INVALID = 0x8000_0000
+_EVENT_DRIVEN = 255
+
+
+def profile_for(params: MotorParams) -> tuple[int, int]:
+    """(profile velocity in counts/s, profile acceleration in counts/s^2) for BIRIS_MOTOR_PARAMS:
+    the HCTL-1000's counts-per-sample units through its sample period, rounded, at least 1
+    (a zero would be a profile that never leaves its start)."""
+    period = sample_period(params.sample, F_CLK_HZ)
+    velocity = params.max_vel / period
+    accel = params.max_accel / 256.0 / period**2
+    return max(1, round(velocity)), max(1, round(accel))
+
+
+def fault_kind(code: int) -> FaultKind:
+    """The server's fault kind for an EMCY error code: communication errors (0x81xx, 0x82xx)
+    are ``bus``; every other error leaves the head unable to move as told: ``motor_stall``."""
+    return "bus" if code & 0xFF00 in (0x8100, 0x8200) else "motor_stall"
+
+
+class DriveBusError(BusError, HardwareFault):
+    """A drive or its bus failed: an SDO abort or timeout, a frame that could not be sent, a
+    heartbeat lost. A BusError, so the server's supervisor reports a ``bus`` fault, and a
+    ``HardwareFault("bus")``, so the initialiser reports it as one too."""
+
+    def __init__(self, message: str) -> None:
+        BusError.__init__(self, message)
+        self.kind: FaultKind = "bus"
+        self.message = message
+
+
+@dataclass(frozen=True)
+class DriveFault:
+    """One fault a drive reported (EMCY) or that the bus saw (heartbeat lost)."""
+
+    node_id: int
+    axis: Axis
+    kind: FaultKind
+    code: int
+    """The EMCY error code (0x8130, life guard / heartbeat error, for a lost heartbeat)."""
+    register: int
+    """The EMCY error register (0x1001)."""
+    text: str
+    source: Literal["emcy", "heartbeat"]
+
+    def error(self) -> HardwareFault:
+        """The exception the server raises for it."""
+        if self.kind == "bus":
+            return DriveBusError(self.text)
+        return HardwareFault(self.kind, self.text)
+
+
+class _Move(enum.Enum):
+    NONE = "none"
+    REQUESTED = "requested"
+    """Set-point sent, acknowledge not yet seen."""
+    ACKNOWLEDGED = "acknowledged"
+    """Bit 12 seen: the next status with bit 12 clear and bit 10 set ends the move."""
+    ENDED = "ended"
+
+
+class Cia402Bus:
+    """One CANopen network on python-can, its heartbeat and the watch over the drives' ones.
+
+    ``can_config`` goes to :class:`can.Bus` (``interface="socketcan", channel="can0",
+    bitrate=500000``; ``interface="pcan", channel="PCAN_USBBUS1"``; ``interface="virtual"``...).
+    The bus sends its own heartbeat as node ``master_id`` (None: none, and drives are not asked
+    to watch it) every ``heartbeat_period_s``, asks each drive for one as often, and declares a
+    drive lost after ``heartbeat_timeout_s`` without one. All of it is real time: a CAN bus
+    runs at wall-clock speed whatever the simulator's time scale.
+    """
+
+    def __init__(
+        self,
+        *,
+        heartbeat_period_s: float = 0.1,
+        heartbeat_timeout_s: float = 0.35,
+        master_id: int | None = DEFAULT_MASTER_ID,
+        sdo_timeout_s: float = 0.3,
+        **can_config: Any,
+    ) -> None:
+        if not 0.0 < heartbeat_period_s < heartbeat_timeout_s:
+            raise ValueError("the heartbeat timeout must exceed its (positive) period")
+        self.heartbeat_period_s = heartbeat_period_s
+        self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.master_id = master_id
+        self.sdo_timeout_s = sdo_timeout_s
+        self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+        self.network.NOTIFIER_SHUTDOWN_TIMEOUT = 4 * NOTIFIER_CYCLE_S
+        try:
+            self.network.connect(**can_config)
+        except (can.CanError, OSError, ValueError) as exc:
+            raise DriveBusError(f"CAN bus {can_config}: cannot connect ({exc})") from exc
+        self._lock = threading.Lock()
+        self._seen: dict[int, float] = {}
+        self._watchers: dict[int, Callable[[str], None]] = {}
+        self._closing = threading.Event()
+        self._producer: Any = None
+        if master_id is not None:
+            self._producer = self.network.send_periodic(
+                0x700 + master_id, bytes([0x05]), heartbeat_period_s
+            )
+        self._watchdog = threading.Thread(
+            target=self._watch_heartbeats, name="cia402-heartbeat", daemon=True
+        )
+        self._watchdog.start()
+
+    def add_node(self, node_id: int) -> canopen.RemoteNode:
+        """The network's client for drive ``node_id`` (no object dictionary: the driver
+        knows the types of what it reads)."""
+        new_dictionary: Any = canopen.ObjectDictionary  # untyped
+        node = self.network.add_node(node_id, new_dictionary())
+        node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
+        self.network.subscribe(0x700 + node_id, self._heartbeat)
+        return node
+
+    def watch(self, node_id: int, on_lost: Callable[[str], None]) -> None:
+        """Call ``on_lost(reason)`` once if drive ``node_id``'s heartbeat stops or it restarts.
+        The clock starts now, so a drive that never sends one is lost too."""
+        with self._lock:
+            self._seen[node_id] = time.monotonic()
+            self._watchers[node_id] = on_lost
+
+    def unwatch(self, node_id: int) -> None:
+        with self._lock:
+            self._watchers.pop(node_id, None)
+
+    def _heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        node_id = can_id - 0x700
+        lost: Callable[[str], None] | None = None
+        with self._lock:
+            self._seen[node_id] = time.monotonic()
+            if data and data[0] & 0x7F == 0 and node_id in self._watchers:
+                lost = self._watchers.pop(node_id)  # a boot-up: it restarted, set-up lost
+        if lost is not None:
+            lost(f"node {node_id} restarted (boot-up message): its set-up is lost")
+
+    def _watch_heartbeats(self) -> None:
+        while not self._closing.wait(self.heartbeat_timeout_s / 5):
+            now = time.monotonic()
+            expired: list[tuple[int, Callable[[str], None], float]] = []
+            with self._lock:
+                for node_id, on_lost in list(self._watchers.items()):
+                    silent = now - self._seen.get(node_id, now)
+                    if silent > self.heartbeat_timeout_s:
+                        expired.append((node_id, on_lost, silent))
+                        del self._watchers[node_id]
+            for node_id, on_lost, silent in expired:
+                on_lost(f"node {node_id}: no heartbeat for {silent * 1e3:.0f} ms")
+
+    def close(self) -> None:
+        """Stop the heartbeat and its watch, then disconnect; idempotent."""
+        if self._closing.is_set():
+            return
+        self._closing.set()
+        self._watchdog.join()
+        stop_periodic_task(self._producer)
+        try:
+            self.network.disconnect()
+        except (can.CanError, OSError) as exc:
+            log.warning("CAN bus: disconnect failed (%s)", exc)
+
+    def __enter__(self) -> Cia402Bus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Cia402Axis:
+    """One CiA 402 drive in profile-position mode: a :class:`~biris_hw.axes.base.MotionAxis`.
+
+    ``clock`` and ``time_scale`` pace the settling polls in hardware time, as
+    :class:`~biris_hw.devices.AxisDriver` does; the CAN timeouts (``state_timeout_s``, the
+    bus's SDO and heartbeat ones) are real seconds. ``reference`` (the pan's only) records every
+    move before it is sent and cuts its destination, and hears of every settle position and
+    parameter load. The drive is set up on first use (:meth:`start`).
+    """
+
+    def __init__(
+        self,
+        bus: Cia402Bus,
+        node_id: int,
+        axis: Axis,
+        clock: Callable[[], float] = time.monotonic,
+        time_scale: float = 1.0,
+        reference: PanReference | None = None,
+        *,
+        params_index: int = Obj.MOTOR_PARAMS,
+        homing_method: int = 35,
+        following_error_window: int = 256,
+        following_error_timeout_ms: int = 20,
+        position_window: int = 2,
+        position_window_time_ms: int = 0,
+        state_timeout_s: float = 0.5,
+    ) -> None:
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"CANopen node id {node_id} out of range 1..127")
+        if homing_method not in (35, 37):
+            raise ValueError("homing_method must be 35 or 37 (homing on the current position)")
+        self.bus = bus
+        self.node_id = node_id
+        self.axis = axis
+        self.reference = reference
+        self.params_index = params_index
+        self.homing_method = homing_method
+        self.following_error_window = following_error_window
+        self.following_error_timeout_ms = following_error_timeout_ms
+        self.position_window = position_window
+        self.position_window_time_ms = position_window_time_ms
+        self.state_timeout_s = state_timeout_s
+        self._clock = clock
+        self._scale = time_scale
+        self._node = bus.add_node(node_id)
+        self._sdo_lock = threading.Lock()
+        """canopen's SDO client keeps one response queue: one transfer at a time."""
+        self._start_lock = threading.Lock()
+        self._started = False
+        self._cond = threading.Condition()
+        """Guards everything the receive thread updates: status, move, lost."""
+        self._status = 0
+        self._move = _Move.NONE
+        self._lost: str | None = None
+        self._target = 0
+        self._end_listeners: list[Callable[[Axis], None]] = []
+        self._fault_listeners: list[Callable[[DriveFault], None]] = []
+        self.faults: list[DriveFault] = []
+        """Every fault reported, oldest first."""
+
+    def __repr__(self) -> str:
+        return f"Cia402Axis(node {self.node_id}, {self.axis.name})"
+
+    @property
+    def _who(self) -> str:
+        return f"drive node {self.node_id} ({self.axis.name.lower()})"
+
+    # -- listeners ------------------------------------------------------------------------------
+    def add_end_listener(self, listener: Callable[[Axis], None]) -> None:
+        """``listener(axis)`` is called (in the CAN receive thread) when a move ends."""
+        self._end_listeners.append(listener)
+
+    def add_fault_listener(self, listener: Callable[[DriveFault], None]) -> None:
+        """``listener(fault)`` is called (in the CAN receive or watch thread) for each fault."""
+        self._fault_listeners.append(listener)
+
+    # -- set-up ---------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Set the drive up (see the module notes) and start it; once, idempotent."""
+        with self._start_lock:
+            if self._started:
+                return
+            self._check_lost()
+            device_type = self._read(Obj.DEVICE_TYPE, 0, "<I")
+            if device_type & 0xFFFF != CIA402_PROFILE:
+                raise HardwareFault(
+                    "protocol",
+                    f"{self._who}: device type 0x{device_type:08X} is not a CiA 402 drive",
+                )
+            self._nmt(0x80)  # pre-operational: PDO mappings may change only there
+            bus = self.bus
+            self._write(Obj.PRODUCER_HEARTBEAT, 0, "<H", _ms(bus.heartbeat_period_s))
+            if bus.master_id is not None:
+                consumer = (bus.master_id << 16) | _ms(bus.heartbeat_timeout_s)
+                self._write(Obj.CONSUMER_HEARTBEAT, 1, "<I", consumer, optional=True)
+            self._map_pdos()
+            self._write(Obj.MODES_OF_OPERATION, 0, "<b", Mode.PROFILE_POSITION)
+            self._write(Obj.FOLLOWING_ERROR_WINDOW, 0, "<I", self.following_error_window)
+            self._write(Obj.FOLLOWING_ERROR_TIMEOUT, 0, "<H", self.following_error_timeout_ms)
+            self._write(Obj.POSITION_WINDOW, 0, "<I", self.position_window)
+            self._write(Obj.POSITION_WINDOW_TIME, 0, "<H", self.position_window_time_ms)
+            self._write(Obj.TOUCH_PROBE_FUNCTION, 0, "<H", 0)
+            self._write(Obj.TOUCH_PROBE_FUNCTION, 0, "<H", TOUCH_PROBE_INDEX)
+            network = self.bus.network
+            network.subscribe(0x180 + self.node_id, self._on_tpdo)
+            self._node.emcy.add_callback(self._on_emcy)
+            status = self._read(Obj.STATUSWORD, 0, "<H")
+            with self._cond:
+                self._status = status
+            self._nmt(0x01)  # operational: the PDOs run
+            bus.watch(self.node_id, self._heartbeat_lost)
+            self._started = True
+
+    def _map_pdos(self) -> None:
+        """RPDO1 = controlword + target, TPDO1 = statusword + position actual (event-driven);
+        the other PDOs off, where the drive has them (CiA 301's order: invalidate, unmap, map,
+        count, validate)."""
+        node_id = self.node_id
+        for comm, mapping, cob, entries in (
+            (Obj.RPDO1_COMM, Obj.RPDO1_MAP, 0x200 + node_id, (0x60400010, 0x607A0020)),
+            (Obj.TPDO1_COMM, Obj.TPDO1_MAP, 0x180 + node_id, (0x60410010, 0x60640020)),
+        ):
+            self._write(comm, 1, "<I", cob | _PDO_INVALID)
+            self._write(mapping, 0, "<B", 0)
+            for sub, entry in enumerate(entries, start=1):
+                self._write(mapping, sub, "<I", entry)
+            self._write(mapping, 0, "<B", len(entries))
+            self._write(comm, 2, "<B", _EVENT_DRIVEN)
+            self._write(comm, 1, "<I", cob)
+        for n in range(1, 4):
+            self._write(0x1400 + n, 1, "<I", 0x200 + 0x100 * n + node_id | _PDO_INVALID, True)
+            self._write(0x1800 + n, 1, "<I", 0x180 + 0x100 * n + node_id | _PDO_INVALID, True)
+
+    def close(self) -> None:
+        """Stop listening to the drive (it is left as it is)."""
+        self.bus.unwatch(self.node_id)
+        if self._started:
+            try:
+                self.bus.network.unsubscribe(0x180 + self.node_id, self._on_tpdo)
+            except (KeyError, ValueError):
+                pass
+        with self._cond:
+            self._started = False
+            self._cond.notify_all()
+
+    # -- the drive's reports (CAN receive thread) ------------------------------------------------
+    def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) < _FRAME.size:
+            log.warning("%s: short TPDO1 %s", self._who, bytes(data).hex())
+            return
+        status, _position = _FRAME.unpack_from(data)
+        ended = False
+        with self._cond:
+            self._status = status
+            if self._move is _Move.REQUESTED and status & Sw.SET_POINT_ACKNOWLEDGE:
+                self._move = _Move.ACKNOWLEDGED
+            elif (
+                self._move is _Move.ACKNOWLEDGED
+                and not status & Sw.SET_POINT_ACKNOWLEDGE
+                and status & Sw.TARGET_REACHED
+            ):
+                self._move = _Move.ENDED
+                ended = True
+            self._cond.notify_all()
+        if ended:
+            for listener in self._end_listeners:
+                listener(self.axis)
+
+    def _on_emcy(self, entry: EmcyError) -> None:
+        if entry.code & 0xFF00 == 0:
+            log.info("%s: error reset (EMCY 0x%04X)", self._who, entry.code)
+            return
+        kind = fault_kind(entry.code)
+        text = (
+            f"{self._who} reported EMCY 0x{entry.code:04X} ({entry.get_desc() or 'error'}), "
+            f"error register 0x{entry.register:02X}"
+        )
+        self._fault(
+            DriveFault(self.node_id, self.axis, kind, entry.code, entry.register, text, "emcy")
+        )
+
+    def _heartbeat_lost(self, reason: str) -> None:
+        text = f"{self._who}: {reason}; it is no longer driven"
+        with self._cond:
+            self._lost = text
+            self._cond.notify_all()
+        self._fault(DriveFault(self.node_id, self.axis, "bus", 0x8130, 0, text, "heartbeat"))
+
+    def _fault(self, fault: DriveFault) -> None:
+        log.error("%s", fault.text)
+        self.faults.append(fault)
+        for listener in self._fault_listeners:
+            listener(fault)
+
+    # -- access ---------------------------------------------------------------------------------
+    def _check_lost(self) -> None:
+        lost = self._lost
+        if lost is not None:
+            raise DriveBusError(lost)
+
+    def _ready(self) -> None:
+        self._check_lost()
+        if not self._started:
+            self.start()
+
+    def _sdo_error(self, what: str, index: int, subindex: int, exc: Exception) -> DriveBusError:
+        name = _object_name(index, subindex, self.params_index)
+        return DriveBusError(
+            f"{self._who}: SDO {what} of 0x{index:04X}:{subindex:02X} ({name}) failed: {exc}"
+        )
+
+    def _read(self, index: int, subindex: int, fmt: str) -> int:
+        try:
+            with self._sdo_lock:
+                raw = self._node.sdo.upload(index, subindex)
+            value: int = struct.unpack(fmt, bytes(raw[: struct.calcsize(fmt)]))[0]
+        except (SdoAbortedError, SdoCommunicationError, can.CanError, struct.error) as exc:
+            self._check_lost()
+            raise self._sdo_error("read", index, subindex, exc) from exc
+        return value
+
+    def _write(
+        self, index: int, subindex: int, fmt: str, value: int, optional: bool = False
+    ) -> None:
+        try:
+            with self._sdo_lock:
+                self._node.sdo.download(index, subindex, struct.pack(fmt, value))
+        except SdoAbortedError as exc:
+            if optional and exc.code in (0x06020000, 0x06090011):
+                log.info("%s: no object 0x%04X:%02X; skipped", self._who, index, subindex)
+                return
+            self._check_lost()
+            raise self._sdo_error("write", index, subindex, exc) from exc
+        except (SdoCommunicationError, can.CanError, struct.error) as exc:
+            self._check_lost()
+            raise self._sdo_error("write", index, subindex, exc) from exc
+
+    def _nmt(self, command: int) -> None:
+        try:
+            self._node.nmt.send_command(command)
+        except (can.CanError, RuntimeError) as exc:
+            raise DriveBusError(
+                f"{self._who}: NMT command 0x{command:02X} not sent: {exc}"
+            ) from exc
+
+    def _send(self, controlword: int, target: int) -> None:
+        """RPDO1: controlword and target in one frame, so the target is in place before the
+        controlword that uses it."""
+        try:
+            self.bus.network.send_message(0x200 + self.node_id, _FRAME.pack(controlword, target))
+        except (can.CanError, RuntimeError) as exc:
+            raise DriveBusError(f"{self._who}: RPDO1 not sent: {exc}") from exc
+
+    def _state(self) -> DriveState | None:
+        with self._cond:
+            return state_of(self._status)
+
+    def _await(self, done: Callable[[int], bool], what: str) -> int:
+        """Wait (real time) for a statusword satisfying ``done``, from TPDO1; at the end, one
+        SDO read in case an event was missed. A drive in FAULT is a motor fault; silence a bus
+        one."""
+        deadline = time.monotonic() + self.state_timeout_s
+        with self._cond:
+            while True:
+                if self._lost is not None:
+                    raise DriveBusError(self._lost)
+                if done(self._status):
+                    return self._status
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0:
+                    break
+                self._cond.wait(remaining)
+        status = self._read(Obj.STATUSWORD, 0, "<H")
+        with self._cond:
+            self._status = status
+        if done(status):
+            return status
+        state = state_of(status)
+        text = f"{self._who} did not reach {what} (statusword 0x{status:04X}, {_name(state)})"
+        if state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
+            raise HardwareFault("motor_stall", text + self._last_fault())
+        raise DriveBusError(text)
+
+    def _last_fault(self) -> str:
+        return f": {self.faults[-1].text}" if self.faults else ""
+
+    def _go(self, controlword: int, target: int, state: DriveState) -> None:
+        self._send(controlword, target)
+        self._await(lambda sw: state_of(sw) is state, state.value)
+
+    def _enable(self, target: int) -> None:
+        """Walk the state machine up to OPERATION ENABLED, ``target`` in every frame."""
+        steps = {
+            DriveState.SWITCH_ON_DISABLED: (SHUTDOWN, DriveState.READY_TO_SWITCH_ON),
+            DriveState.READY_TO_SWITCH_ON: (SWITCH_ON, DriveState.SWITCHED_ON),
+            DriveState.SWITCHED_ON: (ENABLE_OPERATION, DriveState.OPERATION_ENABLED),
+            DriveState.QUICK_STOP_ACTIVE: (DISABLE_VOLTAGE, DriveState.SWITCH_ON_DISABLED),
+        }
+        for _ in range(len(steps) + 1):
+            state = self._state()
+            if state is DriveState.OPERATION_ENABLED:
+                return
+            if state is DriveState.NOT_READY_TO_SWITCH_ON:
+                self._await(
+                    lambda sw: state_of(sw) is not DriveState.NOT_READY_TO_SWITCH_ON,
+                    "SWITCH ON DISABLED",
+                )
+                continue
+            step = steps.get(state) if state is not None else None
+            if step is None:
+                raise HardwareFault(
+                    "motor_stall",
+                    f"{self._who} cannot be enabled from {_name(state)}{self._last_fault()}",
+                )
+            self._go(step[0], target, step[1])
+        raise DriveBusError(f"{self._who}: the state machine did not reach OPERATION ENABLED")
+
+    def _forget_move(self) -> None:
+        with self._cond:
+            self._move = _Move.NONE
+
+    # -- MotionAxis -----------------------------------------------------------------------------
+    def actual_position(self) -> int:
+        """0x6064 position actual value (counts), read now."""
+        self._ready()
+        return self._read(Obj.POSITION_ACTUAL, 0, "<i")
+
+    def command_position(self) -> int:
+        """0x6062 position demand value: the profile's present set-point (counts)."""
+        self._ready()
+        return self._read(Obj.POSITION_DEMAND, 0, "<i")
+
+    def statusword(self) -> int:
+        """0x6041, read now."""
+        self._ready()
+        status = self._read(Obj.STATUSWORD, 0, "<H")
+        with self._cond:
+            self._status = status
+        return status
+
+    def configure(self, params: MotorParams) -> None:
+        """The six parameters raw into the manufacturer record, the profile limits converted
+        into 0x6081/0x6083/0x6084 (module notes); read back for the pan reference."""
+        self._ready()
+        for sub, key in enumerate(PARAM_KEYS, start=1):
+            self._write(self.params_index, sub, "<H", getattr(params, key))
+        velocity, accel = profile_for(params)
+        self._write(Obj.PROFILE_VELOCITY, 0, "<I", velocity)
+        self._write(Obj.PROFILE_ACCELERATION, 0, "<I", accel)
+        self._write(Obj.PROFILE_DECELERATION, 0, "<I", accel)
+        if self.reference is not None:
+            self.reference.configured(self.read_params())
+
+    def read_params(self) -> dict[str, int]:
+        """The six parameters as the drive holds them (0x2000 sub 1-6, raw)."""
+        self._ready()
+        return {
+            key: self._read(self.params_index, sub, "<H")
+            for sub, key in enumerate(PARAM_KEYS, start=1)
+        }
+
+    def profile_params(self) -> tuple[int, int, int]:
+        """(0x6081, 0x6083, 0x6084) as the drive holds them."""
+        self._ready()
+        return (
+            self._read(Obj.PROFILE_VELOCITY, 0, "<I"),
+            self._read(Obj.PROFILE_ACCELERATION, 0, "<I"),
+            self._read(Obj.PROFILE_DECELERATION, 0, "<I"),
+        )
+
+    def idle(self) -> None:
+        """Disable operation (or voltage, from a quick stop): no torque, the head coasts. A
+        move under way is forgotten, as the HCTL-1000's idle clears F0."""
+        self._ready()
+        self._forget_move()
+        state = self._state()
+        if state is DriveState.OPERATION_ENABLED:
+            self._go(DISABLE_OPERATION, self._target, DriveState.SWITCHED_ON)
+        elif state is DriveState.QUICK_STOP_ACTIVE:
+            self._go(DISABLE_VOLTAGE, self._target, DriveState.SWITCH_ON_DISABLED)
+
+    def hold_here(self, zero_counter: bool = False) -> None:
+        """Enter OPERATION ENABLED holding the present position: the target is the position
+        actual in every frame of the way up, so nothing jumps. ``zero_counter`` first makes
+        this spot 0 (homing on the current position). Called with the axis idle; an enabled
+        axis is disabled first."""
+        self._ready()
+        self._forget_move()
+        if self._state() is DriveState.OPERATION_ENABLED:
+            self._go(DISABLE_OPERATION, self._target, DriveState.SWITCHED_ON)
+        if zero_counter:
+            self._zero_here()
+            return
+        here = self._read(Obj.POSITION_ACTUAL, 0, "<i")
+        self._write(Obj.MODES_OF_OPERATION, 0, "<b", Mode.PROFILE_POSITION)
+        self._target = here
+        self._enable(here)
+
+    def _zero_here(self) -> None:
+        """Homing on the current position with home offset 0: position actual becomes 0 and
+        the drive holds it, back in profile position (OPERATION ENABLED)."""
+        here = self._read(Obj.POSITION_ACTUAL, 0, "<i")
+        self._write(Obj.MODES_OF_OPERATION, 0, "<b", Mode.HOMING)
+        self._write(Obj.HOMING_METHOD, 0, "<b", self.homing_method)
+        self._write(Obj.HOME_OFFSET, 0, "<i", 0)
+        self._target = here
+        self._enable(here)
+        self._send(ENABLE_OPERATION | Cw.NEW_SET_POINT, here)
+        status = self._await(
+            lambda sw: bool(sw & (Sw.SET_POINT_ACKNOWLEDGE | Sw.FOLLOWING_ERROR)), "homing attained"
+        )
+        if status & Sw.FOLLOWING_ERROR:
+            raise HardwareFault("motor_stall", f"{self._who}: homing error (0x{status:04X})")
+        self._target = 0
+        self._send(ENABLE_OPERATION, 0)
+        self._write(Obj.MODES_OF_OPERATION, 0, "<b", Mode.PROFILE_POSITION)
+
+    def reset(self) -> None:
+        """The board's chip reset: clear a fault, take the voltage off, let the head come to
+        rest, and restart the count at 0 there; left SWITCHED ON (no torque)."""
+        self._ready()
+        self._forget_move()
+        state = self._state()
+        if state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
+            self._send(DISABLE_VOLTAGE, self._target)
+            self._go(FAULT_RESET, self._target, DriveState.SWITCH_ON_DISABLED)
+        if self._state() is not DriveState.SWITCH_ON_DISABLED:
+            self._go(DISABLE_VOLTAGE, self._target, DriveState.SWITCH_ON_DISABLED)
+        self.wait_still(threading.Event())
+        self._zero_here()
+        self._go(DISABLE_OPERATION, 0, DriveState.SWITCHED_ON)
+
+    def start_trapezoid(self, destination: int) -> int:
+        """Send a profile-position set-point; returns the destination commanded.
+
+        Clamped to +-0x1000 (and cut by the pan reference, which records the move first), as
+        :meth:`biris_hw.devices.AxisDriver.start_trapezoid`. A move not yet ended, or a drive
+        not in OPERATION ENABLED, is HardwareFault("motor_stall"); a set-point the drive does
+        not acknowledge in time is a DriveBusError.
+        """
+        self._ready()
+        dest = clamp_counts(destination)
+        if self.reference is not None:
+            dest = self.reference.safe_destination(dest)
+        if dest != destination:
+            log.warning("destination %d clamped to %d", destination, dest)
+        with self._cond:
+            if self._move in (_Move.REQUESTED, _Move.ACKNOWLEDGED):
+                raise HardwareFault("motor_stall", f"{self._who}: previous move never ended")
+            state = state_of(self._status)
+        if state is not DriveState.OPERATION_ENABLED:
+            raise HardwareFault(
+                "motor_stall", f"{self._who} is {_name(state)}, not moving{self._last_fault()}"
+            )
+        if self.reference is not None:
+            self.reference.record_move(self.command_position(), dest)
+        with self._cond:
+            self._move = _Move.REQUESTED
+        self._target = dest
+        self._send(ENABLE_OPERATION | Cw.NEW_SET_POINT, dest)
+        try:
+            self._await(lambda sw: bool(sw & Sw.SET_POINT_ACKNOWLEDGE), "set-point acknowledge")
+        finally:
+            self._send(ENABLE_OPERATION, dest)
+        return dest
+
+    def profile_active(self) -> bool:
+        """A move sent here has not been reported ended (nor forgotten by idle/hold/reset)."""
+        self._ready()
+        with self._cond:
+            return self._move in (_Move.REQUESTED, _Move.ACKNOWLEDGED)
+
+    def wait_settled(
+        self,
+        stop: threading.Event,
+        limit_s: float = SETTLE_LIMIT_S,
+        sample_s: float = 0.0015,
+    ) -> bool:
+        """:func:`biris_hw.axes.base.wait_settled` on 0x6064 against 0x6062 (the HCTL rule),
+        only while the drive is OPERATION ENABLED (a faulted drive's demand follows the head);
+        the settle position goes to the pan reference."""
+        pos = wait_settled(
+            self.actual_position,
+            self.command_position,
+            self._clock,
+            self._scale,
+            stop,
+            limit_s,
+            sample_s,
+            holding=lambda: self._state() is DriveState.OPERATION_ENABLED,
+        )
+        if pos is None:
+            return False
+        if self.reference is not None:
+            self.reference.settled(pos)
+        return True
+
+    def wait_still(
+        self, stop: threading.Event, limit_s: float = 2.0, sample_s: float = 0.002
+    ) -> None:
+        wait_still(self.actual_position, self._clock, self._scale, stop, limit_s, sample_s)
+
+    # -- the index latch ------------------------------------------------------------------------
+    def index_seen(self) -> bool:
+        """Touch probe 1 has latched the encoder's zero impulse since last armed (0x60B9)."""
+        self._ready()
+        return bool(self._read(Obj.TOUCH_PROBE_STATUS, 0, "<H") & TOUCH_PROBE_STORED)
+
+    def clear_index(self) -> None:
+        """Re-arm touch probe 1 (0x60B8 off, then on: the enable's edge clears the latch)."""
+        self._ready()
+        self._write(Obj.TOUCH_PROBE_FUNCTION, 0, "<H", 0)
+        self._write(Obj.TOUCH_PROBE_FUNCTION, 0, "<H", TOUCH_PROBE_INDEX)
+
+    def index_position(self) -> int:
+        """0x60BA: where touch probe 1 latched the index (counts)."""
+        self._ready()
+        return self._read(Obj.TOUCH_PROBE_1_POSITIVE, 0, "<i")
+
+
+_AXIS_BIT = {Axis.AZIMUTH: int(AxisBit.AZIMUTH), Axis.ELEVATION: int(AxisBit.ELEVATION)}
+
+
+class Cia402Controller:
+    """The board's part for CiA 402 axes: a :class:`~biris_hw.axes.base.MotionController`.
+
+    ``end_of_motion`` is the level-3 line: triggered when an axis's move ends (its bit newly
+    set in :meth:`ended_axes` while enabled), closed when a drive's heartbeat is lost.
+    ``on_fault`` (and :attr:`faults`) receive every :class:`DriveFault` of every axis: the
+    server maps them with :meth:`DriveFault.error`.
+    """
+
+    def __init__(
+        self,
+        bus: Cia402Bus,
+        axes: Mapping[Axis, Cia402Axis],
+        end_of_motion: EventFdLine | None = None,
+        on_fault: Callable[[DriveFault], None] | None = None,
+    ) -> None:
+        self.bus = bus
+        self.axes = dict(axes)
+        self.end_of_motion = end_of_motion if end_of_motion is not None else EventFdLine()
+        self.on_fault = on_fault
+        self.faults: list[DriveFault] = []
+        self._lock = threading.Lock()
+        self._enabled = 0
+        self._ended = 0
+        for driver in self.axes.values():
+            driver.add_end_listener(self._move_ended)
+            driver.add_fault_listener(self._fault)
+
+    def start(self) -> None:
+        """Set every drive up now rather than on first use."""
+        for driver in self.axes.values():
+            driver.start()
+
+    def _move_ended(self, axis: Axis) -> None:
+        bit = _AXIS_BIT[axis]
+        with self._lock:
+            fresh = not self._ended & bit
+            self._ended |= bit
+            raise_it = fresh and bool(self._enabled & bit)
+        if raise_it and not self.end_of_motion.closed:
+            try:
+                self.end_of_motion.trigger()
+            except Exception as exc:  # closed meanwhile: the supervisor has heard already
+                log.info("end of motion on %s not raised: %s", axis.name, exc)
+
+    def _fault(self, fault: DriveFault) -> None:
+        with self._lock:
+            self.faults.append(fault)
+        if fault.source == "heartbeat":
+            self.end_of_motion.close()
+        if self.on_fault is not None:
+            self.on_fault(fault)
+
+    def _axis(self, axis: Axis) -> Cia402Axis:
+        try:
+            return self.axes[axis]
+        except KeyError:
+            raise HardwareFault("protocol", f"no CiA 402 drive for the {axis.name}") from None
+
+    # -- MotionController -----------------------------------------------------------------------
+    def reset_chip(self, axis: Axis) -> None:
+        self._axis(axis).reset()
+        with self._lock:
+            self._ended &= ~_AXIS_BIT[axis]
+
+    def enable_end_of_scan(self, axis: Axis, vector: int, enabled: bool = True) -> None:
+        """``vector`` has no meaning on CAN and is ignored."""
+        bit = _AXIS_BIT[axis]
+        with self._lock:
+            self._enabled = self._enabled | bit if enabled else self._enabled & ~bit
+
+    def disable_all(self) -> None:
+        with self._lock:
+            self._enabled = 0
+
+    def index_seen(self, axis: Axis) -> bool:
+        return self._axis(axis).index_seen()
+
+    def clear_index(self, axis: Axis) -> None:
+        self._axis(axis).clear_index()
+
+    def acknowledge(self, axis: Axis) -> None:
+        with self._lock:
+            self._ended &= ~_AXIS_BIT[axis]
+
+    def ended_axes(self) -> int:
+        with self._lock:
+            return self._ended
+
+    def close(self) -> None:
+        """Stop listening to the drives and close the line (the bus is its owner's)."""
+        for driver in self.axes.values():
+            driver.close()
+        self.end_of_motion.close()
+
+
+def stop_periodic_task(task: Any) -> None:
+    """Stop a python-can periodic send (a canopen ``PeriodicMessageTask``) and wait for its
+    thread: python-can's ``stop`` only asks, and a thread still sending after its bus is shut
+    down dies with a traceback."""
+    if task is None:
+        return
+    task.stop()
+    thread = getattr(getattr(task, "_task", None), "thread", None)
+    if isinstance(thread, threading.Thread) and thread is not threading.current_thread():
+        thread.join(timeout=1.0)
+
+
+def _conforms(
+    axis: Cia402Axis, controller: Cia402Controller
+) -> tuple[MotionAxis, MotionController]:
+    """Never called: mypy checks the two classes against the protocols here."""
+    return axis, controller
+
+
+def _ms(seconds: float) -> int:
+    return max(1, min(0xFFFF, round(seconds * 1000.0)))
+
+
+def _name(state: DriveState | None) -> str:
+    return state.value if state is not None else "an unknown state"

@@ -1,0 +1,980 @@
+"""A simulated CiA 402 servo drive on a CANopen bus, closing its loop around :class:`MotorPlant`.
+
+:class:`SimulatedDrive` is a canopen :class:`~canopen.LocalNode` whose object dictionary is
+built here (0x1000, 0x1001, 0x1016, 0x1017, RPDO1/TPDO1 communication and mapping, the 0x2000
+record of BIRIS_MOTOR_PARAMS, and the CiA 402 objects :mod:`biris_hw.axes.cia402` uses). Its
+write callbacks run the drive; a thread steps it on the simulator's clock (and every SDO read
+catches up first, as :mod:`sim.hctl1000` does on access), so the end of a move is announced
+by itself, as a real drive's event TPDO is.
+
+What is modelled:
+
+* NMT (canopen's NmtSlave): pre-operational after boot-up, heartbeat producer 0x1017, PDOs only
+  while OPERATIONAL, TPDO1 sent once on entering it. Heartbeat consumer 0x1016 sub 1: a master
+  heard once and then silent for longer than the consumer time faults the drive (EMCY 0x8130).
+* PDOs honour whatever mapping the master wrote (CiA 301 rules: the mapping changes only while
+  the PDO is invalid and its count is 0; only mappable objects; 64 bits at most). An RPDO's
+  values are all stored before its controlword acts, so a frame's target is the one its
+  new-set-point edge takes. TPDO1 (type 254/255) is sent whenever the statusword changes.
+* The power state machine (SWITCH ON DISABLED -> READY TO SWITCH ON -> SWITCHED ON ->
+  OPERATION ENABLED; quick stop; fault and fault reset on bit 7's rising edge). Enabling holds
+  the head where it stands (a compliant drive).
+* Profile position: single set-point, absolute (bit 6 relative too); acknowledge (bit 12) on
+  the new-set-point edge until bit 4 falls; a trapezoid from 0x6081/0x6083/0x6084 sampled at
+  the loop's sample period; target reached (bit 10) once the profile has ended and the head is
+  within 0x6067 for 0x6068 ms. A new set-point during a move re-plans from where the profile
+  is (and is audited). Halt (bit 8) is not modelled.
+* The position loop is the HCTL-1000's filter, ``MC = (K/4)(X - (A/256) X[n-1]) - (B/256)
+  MC[n-1]``, at its sample period 16 (T + 1) / 2 MHz, from the raw 0x2000 values: the mapping
+  a drive "with such gains" makes, so Appendix B's defaults give the loop sim.motor documents.
+* Following error: beyond 0x6065 for longer than 0x6066 ms -> FAULT, EMCY 0x8611 (a stalled
+  shaft, :meth:`SimulatedDrive.stall`, ends that way as soon as a move pulls away from it).
+* Homing method 35/37 (mode 6, bit 4's edge): the position actual becomes the home offset
+  0x607C; homing attained (bit 12) and target reached (bit 10).
+* Touch probe 1 on the zero impulse (0x60B8/0x60B9/0x60BA): the plant's index latch.
+* The fault panel: :meth:`stall`, :meth:`lose_power` (no heartbeat, no answers, no torque),
+  :meth:`emcy`.
+
+The drive's own audit (:attr:`SimulatedDrive.violations`, and the shared
+:class:`~sim.audit.Audit` where a rule has a counterpart there): a set-point beyond +-0x1000
+(MOTOR_BEYOND_LIMIT), a set-point while not OPERATION ENABLED, entering OPERATION ENABLED with
+a target more than :data:`JUMP_COUNTS` from the position actual (POSITION_MODE_WHILE_MOVING:
+a drive that takes its target on enabling would jump), a new set-point while the previous move
+runs or is unacknowledged, a set-point before the motor parameters and profile were written
+(MOTION_WHILE_UNINITIALISED), an RPDO while not OPERATIONAL.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import canopen
+from canopen import objectdictionary as od
+from canopen.sdo.exceptions import SdoAbortedError
+
+from biris_hw.axes.cia402 import (
+    CIA402_PROFILE,
+    NOTIFIER_CYCLE_S,
+    PARAM_KEYS,
+    Cw,
+    DriveState,
+    Obj,
+    Sw,
+    stop_periodic_task,
+)
+from biris_hw.records import MotorParams
+from regs.hctl1000 import F_CLK_HZ, MOTION_LIMIT_COUNTS, SAMPLE_TIMER_MIN
+from sim.audit import Audit, Rule
+from sim.motor import MotorPlant
+
+__all__ = ["JUMP_COUNTS", "DriveRule", "DriveViolation", "SimulatedDrive", "build_dictionary"]
+
+log = logging.getLogger(__name__)
+
+JUMP_COUNTS = 2
+"""Enabling with a target further than this from the position actual is audited: a drive
+that starts from its target would jump."""
+
+STEP_REAL_S = 0.001
+"""How often (real seconds) the drive's thread catches up with the clock."""
+
+MAX_CATCH_UP = 20_000
+"""Samples one catch-up may run (28 hardware seconds at Appendix B's period); a host further
+behind skips the rest rather than stall the bus thread."""
+
+EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_HEARTBEAT = 0x8130
+
+_BASE = {
+    DriveState.NOT_READY_TO_SWITCH_ON: 0x00,
+    DriveState.SWITCH_ON_DISABLED: 0x40,
+    DriveState.READY_TO_SWITCH_ON: 0x31,
+    DriveState.SWITCHED_ON: 0x33,
+    DriveState.OPERATION_ENABLED: 0x37,
+    DriveState.QUICK_STOP_ACTIVE: 0x17,
+    DriveState.FAULT_REACTION_ACTIVE: 0x0F,
+    DriveState.FAULT: 0x08,
+}
+"""Statusword state bits (with voltage enabled, bit 4, where the power stage is on)."""
+
+_MAPPABLE_RX = frozenset({(0x6040, 0), (0x607A, 0), (0x6060, 0), (0x60B8, 0)})
+_MAPPABLE_TX = frozenset({(0x6041, 0), (0x6064, 0), (0x6061, 0), (0x6062, 0), (0x60B9, 0)})
+
+_SUPPORTED_MODES = (1, 6)
+
+
+class DriveRule(str, enum.Enum):
+    """The drive's audit rules; the value is the name used in reports."""
+
+    TARGET_BEYOND_LIMIT = "TARGET_BEYOND_LIMIT"
+    SET_POINT_NOT_ENABLED = "SET_POINT_NOT_ENABLED"
+    ENABLE_WITH_JUMP = "ENABLE_WITH_JUMP"
+    SET_POINT_WHILE_MOVING = "SET_POINT_WHILE_MOVING"
+    MOVE_UNCONFIGURED = "MOVE_UNCONFIGURED"
+    RPDO_NOT_OPERATIONAL = "RPDO_NOT_OPERATIONAL"
+
+
+_SHARED = {
+    DriveRule.TARGET_BEYOND_LIMIT: Rule.MOTOR_BEYOND_LIMIT,
+    DriveRule.ENABLE_WITH_JUMP: Rule.POSITION_MODE_WHILE_MOVING,
+    DriveRule.MOVE_UNCONFIGURED: Rule.MOTION_WHILE_UNINITIALISED,
+}
+
+
+@dataclass(frozen=True)
+class DriveViolation:
+    """One broken rule: when (hardware seconds), which node, which rule, what."""
+
+    time: float
+    node_id: int
+    rule: DriveRule
+    detail: str
+
+    def __str__(self) -> str:
+        return f"t={self.time:.6f}s node {self.node_id} {self.rule.value} {self.detail}"
+
+
+def _var(
+    name: str,
+    index: int,
+    subindex: int,
+    data_type: int,
+    default: int = 0,
+    access: str = "rw",
+) -> od.ODVariable:
+    var = od.ODVariable(name, index, subindex)
+    var.data_type = data_type
+    var.access_type = access
+    var.default = default
+    var.pdo_mappable = (index, subindex) in _MAPPABLE_RX | _MAPPABLE_TX
+    return var
+
+
+def _record(name: str, index: int, members: list[tuple[str, int, int, str]]) -> od.ODRecord:
+    record = od.ODRecord(name, index)
+    count = max(sub for _, sub, _, _ in members)
+    record.add_member(_var(f"{name} entries", index, 0, od.UNSIGNED8, count, "ro"))
+    for member, sub, default, access in members:
+        data_type = od.UNSIGNED16 if index == Obj.MOTOR_PARAMS else od.UNSIGNED32
+        if member in ("transmission type",):
+            data_type = od.UNSIGNED8
+        elif member in ("inhibit time", "event timer"):
+            data_type = od.UNSIGNED16
+        record.add_member(_var(member, index, sub, data_type, default, access))
+    return record
+
+
+def _mapping(name: str, index: int) -> od.ODRecord:
+    record = od.ODRecord(name, index)
+    record.add_member(_var(f"{name} entries", index, 0, od.UNSIGNED8, 0, "rw"))
+    for sub in range(1, 9):
+        record.add_member(_var(f"{name} {sub}", index, sub, od.UNSIGNED32, 0))
+    return record
+
+
+_APPENDIX_B = MotorParams()
+
+
+def build_dictionary(node_id: int, params: MotorParams = _APPENDIX_B) -> od.ObjectDictionary:
+    """The simulated drive's object dictionary: what :mod:`biris_hw.axes.cia402` needs, with
+    a drive's power-up values (PDOs invalid, no heartbeat, Appendix B's parameters)."""
+    new_dictionary: Any = od.ObjectDictionary
+    d: od.ObjectDictionary = new_dictionary()
+    d.node_id = node_id
+    for var in (
+        _var("device type", 0x1000, 0, od.UNSIGNED32, 0x0002_0000 | CIA402_PROFILE, "const"),
+        _var("error register", 0x1001, 0, od.UNSIGNED8, 0, "ro"),
+        _var("producer heartbeat time", 0x1017, 0, od.UNSIGNED16, 0),
+        _var("controlword", 0x6040, 0, od.UNSIGNED16, 0),
+        _var("statusword", 0x6041, 0, od.UNSIGNED16, 0, "ro"),
+        _var("quick stop option code", 0x605A, 0, od.INTEGER16, 5),
+        _var("modes of operation", 0x6060, 0, od.INTEGER8, 0),
+        _var("modes of operation display", 0x6061, 0, od.INTEGER8, 0, "ro"),
+        _var("position demand value", 0x6062, 0, od.INTEGER32, 0, "ro"),
+        _var("position actual value", 0x6064, 0, od.INTEGER32, 0, "ro"),
+        _var("following error window", 0x6065, 0, od.UNSIGNED32, 1000),
+        _var("following error time out", 0x6066, 0, od.UNSIGNED16, 10),
+        _var("position window", 0x6067, 0, od.UNSIGNED32, 2),
+        _var("position window time", 0x6068, 0, od.UNSIGNED16, 0),
+        _var("target position", 0x607A, 0, od.INTEGER32, 0),
+        _var("home offset", 0x607C, 0, od.INTEGER32, 0),
+        _var("profile velocity", 0x6081, 0, od.UNSIGNED32, 1000),
+        _var("profile acceleration", 0x6083, 0, od.UNSIGNED32, 10000),
+        _var("profile deceleration", 0x6084, 0, od.UNSIGNED32, 10000),
+        _var("quick stop deceleration", 0x6085, 0, od.UNSIGNED32, 100000),
+        _var("homing method", 0x6098, 0, od.INTEGER8, 35),
+        _var("touch probe function", 0x60B8, 0, od.UNSIGNED16, 0),
+        _var("touch probe status", 0x60B9, 0, od.UNSIGNED16, 0, "ro"),
+        _var("touch probe 1 positive edge", 0x60BA, 0, od.INTEGER32, 0, "ro"),
+        _var("supported drive modes", 0x6502, 0, od.UNSIGNED32, 0x21, "ro"),
+    ):
+        d.add_object(var)
+    consumer = od.ODArray("consumer heartbeat time", 0x1016)
+    consumer.add_member(_var("consumer heartbeat entries", 0x1016, 0, od.UNSIGNED8, 1, "ro"))
+    consumer.add_member(_var("consumer heartbeat time 1", 0x1016, 1, od.UNSIGNED32, 0))
+    d.add_object(consumer)
+    rpdo_cob = 0x8000_0000 | (0x200 + node_id)  # invalid until the master maps it
+    tpdo_cob = 0x8000_0000 | (0x180 + node_id)
+    rx = [("COB-ID", 1, rpdo_cob, "rw"), ("transmission type", 2, 255, "rw")]
+    d.add_object(_record("RPDO1 communication", 0x1400, rx))
+    d.add_object(_mapping("RPDO1 mapping", 0x1600))
+    tx = [
+        ("COB-ID", 1, tpdo_cob, "rw"),
+        ("transmission type", 2, 255, "rw"),
+        ("inhibit time", 3, 0, "rw"),
+        ("event timer", 5, 0, "rw"),
+    ]
+    d.add_object(_record("TPDO1 communication", 0x1800, tx))
+    d.add_object(_mapping("TPDO1 mapping", 0x1A00))
+    values = params.to_dict()
+    d.add_object(
+        _record(
+            "BIRIS motor parameters",
+            Obj.MOTOR_PARAMS,
+            [(key, sub, values[key], "rw") for sub, key in enumerate(PARAM_KEYS, start=1)],
+        )
+    )
+    return d
+
+
+class _Profile:
+    """A trapezoid (or triangle) from where the demand is, at whatever speed it has: each
+    sample, the speed toward the target is the least of the cruise speed, the speed one
+    sample's acceleration adds, and the speed from which the deceleration stops exactly there."""
+
+    def __init__(
+        self, pos: float, vel: float, target: int, vmax: float, acc: float, dec: float
+    ) -> None:
+        self.pos = pos
+        self.vel = vel
+        self.target = target
+        self.vmax = max(vmax, 1e-9)
+        self.acc = max(acc, 1e-9)
+        self.dec = max(dec, 1e-9)
+        self.done = False
+
+    def step(self, dt: float) -> None:
+        remaining = self.target - self.pos
+        if remaining == 0.0:
+            self.vel = 0.0
+            self.done = True
+            return
+        direction = 1.0 if remaining > 0.0 else -1.0
+        toward = self.vel * direction
+        dist = abs(remaining)
+        cap = min(self.vmax, math.sqrt(2.0 * self.dec * dist))
+        if toward < 0.0:  # still going the other way: brake first
+            speed = min(toward + self.dec * dt, cap)
+        else:
+            speed = min(toward + self.acc * dt, cap)
+        advance = speed * dt
+        if advance >= dist:
+            self.pos = float(self.target)
+            self.vel = 0.0
+            self.done = True
+            return
+        self.pos += direction * advance
+        self.vel = direction * speed
+
+
+class SimulatedDrive:
+    """One CiA 402 drive (node ``node_id``) driving ``plant`` on hardware clock ``clock``.
+
+    ``network_or_channel`` is a connected :class:`canopen.Network` (shared by several drives)
+    or the name of a python-can ``virtual`` channel, for which the drive makes (and owns) a
+    network of its own. ``audit`` is the simulator's shared audit, which gets the violations
+    that have a rule there; every violation is in :attr:`violations`.
+    """
+
+    def __init__(
+        self,
+        network_or_channel: canopen.Network | str,
+        node_id: int,
+        plant: MotorPlant,
+        clock: Callable[[], float],
+        audit: Audit | None = None,
+        *,
+        params: MotorParams = _APPENDIX_B,
+        step_real_s: float = STEP_REAL_S,
+        name: str = "",
+    ) -> None:
+        self.node_id = node_id
+        self.plant = plant
+        self.name = name or f"drive {node_id}"
+        self._clock = clock
+        self._audit = audit
+        self._step_real_s = step_real_s
+        self._lock = threading.RLock()
+        self.violations: list[DriveViolation] = []
+        self.emcy_sent: list[int] = []
+        """EMCY error codes sent, oldest first (backdoor for tests)."""
+        if isinstance(network_or_channel, str):
+            network = canopen.Network()
+            network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+            network.NOTIFIER_SHUTDOWN_TIMEOUT = 4 * NOTIFIER_CYCLE_S
+            network.connect(interface="virtual", channel=network_or_channel)
+            self._own_network = True
+        else:
+            network = network_or_channel
+            self._own_network = False
+        self.network = network
+        # -- the drive's state (under _lock) --
+        self._powered = True
+        self._state = DriveState.SWITCH_ON_DISABLED
+        self._cw = 0
+        self._mode = 0
+        self._offset = -plant.encoder_counts  # the position actual counts from power-up: 0
+        self._demand = 0.0
+        self._profile: _Profile | None = None
+        self._move_target = 0
+        self._ack = False
+        self._reached = False
+        self._window_s = 0.0
+        self._following_s = 0.0
+        self._following_error = False
+        self._homing_attained = False
+        self._homing_error = False
+        self._x_prev = 0
+        self._mc_prev = 0
+        self._error_register = 0
+        self._tp_function = 0
+        self._tp_stored = False
+        self._tp_value = 0
+        self._configured: set[tuple[int, int]] = set()
+        self._t = clock()
+        self._sent_status: int | None = None
+        self._batch = False
+        self._cw_pending: int | None = None
+        self._consumer: tuple[int, float] | None = None
+        self._master_seen: float | None = None
+        self._master_lost = False
+        self.master_heard = threading.Event()
+        """Set when the consumer has heard the master's heartbeat (its monitoring starts
+        there, CiA 301); cleared when the consumer is set anew (backdoor for tests)."""
+        self._rpdo_cob: int | None = None
+        self._tpdo_cob: int | None = None
+        # -- the node --
+        self.od = build_dictionary(node_id, params)
+        self.node = network.create_node(node_id, self.od)
+        self._values: dict[tuple[int, int], int] = {}
+        for index in self.od:
+            obj = self.od[index]
+            members = [obj] if isinstance(obj, od.ODVariable) else list(obj.values())
+            for var in members:
+                self._values[(var.index, var.subindex)] = int(var.default or 0)
+        local: Any = self.node  # canopen's callbacks are untyped
+        local.add_read_callback(self._on_read)
+        local.add_write_callback(self._on_write)
+        self._subscribed: list[tuple[int, Callable[[int, bytearray, float], None]]] = []
+        self._subscribe(0, self._on_nmt)
+        # boot-up, then pre-operational (heartbeat from 0x1017 when the master sets it)
+        self.node.nmt.send_command(0x81)
+        self.node.nmt.send_command(0x80)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"cia402-{node_id}", daemon=True)
+        self._thread.start()
+
+    # -- fault panel ------------------------------------------------------------------------------
+    def stall(self, stalled: bool = True) -> None:
+        """Lock (or free) the shaft: a move then pulls away from it until the following error
+        faults the drive."""
+        with self._lock:
+            self._advance()
+            self.plant.stalled = stalled
+
+    def lose_power(self) -> None:
+        """The drive goes dark: no heartbeat, no answers, no torque (the head coasts)."""
+        with self._lock:
+            self._advance()
+            self._powered = False
+            self._profile = None
+            self._state = DriveState.NOT_READY_TO_SWITCH_ON
+            self._silence()
+            try:
+                self.network.unsubscribe(0x600 + self.node_id, self.node.sdo.on_request)
+            except (KeyError, ValueError):
+                pass
+
+    def emcy(self, code: int, fault: bool = True) -> None:
+        """Send EMCY ``code``; with ``fault``, the drive faults with it (as a drive whose EMCY
+        reports a fault does), else it is only a warning."""
+        with self._lock:
+            self._advance()
+            if fault:
+                self._fault(code, "fault panel")
+            else:
+                self._send_emcy(code)
+
+    def _silence(self) -> None:
+        """Stop the heartbeat producer and wait for its thread (canopen only asks it to stop)."""
+        nmt: Any = self.node.nmt
+        stop_periodic_task(getattr(nmt, "_send_task", None))
+        nmt._send_task = None
+
+    # -- backdoor ---------------------------------------------------------------------------------
+    def turn_by_hand(self, command: int, seconds: float) -> None:
+        """Drive the plant open loop with ``command`` for ``seconds`` of its time, at once: a
+        person turning the head while the drive does not hold it (backdoor; refused while the
+        drive is enabled, which would fight the hand)."""
+        with self._lock:
+            self._advance()
+            if self._enabled():
+                raise RuntimeError("the drive holds the head: disable it first")
+            period = self._period()
+            for _ in range(max(1, round(seconds / period))):
+                self.plant.step(command, period)
+            for _ in range(round(0.2 / period)):  # and let go: it coasts to rest
+                self.plant.step(0, period)
+            if self.plant.index_seen:
+                self.plant.clear_index()
+                self._touch_probe_edge()
+            self._publish()
+
+    @property
+    def state(self) -> DriveState:
+        with self._lock:
+            self._advance()
+            return self._state
+
+    @property
+    def position_actual(self) -> int:
+        with self._lock:
+            self._advance()
+            return self._actual()
+
+    @property
+    def statusword(self) -> int:
+        with self._lock:
+            self._advance()
+            return self._statusword()
+
+    def value(self, index: int, subindex: int = 0) -> int:
+        """What the drive holds in a configuration object (backdoor)."""
+        with self._lock:
+            return self._values[(index, subindex)]
+
+    def close(self) -> None:
+        """Stop the drive's thread, leave the network (disconnecting it if the drive's own)."""
+        self._stop.set()
+        self._thread.join()
+        with self._lock:
+            self._silence()
+            self._powered = False
+        for can_id, callback in self._subscribed:
+            try:
+                self.network.unsubscribe(can_id, callback)
+            except (KeyError, ValueError):
+                pass
+        try:
+            del self.network[self.node_id]
+        except KeyError:
+            pass
+        if self._own_network:
+            self.network.disconnect()
+
+    # -- the clock --------------------------------------------------------------------------------
+    def _run(self) -> None:
+        while not self._stop.wait(self._step_real_s):
+            with self._lock:
+                self._advance()
+                self._watch_master()
+
+    def _period(self) -> float:
+        timer = max(SAMPLE_TIMER_MIN, self._values[(Obj.MOTOR_PARAMS, 1)] & 0xFF)
+        return 16.0 * (timer + 1) / F_CLK_HZ
+
+    def _actual(self) -> int:
+        return self.plant.encoder_counts + self._offset
+
+    def _advance(self) -> None:
+        """Run the samples up to now (under the lock)."""
+        now = self._clock()
+        period = self._period()
+        n = 0
+        while self._t + period <= now:
+            if self._quiescent():
+                skipped = math.floor((now - self._t) / period)
+                self._t += skipped * period
+                break
+            self._sample(period)
+            self._t += period
+            n += 1
+            if n >= MAX_CATCH_UP:
+                self._t = now
+                break
+
+    def _quiescent(self) -> bool:
+        """Nothing observable can change until the master acts: no profile, no loop output,
+        a head that friction holds."""
+        if self._profile is not None or self._mc_prev != 0 or self._x_prev != 0:
+            return False
+        if self._enabled() and (round(self._demand) != self._actual() or not self._reached):
+            return False
+        return self.plant.holds_at_rest(0)
+
+    def _enabled(self) -> bool:
+        return self._powered and self._state in (
+            DriveState.OPERATION_ENABLED,
+            DriveState.QUICK_STOP_ACTIVE,
+        )
+
+    def _sample(self, period: float) -> None:
+        actual = self._actual()
+        if self._enabled():
+            profile = self._profile
+            if profile is not None:
+                profile.step(period)
+                self._demand = profile.pos
+                if profile.done:
+                    self._profile = None
+            x = round(self._demand) - actual
+            gain, zero, pole = (self._values[(Obj.MOTOR_PARAMS, s)] & 0xFF for s in (4, 2, 3))
+            mc = int(gain * 0.25 * (x - zero / 256.0 * self._x_prev) - pole / 256.0 * self._mc_prev)
+            mc = max(-128, min(127, mc))
+            self._x_prev, self._mc_prev = x, mc
+            self._check_following(abs(x), period)
+        else:
+            mc = 0
+            self._x_prev = self._mc_prev = 0
+            self._demand = float(actual)
+        self.plant.step(mc if self._powered else 0, period)
+        if self.plant.index_seen:
+            self.plant.clear_index()
+            self._touch_probe_edge()
+        if self._state is DriveState.OPERATION_ENABLED and self._mode == 1:
+            within = abs(self._move_target - self._actual()) <= self._values[(0x6067, 0)]
+            if self._profile is None and within:
+                self._window_s += period
+                self._reached = self._window_s * 1000.0 >= self._values[(0x6068, 0)]
+            else:
+                self._window_s = 0.0
+                self._reached = False
+        self._publish()
+
+    def _check_following(self, error: int, period: float) -> None:
+        if self._state is not DriveState.OPERATION_ENABLED:
+            return
+        if error > self._values[(0x6065, 0)]:
+            self._following_s += period
+            if self._following_s * 1000.0 > self._values[(0x6066, 0)]:
+                self._following_error = True
+                self._fault(EMCY_FOLLOWING_ERROR, f"following error {error} counts")
+        else:
+            self._following_s = 0.0
+
+    def _watch_master(self) -> None:
+        """Heartbeat consumer: a master heard once, then silent too long, faults the drive."""
+        consumer, seen = self._consumer, self._master_seen
+        if consumer is None or seen is None or self._master_lost or not self._powered:
+            return
+        if time.monotonic() - seen > consumer[1]:
+            self._master_lost = True
+            self._fault(EMCY_HEARTBEAT, f"no heartbeat from master node {consumer[0]}")
+
+    # -- the statusword ---------------------------------------------------------------------------
+    def _statusword(self) -> int:
+        word = _BASE[self._state] | (Sw.REMOTE if self._powered else 0)
+        if self._state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
+            return word | (Sw.FOLLOWING_ERROR if self._following_error else 0)
+        if self._mode == 1 and self._state is DriveState.OPERATION_ENABLED:
+            word |= Sw.TARGET_REACHED if self._reached else 0
+            word |= Sw.SET_POINT_ACKNOWLEDGE if self._ack else 0
+            word |= Sw.FOLLOWING_ERROR if self._following_error else 0
+        elif self._mode == 6 and self._state is DriveState.OPERATION_ENABLED:
+            word |= (Sw.TARGET_REACHED | Sw.SET_POINT_ACKNOWLEDGE) if self._homing_attained else 0
+            word |= Sw.FOLLOWING_ERROR if self._homing_error else 0
+        return int(word)
+
+    def _publish(self) -> None:
+        """TPDO1 whenever the statusword changed (event-driven, type 254/255)."""
+        status = self._statusword()
+        if status == self._sent_status:
+            return
+        self._sent_status = status
+        cob = self._tpdo_cob
+        if cob is None or not self._powered or self.node.nmt.state != "OPERATIONAL":
+            return
+        if self._values[(0x1800, 2)] < 254:
+            return
+        self._transmit(cob)
+
+    def _transmit(self, cob: int) -> None:
+        frame = b""
+        for sub in range(1, self._values[(0x1A00, 0)] + 1):
+            entry = self._values[(0x1A00, sub)]
+            index, subindex, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+            var = self.od.get_variable(index, subindex)
+            assert var is not None  # checked when mapped
+            frame += var.encode_raw(self._read_value(index, subindex))[: bits // 8]
+        try:
+            self.network.send_message(cob, frame)
+        except Exception as exc:  # the bus is closing: nobody is listening any more
+            log.debug("%s: TPDO not sent (%s)", self.name, exc)
+
+    # -- object access ----------------------------------------------------------------------------
+    def _read_value(self, index: int, subindex: int) -> int:
+        dynamic: dict[int, Callable[[], int]] = {
+            0x6041: self._statusword,
+            0x6061: lambda: self._mode,
+            0x6062: lambda: round(self._demand) if self._enabled() else self._actual(),
+            0x6064: self._actual,
+            0x60B9: self._touch_probe_status,
+            0x60BA: lambda: self._tp_value,
+            0x1001: lambda: self._error_register,
+        }
+        read = dynamic.get(index)
+        if read is not None:
+            return read()
+        return self._values[(index, subindex)]
+
+    def _on_read(self, index: int, subindex: int, od: Any) -> int | None:
+        with self._lock:
+            if not self._powered:
+                raise SdoAbortedError(0x08000000)
+            self._advance()
+            if (index, subindex) in self._values:
+                return self._read_value(index, subindex)
+            return None
+
+    def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        var = self.od.get_variable(index, subindex)
+        if var is None:
+            raise SdoAbortedError(0x06090011)
+        value = int(var.decode_raw(data))
+        with self._lock:
+            if not self._powered:
+                raise SdoAbortedError(0x08000000)
+            self._advance()
+            self._check_write(index, subindex, value)
+            old = self._values.get((index, subindex), 0)
+            self._values[(index, subindex)] = value
+            self._configured.add((index, subindex))
+            self._written(index, subindex, value, old)
+            self._publish()
+
+    def _check_write(self, index: int, subindex: int, value: int) -> None:
+        """Refuse, as a drive would, what it cannot take (an SDO abort)."""
+        if index == 0x6060 and value not in _SUPPORTED_MODES:
+            raise SdoAbortedError(0x06090030)
+        if index == 0x6098 and value not in (35, 37):
+            raise SdoAbortedError(0x06090030)
+        if index in (0x1600, 0x1A00):
+            comm = 0x1400 if index == 0x1600 else 0x1800
+            if not self._values[(comm, 1)] & 0x8000_0000:
+                raise SdoAbortedError(0x08000022)  # mapping changed while the PDO is valid
+            if subindex == 0:
+                self._check_mapping(index, value)
+            elif self._values[(index, 0)] != 0:
+                raise SdoAbortedError(0x08000022)
+            elif value:
+                entry = ((value >> 16) & 0xFFFF, (value >> 8) & 0xFF)
+                allowed = _MAPPABLE_RX if index == 0x1600 else _MAPPABLE_TX
+                var = self.od.get_variable(*entry)
+                if entry not in allowed or var is None or len(var) != value & 0xFF:
+                    raise SdoAbortedError(0x06040041)
+
+    def _check_mapping(self, index: int, count: int) -> None:
+        if count > 8:
+            raise SdoAbortedError(0x06090031)
+        bits = sum(self._values[(index, sub)] & 0xFF for sub in range(1, count + 1))
+        if bits > 64:
+            raise SdoAbortedError(0x06040042)
+        for sub in range(1, count + 1):
+            if not self._values[(index, sub)]:
+                raise SdoAbortedError(0x06040043)
+
+    def _written(self, index: int, subindex: int, value: int, old: int) -> None:
+        if index == 0x6040:
+            if self._batch:
+                self._cw_pending = value
+            else:
+                self._controlword(value)
+        elif index == 0x6060:
+            if value != self._mode:
+                self._mode = value
+                self._ack = False
+                self._homing_attained = self._homing_error = False
+        elif index == 0x60B8:
+            self._touch_probe_function(value, old)
+        elif index == 0x1016 and subindex == 1:
+            self._set_consumer(value)
+        elif index in (0x1400, 0x1800) and subindex == 1:
+            self._set_pdo(index, value)
+
+    def _set_pdo(self, comm: int, cob_id: int) -> None:
+        valid = not cob_id & 0x8000_0000
+        cob = cob_id & 0x7FF
+        if comm == 0x1400:
+            if self._rpdo_cob is not None:
+                self._unsubscribe(self._rpdo_cob, self._on_rpdo)
+                self._rpdo_cob = None
+            if valid:
+                self._rpdo_cob = cob
+                self._subscribe(cob, self._on_rpdo)
+        else:
+            self._tpdo_cob = cob if valid else None
+
+    def _set_consumer(self, value: int) -> None:
+        master, ms = (value >> 16) & 0x7F, value & 0xFFFF
+        if self._consumer is not None:
+            self._unsubscribe(0x700 + self._consumer[0], self._on_master_heartbeat)
+        self._consumer = None
+        self._master_seen = None
+        self._master_lost = False
+        self.master_heard.clear()
+        if master and ms:
+            self._consumer = (master, ms / 1000.0)
+            self._subscribe(0x700 + master, self._on_master_heartbeat)
+
+    def _subscribe(self, can_id: int, callback: Callable[[int, bytearray, float], None]) -> None:
+        self.network.subscribe(can_id, callback)
+        self._subscribed.append((can_id, callback))
+
+    def _unsubscribe(self, can_id: int, callback: Callable[[int, bytearray, float], None]) -> None:
+        if (can_id, callback) in self._subscribed:
+            self._subscribed.remove((can_id, callback))
+            try:
+                self.network.unsubscribe(can_id, callback)
+            except (KeyError, ValueError):
+                pass
+
+    # -- bus events (the network's receive thread) ------------------------------------------------
+    def _on_master_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._lock:
+            self._master_seen = time.monotonic()
+            self._master_lost = False
+        self.master_heard.set()
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._lock:
+            if len(data) >= 2 and data[1] in (0, self.node_id) and data[0] == 0x01:
+                self._sent_status = None  # entering OPERATIONAL: the event PDO goes out once
+                self._advance()
+                self._publish()
+
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._lock:
+            if not self._powered:
+                return
+            if self.node.nmt.state != "OPERATIONAL":
+                self._violation(DriveRule.RPDO_NOT_OPERATIONAL, f"RPDO {bytes(data).hex()}")
+                return
+            self._advance()
+            self._batch = True
+            self._cw_pending = None
+            try:
+                offset = 0
+                for sub in range(1, self._values[(0x1600, 0)] + 1):
+                    entry = self._values[(0x1600, sub)]
+                    index, subindex, size = entry >> 16, (entry >> 8) & 0xFF, (entry & 0xFF) // 8
+                    self.node.set_data(index, subindex, bytes(data[offset : offset + size]))
+                    offset += size
+            except SdoAbortedError as exc:
+                log.warning("%s: RPDO refused (%s)", self.name, exc)
+            finally:
+                self._batch = False
+            pending = self._take_pending()
+            if pending is not None:
+                self._controlword(pending)
+            self._publish()
+
+    def _take_pending(self) -> int | None:
+        """The controlword an RPDO carried, taken once all of its values are stored."""
+        pending, self._cw_pending = self._cw_pending, None
+        return pending
+
+    # -- the state machine ------------------------------------------------------------------------
+    def _controlword(self, cw: int) -> None:
+        prev, self._cw = self._cw, cw
+        if not self._powered:
+            return
+        state = self._state
+        if state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
+            if cw & Cw.FAULT_RESET and not prev & Cw.FAULT_RESET:
+                self._state = DriveState.SWITCH_ON_DISABLED
+                self._following_error = False
+                self._error_register = 0
+                self._send_emcy(0x0000)
+            return
+        if cw & Cw.FAULT_RESET:
+            return
+        new = self._transition(state, cw)
+        if new is not state:
+            self._enter(state, new)
+        if self._state is DriveState.OPERATION_ENABLED:
+            rising = cw & Cw.NEW_SET_POINT and not prev & Cw.NEW_SET_POINT
+            if self._mode == 1:
+                if rising:
+                    self._set_point(cw)
+                elif not cw & Cw.NEW_SET_POINT:
+                    self._ack = False
+            elif self._mode == 6 and rising:
+                self._home()
+        elif cw & Cw.NEW_SET_POINT and not prev & Cw.NEW_SET_POINT and self._mode == 1:
+            self._violation(
+                DriveRule.SET_POINT_NOT_ENABLED,
+                f"set-point to {self._values[(0x607A, 0)]} in {state.value}",
+            )
+
+    @staticmethod
+    def _transition(state: DriveState, cw: int) -> DriveState:
+        s = DriveState
+        if not cw & Cw.ENABLE_VOLTAGE:  # disable voltage
+            if state in (s.READY_TO_SWITCH_ON, s.SWITCHED_ON, s.OPERATION_ENABLED):
+                return s.SWITCH_ON_DISABLED
+            if state is s.QUICK_STOP_ACTIVE:
+                return s.SWITCH_ON_DISABLED
+            return state
+        if not cw & Cw.QUICK_STOP:  # quick stop
+            if state in (s.READY_TO_SWITCH_ON, s.SWITCHED_ON):
+                return s.SWITCH_ON_DISABLED
+            if state is s.OPERATION_ENABLED:
+                return s.QUICK_STOP_ACTIVE
+            return state
+        if cw & 0x07 == 0x06:  # shutdown
+            if state in (s.SWITCH_ON_DISABLED, s.SWITCHED_ON, s.OPERATION_ENABLED):
+                return s.READY_TO_SWITCH_ON
+            return state
+        if cw & 0x0F == 0x07:  # switch on / disable operation
+            if state in (s.READY_TO_SWITCH_ON, s.OPERATION_ENABLED):
+                return s.SWITCHED_ON
+            return state
+        enable = cw & 0x0F == 0x0F  # enable operation (from READY TO SWITCH ON: switch on first)
+        if enable and state in (s.READY_TO_SWITCH_ON, s.SWITCHED_ON, s.QUICK_STOP_ACTIVE):
+            return s.OPERATION_ENABLED
+        return state
+
+    def _enter(self, old: DriveState, new: DriveState) -> None:
+        self._state = new
+        actual = self._actual()
+        if new is DriveState.OPERATION_ENABLED and old is not DriveState.QUICK_STOP_ACTIVE:
+            target = self._values[(0x607A, 0)]
+            if abs(target - actual) > JUMP_COUNTS:
+                self._violation(
+                    DriveRule.ENABLE_WITH_JUMP,
+                    f"enabled with target {target}, position actual {actual}",
+                )
+            # a compliant drive holds the head where it stands
+            self._demand = float(actual)
+            self._move_target = actual
+            self._profile = None
+            self._x_prev = self._mc_prev = 0
+            self._ack = False
+            self._reached = True
+            self._window_s = 0.0
+            self._following_s = 0.0
+            self._homing_attained = self._homing_error = False
+        elif new is DriveState.QUICK_STOP_ACTIVE:
+            self._ack = False
+            self._stop_ramp(self._values[(0x6085, 0)])
+        elif new is not DriveState.OPERATION_ENABLED:
+            self._profile = None
+            self._ack = False
+            self._reached = False
+
+    def _stop_ramp(self, decel: int) -> None:
+        profile = self._profile
+        vel = profile.vel if profile is not None else 0.0
+        stop_at = self._demand + math.copysign(vel * vel / (2.0 * max(decel, 1)), vel)
+        self._profile = _Profile(self._demand, vel, round(stop_at), abs(vel), decel, decel)
+
+    def _parameters_set(self) -> bool:
+        needed: list[tuple[int, int]] = [(Obj.MOTOR_PARAMS, sub) for sub in range(1, 7)]
+        needed += [(0x6081, 0), (0x6083, 0), (0x6084, 0)]
+        return all(key in self._configured for key in needed)
+
+    def _set_point(self, cw: int) -> None:
+        target = self._values[(0x607A, 0)]
+        if cw & Cw.RELATIVE:
+            target += self._move_target
+        if abs(target) > MOTION_LIMIT_COUNTS:
+            self._violation(DriveRule.TARGET_BEYOND_LIMIT, f"set-point to {target}")
+        if self._profile is not None or self._ack:
+            self._violation(
+                DriveRule.SET_POINT_WHILE_MOVING,
+                f"set-point to {target} while moving to {self._move_target}",
+            )
+        if not self._parameters_set():
+            self._violation(DriveRule.MOVE_UNCONFIGURED, f"set-point to {target}")
+        profile = self._profile
+        vel = profile.vel if profile is not None else 0.0
+        self._profile = _Profile(
+            self._demand,
+            vel,
+            target,
+            self._values[(0x6081, 0)],
+            self._values[(0x6083, 0)],
+            self._values[(0x6084, 0)],
+        )
+        self._move_target = target
+        self._ack = True
+        self._reached = False
+        self._window_s = 0.0
+
+    def _home(self) -> None:
+        """Methods 35/37: the present position becomes the home offset; nothing moves."""
+        method = self._values[(0x6098, 0)]
+        if method not in (35, 37):
+            self._homing_error = True
+            return
+        actual = self._actual()
+        shift = self._values[(0x607C, 0)] - actual
+        self._offset += shift
+        self._demand += shift
+        self._move_target = self._actual()
+        self._homing_attained = True
+
+    def _fault(self, code: int, why: str) -> None:
+        log.info("%s: fault 0x%04X (%s)", self.name, code, why)
+        self._state = DriveState.FAULT
+        self._profile = None
+        self._ack = False
+        self._reached = False
+        self._x_prev = self._mc_prev = 0
+        self._error_register |= 0x01
+        self._send_emcy(code)
+        self._publish()
+
+    def _send_emcy(self, code: int) -> None:
+        self.emcy_sent.append(code)
+        if not self._powered:
+            return
+        try:
+            self.node.emcy.send(code, self._error_register)
+        except Exception as exc:  # the bus is closing
+            log.debug("%s: EMCY not sent (%s)", self.name, exc)
+
+    # -- touch probe ------------------------------------------------------------------------------
+    def _touch_probe_function(self, value: int, old: int) -> None:
+        self._tp_function = value
+        if not value & 0x01:
+            self._tp_stored = False
+        elif not old & 0x01 or (value & 0x10 and not old & 0x10):
+            self._tp_stored = False  # (re-)enabled: armed afresh
+
+    def _touch_probe_status(self) -> int:
+        return (self._tp_function & 0x01) | (0x02 if self._tp_stored else 0)
+
+    def _touch_probe_edge(self) -> None:
+        function = self._tp_function
+        armed = function & 0x01 and function & 0x10 and (function >> 2) & 0x03 == 0x01
+        if not armed or (self._tp_stored and not function & 0x02):
+            return
+        self._tp_stored = True
+        self._tp_value = self._actual()
+
+    # -- audit ------------------------------------------------------------------------------------
+    def _violation(self, rule: DriveRule, detail: str) -> None:
+        record = DriveViolation(self._clock(), self.node_id, rule, detail)
+        log.warning("%s: %s", self.name, record)
+        self.violations.append(record)
+        shared = _SHARED.get(rule)
+        if shared is not None and self._audit is not None:
+            self._audit.record(shared, f"CiA 402 node {self.node_id}: {detail}")
