@@ -50,6 +50,7 @@ SECTIONS: tuple[str, ...] = (
     "registers",
     "sweep_gap_ms",
     "soak",
+    "transport_vmusb",
 )
 """The report's sections, in report order; each is present in report.json whether it ran or not."""
 

@@ -243,3 +243,26 @@ def test_the_module_and_the_tools_script_run_from_a_checkout(tmp_path: Path) -> 
         check=False,
     )
     assert listed.returncode == 0 and "registers" in listed.stdout.split()
+
+
+# -- the transport_vmusb benchmark ---------------------------------------------------------------
+
+
+def test_transport_vmusb_is_a_section_and_counts_the_transfers_of_one_access() -> None:
+    """The register-access part alone (the rest needs a rig and most of a minute): one round
+    each, and the transfer counts the section's targets judge."""
+    from benchmarks.transport_vmusb import register_costs
+
+    assert "transport_vmusb" in SECTIONS and "transport_vmusb" in registry.benchmarks()
+    started = time.perf_counter()
+    figures = {f.name: f for f in register_costs(rounds=1, batch_ms=1)}
+    assert time.perf_counter() - started < 2.0
+    assert set(figures) == {
+        f"register_{op}{armed}"
+        for op in ("read8", "read16", "frame129")
+        for armed in ("", "_irq_armed")
+    }
+    for name, fig in figures.items():
+        assert fig.met is True, (name, fig.values)
+        assert fig.values["vmusb_us"] > fig.values["memory_us"] > 0
+        assert fig.values["modelled_hw_us"] >= (625.0 if "armed" in name else 250.0)
