@@ -21,6 +21,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from biris_hw.angles import clamp_counts
+from biris_hw.axes.base import SETTLE_HOLD_S, SETTLE_LIMIT_S
+from biris_hw.axes.base import wait_settled as settle_poll
+from biris_hw.axes.base import wait_still as still_poll
 from biris_hw.bus.base import BusWindow
 from biris_hw.errors import HardwareFault
 from biris_hw.pan_reference import PanReference
@@ -55,15 +58,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-SETTLE_LIMIT_S = 1.0
-"""Longest :meth:`AxisDriver.wait_settled` polls by default for the head to come to rest
-(hardware seconds)."""
-
-SETTLE_HOLD_S = 0.015
-"""How long the head must stand still at its command position to count as settled (hardware
-seconds, about ten chip samples at the record's sample timer). Counted on the hardware clock,
-not in polls: a head ringing under a filter it cannot follow passes its destination slowly at
-a turning point, and three polls close together on a busy host saw it "settled" there."""
 
 LEVEL2_VECTOR = 0x42
 """The vector the driver programs for every level-2 (BIRIS) interrupt; a transport that matches
@@ -331,59 +325,24 @@ class AxisDriver:
         limit_s: float = SETTLE_LIMIT_S,
         sample_s: float = 0.0015,
     ) -> bool:
-        """Poll until the actual position equals the command position and holds there.
-
-        Polling is how the HCTL-1000 datasheet says to tell that the motor has stopped (the
-        profile flag clears before it does). Held means the same reading, within a count of the
-        command position, for at least 3 polls and SETTLE_HOLD_S of hardware time. Bounded by
-        ``limit_s`` of hardware time, polled every ``sample_s`` (about one chip sample); False
-        if not settled, or if ``stop`` is set.
-
-        A head seen standing at its command position when ``limit_s`` runs out is watched until
-        the hold is complete or it moves (at most ``2 * SETTLE_HOLD_S`` more): a notifier that a
-        busy host wakes late must not call a still head unsettled, because the administrator
-        takes an unsettled head for a fault.
-        """
-        clock = self._clock
-        deadline = clock() + limit_s
-        last: int | None = None
-        steady = 0
-        since = 0.0
-        while True:
-            now = clock()
-            pos, target = self.positions()
-            at_target = abs(pos - target) <= 1
-            if at_target and pos == last:
-                steady += 1
-                if steady >= 3 and now - since >= SETTLE_HOLD_S:
-                    if self.reference is not None:
-                        self.reference.settled(pos)
-                    return True
-            else:
-                steady = 0
-                since = now
-            if now >= deadline and (not at_target or now >= deadline + 2 * SETTLE_HOLD_S):
-                return False
-            last = pos
-            if stop.wait(sample_s / self._scale):
-                return False
+        """Poll until the actual position equals the command position and holds there
+        (:func:`biris_hw.axes.base.wait_settled`: held for at least 3 polls and SETTLE_HOLD_S
+        of hardware time, bounded by ``limit_s``, a still head watched a little past it); both
+        positions are read in one bus transaction per poll. False if not settled, or if
+        ``stop`` is set; the settle position goes to the pan reference."""
+        pos = settle_poll(self.positions, self._clock, self._scale, stop, limit_s, sample_s)
+        if pos is None:
+            return False
+        if self.reference is not None:
+            self.reference.settled(pos)
+        return True
 
     def wait_still(
         self, stop: threading.Event, limit_s: float = 2.0, sample_s: float = 0.002
     ) -> None:
-        """Poll until the encoder stops changing (5 equal samples), bounded by ``limit_s`` of
-        hardware time: after a chip reset the motor coasts, and nothing is commanded to compare
-        it with."""
-        clock = self._clock
-        deadline = clock() + limit_s
-        last = self.actual_position()
-        steady = 0
-        while clock() < deadline and steady < 5:
-            if stop.wait(sample_s / self._scale):
-                return
-            pos = self.actual_position()
-            steady = steady + 1 if pos == last else 0
-            last = pos
+        """Poll until the encoder stops changing (:func:`biris_hw.axes.base.wait_still`): after
+        a chip reset the motor coasts, and nothing is commanded to compare it with."""
+        still_poll(self.actual_position, self._clock, self._scale, stop, limit_s, sample_s)
 
 
 class Coupler:

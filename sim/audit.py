@@ -42,10 +42,14 @@ class Rule(str, enum.Enum):
 
 @dataclass(frozen=True)
 class Violation:
-    """One broken rule: when (hardware seconds), which rule, the registers involved."""
+    """One broken rule: when (hardware seconds), which rule, the registers involved.
+
+    ``rule`` is a :class:`Rule`, or a rule of a simulated transport's own audit (the VM-USB's
+    ``sim.vmusb.VmUsbRule``, a CiA 402 drive's ``sim.cia402.DriveRule``): string enums whose
+    value is the name used in reports."""
 
     time: float
-    rule: Rule
+    rule: enum.Enum
     registers: dict[str, int] = field(default_factory=dict)
     detail: str = ""
 
@@ -55,14 +59,17 @@ class Violation:
 
 
 class Audit:
-    """Thread-safe list of violations, stamped with the simulator clock."""
+    """Thread-safe list of violations, stamped with the simulator clock.
+
+    The simulator keeps one for the report's rules (``rig.audit``); a simulated transport keeps
+    its own for the rules of its protocol, in the same shape."""
 
     def __init__(self, clock: Callable[[], float]) -> None:
         self._clock = clock
         self._lock = threading.Lock()
         self._violations: list[Violation] = []
 
-    def record(self, rule: Rule, detail: str = "", **registers: int) -> None:
+    def record(self, rule: enum.Enum, detail: str = "", **registers: int) -> None:
         """Note that ``rule`` was broken now, with the register values that show it."""
         violation = Violation(self._clock(), rule, dict(registers), detail)
         with self._lock:

@@ -52,7 +52,6 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import canopen
@@ -71,10 +70,10 @@ from biris_hw.axes.cia402 import (
 )
 from biris_hw.records import MotorParams
 from regs.hctl1000 import F_CLK_HZ, MOTION_LIMIT_COUNTS, SAMPLE_TIMER_MIN
-from sim.audit import Audit, Rule
+from sim.audit import Audit, Rule, Violation
 from sim.motor import MotorPlant
 
-__all__ = ["JUMP_COUNTS", "DriveRule", "DriveViolation", "SimulatedDrive", "build_dictionary"]
+__all__ = ["JUMP_COUNTS", "DriveRule", "SimulatedDrive", "build_dictionary"]
 
 log = logging.getLogger(__name__)
 
@@ -126,19 +125,6 @@ _SHARED = {
     DriveRule.ENABLE_WITH_JUMP: Rule.POSITION_MODE_WHILE_MOVING,
     DriveRule.MOVE_UNCONFIGURED: Rule.MOTION_WHILE_UNINITIALISED,
 }
-
-
-@dataclass(frozen=True)
-class DriveViolation:
-    """One broken rule: when (hardware seconds), which node, which rule, what."""
-
-    time: float
-    node_id: int
-    rule: DriveRule
-    detail: str
-
-    def __str__(self) -> str:
-        return f"t={self.time:.6f}s node {self.node_id} {self.rule.value} {self.detail}"
 
 
 def _var(
@@ -312,7 +298,7 @@ class SimulatedDrive:
         self._audit = audit
         self._step_real_s = step_real_s
         self._lock = threading.RLock()
-        self.violations: list[DriveViolation] = []
+        self._own_audit = Audit(clock)
         self.emcy_sent: list[int] = []
         """EMCY error codes sent, oldest first (backdoor for tests)."""
         if isinstance(network_or_channel, str):
@@ -971,10 +957,15 @@ class SimulatedDrive:
         self._tp_value = self._actual()
 
     # -- audit ------------------------------------------------------------------------------------
+    @property
+    def violations(self) -> list[Violation]:
+        """A copy of this drive's broken rules (DriveRule), oldest first."""
+        return self._own_audit.violations
+
     def _violation(self, rule: DriveRule, detail: str) -> None:
-        record = DriveViolation(self._clock(), self.node_id, rule, detail)
-        log.warning("%s: %s", self.name, record)
-        self.violations.append(record)
+        detail = f"node {self.node_id}: {detail}"
+        log.warning("%s: %s %s", self.name, rule.value, detail)
+        self._own_audit.record(rule, detail)
         shared = _SHARED.get(rule)
         if shared is not None and self._audit is not None:
-            self._audit.record(shared, f"CiA 402 node {self.node_id}: {detail}")
+            self._audit.record(shared, f"CiA 402 {detail}")

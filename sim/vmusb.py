@@ -56,7 +56,7 @@ import struct
 import threading
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import usb.backend
@@ -104,6 +104,7 @@ from regs.vmusb import (
     InternalReg,
     ta_load,
 )
+from sim.audit import Audit, Violation
 from sim.clock import SimClock
 
 __all__ = [
@@ -111,7 +112,6 @@ __all__ = [
     "VmUsbBackend",
     "VmUsbCounters",
     "VmUsbRule",
-    "VmUsbViolation",
 ]
 
 # -- what libusb would say ---------------------------------------------------------------------
@@ -186,20 +186,6 @@ class VmUsbRule(str, enum.Enum):
     """A D8/D16 read in an immediate list while GLOBAL_MODE lacks GLOBAL_ALIGN32."""
     STACK_OVERLAP = "VMUSB_STACK_OVERLAP"
     """A stack loaded over part of another stack's memory."""
-
-
-@dataclass(frozen=True)
-class VmUsbViolation:
-    """One broken rule, in the shape of :class:`sim.audit.Violation` (with this module's rules)."""
-
-    time: float
-    rule: VmUsbRule
-    registers: dict[str, int] = field(default_factory=dict)
-    detail: str = ""
-
-    def __str__(self) -> str:
-        regs = " ".join(f"{k}=0x{v & 0xFFFFFFFF:X}" for k, v in self.registers.items())
-        return f"t={self.time:.6f}s {self.rule.value} {regs} {self.detail}".rstrip()
 
 
 @dataclass
@@ -592,7 +578,7 @@ class SimulatedVmUsb:
         self._bus_lock = threading.Lock()
         self._abort = threading.Event()
         """Set on unplug/close: modelled transfer waits end at once."""
-        self._violations: list[VmUsbViolation] = []
+        self._audit = Audit(self._clock)
         self._slaves: tuple[_Slave, ...] = ()
         self._berr_address: int | None = None
         self._present = True
@@ -701,14 +687,12 @@ class SimulatedVmUsb:
 
     # -- observation (the simulator's backdoor) ----------------------------------------------------
     @property
-    def violations(self) -> list[VmUsbViolation]:
-        """A copy of the protocol misuse recorded so far, oldest first."""
-        with self._lock:
-            return list(self._violations)
+    def violations(self) -> list[Violation]:
+        """A copy of the protocol misuse recorded so far, oldest first (rules: VmUsbRule)."""
+        return self._audit.violations
 
     def clear_violations(self) -> None:
-        with self._lock:
-            self._violations.clear()
+        self._audit.clear()
 
     @property
     def modelled_busy_s(self) -> float:
@@ -890,7 +874,7 @@ class SimulatedVmUsb:
 
     def _violate(self, rule: VmUsbRule, detail: str, **registers: int) -> None:
         """Record (lock held)."""
-        self._violations.append(VmUsbViolation(self._clock(), rule, dict(registers), detail))
+        self._audit.record(rule, detail, **registers)
 
     def _queue_in(self, data: bytes, *, answer: bool) -> None:
         """Queue one bulk IN transfer (lock held)."""

@@ -31,12 +31,15 @@ __all__ = [
 ]
 
 SETTLE_LIMIT_S = 1.0
-"""Longest :meth:`MotionAxis.wait_settled` polls by default (hardware seconds); the same value
-as :data:`biris_hw.devices.SETTLE_LIMIT_S`."""
+"""Longest :meth:`MotionAxis.wait_settled` polls by default for the head to come to rest
+(hardware seconds)."""
 
 SETTLE_HOLD_S = 0.015
-"""How long a head must stand at its command position to count as settled (hardware seconds);
-the same value and the same reason as :data:`biris_hw.devices.SETTLE_HOLD_S`."""
+"""How long the head must stand still at its command position to count as settled (hardware
+seconds, about ten HCTL-1000 samples at the record's sample timer). Counted on the hardware
+clock, not in polls: a head ringing under a filter it cannot follow passes its destination
+slowly at a turning point, and three polls close together on a busy host saw it "settled"
+there."""
 
 
 @runtime_checkable
@@ -136,8 +139,7 @@ class MotionController(Protocol):
 
 
 def wait_settled(
-    position: Callable[[], int],
-    command: Callable[[], int],
+    positions: Callable[[], tuple[int, int]],
     clock: Callable[[], float],
     time_scale: float,
     stop: threading.Event,
@@ -145,7 +147,9 @@ def wait_settled(
     sample_s: float = 0.0015,
     holding: Callable[[], bool] | None = None,
 ) -> int | None:
-    """The settling rule of :meth:`biris_hw.devices.AxisDriver.wait_settled`, for any axis.
+    """The settling rule of every axis: polling, as the HCTL-1000 datasheet says to tell that
+    the motor has stopped (the end of a profile comes before it does). ``positions`` reads
+    (actual, command) together, in one bus transaction where the axis can.
 
     Held means the same reading, within a count of the command position, for at least 3 polls
     and :data:`SETTLE_HOLD_S` of hardware time (``clock``); bounded by ``limit_s`` of hardware
@@ -162,8 +166,8 @@ def wait_settled(
     since = 0.0
     while True:
         now = clock()
-        pos = position()
-        at_target = abs(pos - command()) <= 1 and (holding is None or holding())
+        pos, target = positions()
+        at_target = abs(pos - target) <= 1 and (holding is None or holding())
         if at_target and pos == last:
             steady += 1
             if steady >= 3 and now - since >= SETTLE_HOLD_S:

@@ -956,8 +956,7 @@ class Cia402Axis:
         only while the drive is OPERATION ENABLED (a faulted drive's demand follows the head);
         the settle position goes to the pan reference."""
         pos = wait_settled(
-            self.actual_position,
-            self.command_position,
+            lambda: (self.actual_position(), self.command_position()),
             self._clock,
             self._scale,
             stop,
