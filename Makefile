@@ -10,7 +10,7 @@ LINT_DIRS := biris_hw regs sim benchmarks tests $(wildcard tools)
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev,demo,toml,bench,can]'
+	$(PY) -m pip install -q -e '.[dev,demo,toml,bench,can,net,record]'
 	@touch $(STAMP)
 
 test: $(STAMP)

@@ -51,6 +51,9 @@ SECTIONS: tuple[str, ...] = (
     "sweep_gap_ms",
     "soak",
     "transport_vmusb",
+    "transport_can",
+    "net",
+    "record",
 )
 """The report's sections, in report order; each is present in report.json whether it ran or not."""
 

@@ -89,6 +89,34 @@ COMMANDS: tuple[Command, ...] = (
         "them; set any of them with the flags; --save-init writes a record to start from.",
     ),
     Command(
+        "serve",
+        "biris_hw.commands.serve",
+        "run the sensor as a network service (Zenoh) for other programs",
+        "Start the server on --sim, --target or --attach and serve it on Zenoh as --name on the "
+        "--listen endpoints until Ctrl-C or SIGTERM; other programs use it with --connect NAME, "
+        "and those with controller credentials (--credentials FILE) may command it.",
+    ),
+    Command(
+        "record",
+        "biris_hw.commands.record",
+        "record the sensor to MCAP (ROS 2 message types)",
+        "Record scans, profiles, transforms and status to an MCAP file (ros2 bag, Foxglove, "
+        "Lichtblick) while sweeping (--cw/--ccw), scanning once (--to) or just listening.",
+    ),
+    Command(
+        "replay",
+        "biris_hw.commands.replay",
+        "play a recording back as a sensor",
+        "Serve an MCAP recording through the client API; print, --json or --plot its scans.",
+    ),
+    Command(
+        "view",
+        "biris_hw.commands.view",
+        "live view in Foxglove or Lichtblick (WebSocket)",
+        "Serve the sensor (or --replay FILE) as a Foxglove WebSocket on --port; open it in "
+        "Foxglove or Lichtblick with docs/foxglove-layout.json.",
+    ),
+    Command(
         "sim",
         "sim.process",
         "run the simulator as a process other programs can reach",

@@ -21,7 +21,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from biris_hw.angles import clamp_counts
-from biris_hw.axes.base import SETTLE_HOLD_S, SETTLE_LIMIT_S
+from biris_hw.axes.base import (
+    SETTLE_HOLD_S,
+    SETTLE_LIMIT_S,
+    AxisSet,
+    MotionAxis,
+    MotionController,
+)
 from biris_hw.axes.base import wait_settled as settle_poll
 from biris_hw.axes.base import wait_still as still_poll
 from biris_hw.bus.base import BusWindow
@@ -74,18 +80,31 @@ LEVEL3_PREFETCH = (("motion", int(BoardReg.IRQ_STATUS), 8),)
 
 
 def prefetch_reads(
-    level: int, *, biris: BusWindow, motion: BusWindow, coupler: BusWindow, biexec_offset: int
+    level: int,
+    *,
+    biris: BusWindow,
+    motion: BusWindow | None,
+    coupler: BusWindow,
+    biexec_offset: int,
 ) -> list[tuple[BusWindow, int, int]]:
     """``(window, offset, width_bits)`` of each register the interrupt of ``level`` (2 or 3)
-    should read as it is serviced, for lines that can (``VmUsbLine(reads=...)``)."""
+    should read as it is serviced, for lines that can (``VmUsbLine(reads=...)``).
+
+    Raises:
+        ValueError: no such level, or level 3 without a ``motion`` window (axes on CAN have no
+            board to read: their end of motion comes as CAN frames).
+    """
     table = {2: LEVEL2_PREFETCH, 3: LEVEL3_PREFETCH}.get(level)
     if table is None:
         raise ValueError(f"no interrupt level {level} in BIRIS (2 or 3)")
     windows = {"biris": biris, "biexec": biris, "motion": motion, "coupler": coupler}
-    return [
-        (windows[name], offset + (biexec_offset if name == "biexec" else 0), width)
-        for name, offset, width in table
-    ]
+    reads: list[tuple[BusWindow, int, int]] = []
+    for name, offset, width in table:
+        window = windows[name]
+        if window is None:
+            raise ValueError(f"level {level} reads the {name} window, and there is none")
+        reads.append((window, offset + (biexec_offset if name == "biexec" else 0), width))
+    return reads
 
 
 _AXIS_BIT = {Axis.AZIMUTH: int(AxisBit.AZIMUTH), Axis.ELEVATION: int(AxisBit.ELEVATION)}
@@ -123,6 +142,10 @@ class MotionBoard:
 
     def acknowledge(self, axis: Axis) -> None:
         self.window.write8(BoardReg.IRQ_STATUS, _AXIS_BIT[axis])
+
+    def take_fault(self) -> HardwareFault | None:
+        """None: the board has no faults of its own to hold (a failed access raises then)."""
+        return None
 
 
 class AxisDriver:
@@ -424,12 +447,12 @@ class Devices:
 
     link: BirisLink
     """BIEXEC_COM in BIRIS memory, through the coupler."""
-    azimuth: AxisDriver
-    """The pan HCTL-1000 (axis 0 of the Model 7600)."""
-    elevation: AxisDriver
-    """The tilt HCTL-1000 (axis 1)."""
-    board: MotionBoard
-    """The Model 7600's own registers."""
+    azimuth: MotionAxis
+    """The pan axis: the HCTL-1000 at axis 0 of the Model 7600, or an axis set's pan."""
+    elevation: MotionAxis
+    """The tilt axis: the HCTL-1000 at axis 1, or an axis set's tilt."""
+    board: MotionController
+    """The Model 7600's own registers, or the axis set's controller."""
     coupler: Coupler
     """The Bit 3 local node."""
 
@@ -439,14 +462,34 @@ class Devices:
         *,
         biris: BusWindow,
         biexec_offset: int,
-        motion: BusWindow,
+        motion: BusWindow | None,
         coupler: BusWindow,
         clock: Callable[[], float],
         time_scale: float,
         pan_reference: PanReference | None = None,
+        axes: AxisSet | None = None,
     ) -> Devices:
         """One driver per device over these windows. Touches no register. The pan driver
-        reports to ``pan_reference`` (the bundle's)."""
+        reports to ``pan_reference`` (the bundle's).
+
+        With ``axes`` the axes and their controller are that set's (CiA 402 drives, say) and
+        ``motion`` is not used; without, they are the Model 7600's on ``motion``.
+
+        Raises:
+            ValueError: neither ``axes`` nor a ``motion`` window.
+        """
+        if axes is not None:
+            if pan_reference is not None:
+                axes.use_pan_reference(pan_reference)
+            return cls(
+                link=BirisLink(biris, biexec_offset),
+                azimuth=axes.azimuth,
+                elevation=axes.elevation,
+                board=axes.controller,
+                coupler=Coupler(coupler),
+            )
+        if motion is None:
+            raise ValueError("no motion window and no axis set: the axes cannot be driven")
         return cls(
             link=BirisLink(biris, biexec_offset),
             azimuth=AxisDriver(motion, Axis.AZIMUTH, clock, time_scale, pan_reference),
@@ -455,6 +498,6 @@ class Devices:
             coupler=Coupler(coupler),
         )
 
-    def axis(self, axis: Axis) -> AxisDriver:
+    def axis(self, axis: Axis) -> MotionAxis:
         """The driver of ``axis``."""
         return self.azimuth if axis is Axis.AZIMUTH else self.elevation

@@ -8,6 +8,7 @@ caller can catch either our names or Python's.
 from __future__ import annotations
 
 __all__ = [
+    "AccessDenied",
     "BirisError",
     "BusError",
     "ConnectionClosed",
@@ -72,3 +73,8 @@ class RequestError(BirisError, ValueError):
 
 class ConnectionClosed(BirisError):
     """The connection was closed, or the server that owned it has stopped."""
+
+
+class AccessDenied(BirisError):
+    """A remote client without control rights asked for motion or configuration (or, on a service
+    that requires credentials for reading, for data); nothing was changed."""

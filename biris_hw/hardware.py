@@ -7,6 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from os import PathLike
 
+from biris_hw.axes.base import AxisSet
 from biris_hw.bus.base import BusWindow
 from biris_hw.devices import Devices
 from biris_hw.irq.base import InterruptLine
@@ -19,11 +20,12 @@ __all__ = ["BirisHardware"]
 class BirisHardware:
     """Everything the BIRIS server touches, built by the simulator or from a target file.
 
-    ``biris`` is BIRIS memory through the coupler, ``motion`` the Model 7600 board, ``coupler``
-    the Bit 3 registers; ``level2`` carries BIRIS and coupler interrupts, ``level3`` the motor
-    controller's. ``biexec_offset`` is where BIEXEC_COM sits in ``biris``; ``biris_base`` is the
-    BIRIS-side VME address at which ``biris`` starts, so that addresses BIRIS reports (such as
-    Biris_range_ptr) become window offsets. ``clock`` returns hardware time in seconds.
+    ``biris`` is BIRIS memory through the coupler, ``motion`` the Model 7600 board (None when
+    ``axes``, CiA 402 drives say, replace it), ``coupler`` the Bit 3 registers; ``level2``
+    carries BIRIS and coupler interrupts, ``level3`` the motor controller's. ``biexec_offset``
+    is where BIEXEC_COM sits in ``biris``; ``biris_base`` is the BIRIS-side VME address at
+    which ``biris`` starts, so that addresses BIRIS reports (such as Biris_range_ptr) become
+    window offsets. ``clock`` returns hardware time in seconds.
     The bundle does not own what it holds: whoever built it closes it (:meth:`close`).
 
     ``devices`` is made with the bundle and is the only set of drivers over its windows: the
@@ -38,7 +40,8 @@ class BirisHardware:
     """
 
     biris: BusWindow
-    motion: BusWindow
+    motion: BusWindow | None
+    """The Model 7600 board; None when ``axes`` drives the axes instead."""
     coupler: BusWindow
     level2: InterruptLine
     level3: InterruptLine
@@ -50,6 +53,10 @@ class BirisHardware:
     otherwise. Timers (the 4 s BIRIS timeout, the motor watchdog) use it to wait in real time."""
     pan_journal: str | PathLike[str] | None = None
     """The pan reference journal's path, or None to keep the reference in memory only."""
+    axes: AxisSet | None = None
+    """Axes not on the Model 7600 (CiA 402 drives over CAN: :class:`biris_hw.axes.cia402.
+    Cia402Axes`), or None for the board's HCTL-1000s. ``level3`` is then the set's
+    ``end_of_motion`` line. The bundle closes it with itself."""
     pan_reference: PanReference = field(init=False, repr=False, compare=False)
     """The pan counter's relation to true zero, built here once (reads the journal if any)."""
     devices: Devices = field(init=False, repr=False, compare=False)
@@ -65,6 +72,7 @@ class BirisHardware:
             clock=self.clock,
             time_scale=self.time_scale,
             pan_reference=self.pan_reference,
+            axes=self.axes,
         )
 
     def to_offset(self, biris_address: int) -> int:
@@ -78,8 +86,11 @@ class BirisHardware:
         return offset
 
     def close(self) -> None:
-        """Close the lines first (waking notifiers), then the windows."""
+        """Close the lines first (waking notifiers), then the windows, then the axis set."""
         for line in (self.level2, self.level3):
             line.close()
         for window in (self.biris, self.motion, self.coupler):
-            window.close()
+            if window is not None:
+                window.close()
+        if self.axes is not None:
+            self.axes.close()

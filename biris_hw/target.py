@@ -5,7 +5,9 @@ coupler window, the Model 7600 board and the interrupt lines live depends on how
 wired and which kernel drivers it runs. So the wiring is data: one file whose top-level keys are
 the bundle's own fields (``biris``, ``motion``, ``coupler``, ``level2``, ``level3``,
 ``biexec_offset``, ``biris_base``, ``clock``), each window and line named by its registry kind
-with that kind's options. ``docs/target-example.toml`` documents every key.
+with that kind's options. ``docs/target-example.toml`` documents every key. A target whose axes
+are CiA 402 drives over CAN has an ``[axes]`` table instead of ``motion`` and ``level3``
+(``docs/target-can-example.toml``).
 
 Everything is checked before the server sees it, and every message names the key at fault: a
 server must not start on half a description, and a person reading ``biris: ...`` must be able to
@@ -28,6 +30,7 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
+from biris_hw.axes.base import AxisSet
 from biris_hw.bus.base import BusWindow
 from biris_hw.bus.registry import open_window
 from biris_hw.devices import LEVEL2_VECTOR, prefetch_reads
@@ -46,7 +49,14 @@ if sys.version_info >= (3, 11):
 else:  # tomli is a declared dependency below 3.11
     import tomli as tomllib  # type: ignore[import-not-found, unused-ignore]
 
-__all__ = ["CLOCKS", "TARGET_KEYS", "WINDOW_MINIMUM", "load_target", "target_from_dict"]
+__all__ = [
+    "AXES_KINDS",
+    "CLOCKS",
+    "TARGET_KEYS",
+    "WINDOW_MINIMUM",
+    "load_target",
+    "target_from_dict",
+]
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +82,28 @@ TARGET_KEYS = (
     "biris_base",
     "clock",
     "pan_journal",
+    "axes",
 )
+
+AXES_KINDS = ("cia402",)
+"""What an ``[axes]`` table may name: CiA 402 drives over CANopen (``biris-hw[can]``)."""
+
+_AXES_INTS = {
+    "pan_node": (1, 127),
+    "tilt_node": (1, 127),
+    "master_id": (0, 127),
+    "bitrate": (1, 8_000_000),
+    "homing_method": (35, 37),
+    "params_index": (0x2000, 0x5FFF),
+}
+_AXES_SECONDS = {
+    "heartbeat_period": "heartbeat_period_s",
+    "heartbeat_timeout": "heartbeat_timeout_s",
+    "sdo_timeout": "sdo_timeout_s",
+    "state_timeout": "state_timeout_s",
+}
+_AXES_STRINGS = ("interface", "channel", "context")
+_AXES_KEYS = frozenset({"kind", "can", *_AXES_INTS, *_AXES_SECONDS, *_AXES_STRINGS})
 
 _WIDTHS = (8, 16, 32)
 _SCALAR = (str, int, float, bool)
@@ -253,7 +284,7 @@ def _vmusb_line_options(
     options["reads"] = prefetch_reads(
         level,
         biris=windows["biris"],
-        motion=windows["motion"],
+        motion=windows.get("motion"),
         coupler=windows["coupler"],
         biexec_offset=biexec_offset,
     )
@@ -276,6 +307,63 @@ def _open_line(
         raise
     except (UnknownKind, TypeError, ValueError, OSError) as exc:
         raise _opening_error(key, kind, exc) from exc
+
+
+def _axes_options(spec: object) -> dict[str, Any]:
+    """The ``[axes]`` table as :class:`~biris_hw.axes.cia402.Cia402Axes` keywords: our keys
+    checked and renamed, python-can's (``interface``, ``channel``, ``bitrate``, ``context``
+    and the ``can`` sub-table's) passed to ``can.Bus`` as they are. Without ``interface`` and
+    ``channel`` python-can takes them from its own configuration (``~/.canrc``, ``can.ini``,
+    ``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_BITRATE``; ``context`` picks a section)."""
+    table = _table("axes", spec)
+    kind = table.get("kind")
+    if kind not in AXES_KINDS:
+        raise RequestError(f"axes.kind: must be one of {', '.join(AXES_KINDS)}, not {kind!r}")
+    for key in table:
+        if key not in _AXES_KEYS:
+            raise RequestError(f"axes.{key}: not an option of kind {kind!r}")
+    options: dict[str, Any] = {}
+    for key in ("pan_node", "tilt_node"):
+        if key not in table:
+            raise RequestError(f"axes.{key}: missing (the drive's CANopen node id, 1..127)")
+    for key, (lo, hi) in _AXES_INTS.items():
+        if key in table:
+            options[key] = _int(f"axes.{key}", table[key], lo, hi)
+    if options.get("master_id") == 0:
+        options["master_id"] = None  # no heartbeat of the host's own
+    for key, keyword in _AXES_SECONDS.items():
+        if key in table:
+            options[keyword] = _seconds(f"axes.{key}", table[key])
+    for key in _AXES_STRINGS:
+        if key in table:
+            if not isinstance(table[key], str):
+                raise RequestError(f"axes.{key}: must be a string, not {_type(table[key])}")
+            options[key] = table[key]
+    extra = _table("axes.can", table.get("can", {}))
+    for key, value in extra.items():
+        if not isinstance(value, _SCALAR):
+            raise RequestError(f"axes.can.{key}: must be a number, string or boolean")
+        if key in options or key in _AXES_KEYS:
+            raise RequestError(f"axes.can.{key}: give it in [axes] itself")
+        options[key] = value
+    return options
+
+
+def _open_axes(spec: object, clock: Callable[[], float]) -> AxisSet:
+    """CiA 402 drives as an ``[axes]`` table describes them (nothing is sent to them yet)."""
+    options = _axes_options(spec)
+    try:
+        from biris_hw.axes.cia402 import Cia402Axes
+    except ImportError as exc:
+        raise RequestError(
+            f"axes: CiA 402 drives need the canopen package ({exc}); install biris-hw[can]"
+        ) from None
+    try:
+        return Cia402Axes(clock=clock, time_scale=1.0, **options)
+    except BusError as exc:  # the CAN interface cannot be opened: the machine's problem
+        raise BusError(f"axes: {exc}", exc.errno or errno.EIO) from exc
+    except (TypeError, ValueError) as exc:
+        raise RequestError(f"axes: {exc}") from exc
 
 
 def _pan_journal(value: object, base: Path | None) -> Path | None:
@@ -312,10 +400,19 @@ def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> Biris
     for key in data:
         if key not in TARGET_KEYS:
             raise RequestError(f"unknown key {key!r} (known: {', '.join(TARGET_KEYS)})")
+    with_axes = "axes" in data
     for key in TARGET_KEYS[:5]:
+        if with_axes and key in ("motion", "level3"):
+            if key in data:
+                raise RequestError(
+                    f"{key}: not with [axes] (the CiA 402 drives replace the Model 7600, "
+                    "and their end of motion comes over CAN)"
+                )
+            continue
         if key not in data:
             raise RequestError(
-                f"{key}: missing (a target names biris, motion, coupler, level2 and level3)"
+                f"{key}: missing (a target names biris, motion, coupler, level2 and level3; "
+                "biris, coupler, level2 and [axes] when the axes are CiA 402 drives)"
             )
     biexec_offset = _int("biexec_offset", data.get("biexec_offset", 0x100), 0, 0xFFFF_FFFF)
     if biexec_offset % 2:
@@ -331,18 +428,26 @@ def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> Biris
     with contextlib.ExitStack() as opened:
         windows: dict[str, BusWindow] = {}
         for key in ("biris", "motion", "coupler"):
-            windows[key] = _open_window(key, data[key], minimum[key])
-            opened.callback(windows[key].close)
+            if key in data:
+                windows[key] = _open_window(key, data[key], minimum[key])
+                opened.callback(windows[key].close)
         lines: dict[str, InterruptLine] = {}
         for key in ("level2", "level3"):
-            lines[key] = _open_line(key, data[key], windows, biexec_offset)
-            opened.callback(lines[key].close)
+            if key in data:
+                lines[key] = _open_line(key, data[key], windows, biexec_offset)
+                opened.callback(lines[key].close)
+        axes: AxisSet | None = None
+        if with_axes:
+            axes = _open_axes(data["axes"], CLOCKS[clock_name])
+            opened.callback(axes.close)
+            lines["level3"] = axes.end_of_motion
         hardware = BirisHardware(
             biris=windows["biris"],
-            motion=windows["motion"],
+            motion=windows.get("motion"),
             coupler=windows["coupler"],
             level2=lines["level2"],
             level3=lines["level3"],
+            axes=axes,
             biexec_offset=biexec_offset,
             biris_base=biris_base,
             clock=CLOCKS[clock_name],

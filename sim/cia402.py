@@ -46,6 +46,7 @@ runs or is unacknowledged, a set-point before the motor parameters and profile w
 
 from __future__ import annotations
 
+import collections
 import enum
 import logging
 import math
@@ -87,6 +88,10 @@ STEP_REAL_S = 0.001
 MAX_CATCH_UP = 20_000
 """Samples one catch-up may run (28 hardware seconds at Appendix B's period); a host further
 behind skips the rest rather than stall the bus thread."""
+
+HISTORY = 4096
+"""Samples of position actual kept for :meth:`SimulatedDrive.position_at` (5.8 hardware
+seconds at Appendix B's sample period)."""
 
 EMCY_FOLLOWING_ERROR = 0x8611
 EMCY_HEARTBEAT = 0x8130
@@ -290,8 +295,13 @@ class SimulatedDrive:
         params: MotorParams = _APPENDIX_B,
         step_real_s: float = STEP_REAL_S,
         name: str = "",
+        head_limit: float | None = None,
     ) -> None:
         self.node_id = node_id
+        self._head_limit = head_limit
+        """Counts from true zero beyond which the head winds its cable: HEAD_BEYOND_LIMIT in
+        ``audit`` (the pan's, as on the board: :data:`sim.hctl1000.HEAD_LIMIT_COUNTS`)."""
+        self._head_out = False
         self.plant = plant
         self.name = name or f"drive {node_id}"
         self._clock = clock
@@ -335,6 +345,8 @@ class SimulatedDrive:
         self._tp_value = 0
         self._configured: set[tuple[int, int]] = set()
         self._t = clock()
+        self._history: collections.deque[tuple[float, int]] = collections.deque(maxlen=HISTORY)
+        """(clock time, position actual) after each sample, for :meth:`position_at`."""
         self._sent_status: int | None = None
         self._batch = False
         self._cw_pending: int | None = None
@@ -374,6 +386,13 @@ class SimulatedDrive:
         with self._lock:
             self._advance()
             self.plant.stalled = stalled
+
+    def set_plant(self, attribute: str, value: bool) -> None:
+        """Set one of the plant's failure flags (``stalled``, ``amplifier_dead``), caught up
+        to now first (the fault panel's way in)."""
+        with self._lock:
+            self._advance()
+            setattr(self.plant, attribute, value)
 
     def lose_power(self) -> None:
         """The drive goes dark: no heartbeat, no answers, no torque (the head coasts)."""
@@ -441,6 +460,26 @@ class SimulatedDrive:
             self._advance()
             return self._statusword()
 
+    def position_at(self, t: float) -> int:
+        """The position actual as it read at clock time ``t`` (at or before now): what BIRIS,
+        tagging an acquisition mid-exposure, reads from the drive, even when it gets round to
+        it late (as :meth:`sim.hctl1000.Hctl1000.position_at`). A moment older than the
+        history, or than the last homing, gets the oldest reading on the present zero."""
+        with self._lock:
+            self._advance()
+            for when, actual in reversed(self._history):
+                if when <= t:
+                    return actual
+            return self._history[0][1] if self._history else self._actual()
+
+    def pose(self) -> tuple[float, int, float]:
+        """(true counts from the index, position actual, velocity in counts/s), read together
+        (backdoor: what the optics and the tilt audit see)."""
+        with self._lock:
+            self._advance()
+            plant = self.plant
+            return plant.true_azimuth_counts, self._actual(), plant.velocity_counts_per_s
+
     def value(self, index: int, subindex: int = 0) -> int:
         """What the drive holds in a configuration object (backdoor)."""
         with self._lock:
@@ -491,6 +530,7 @@ class SimulatedDrive:
                 break
             self._sample(period)
             self._t += period
+            self._history.append((self._t, self._actual()))
             n += 1
             if n >= MAX_CATCH_UP:
                 self._t = now
@@ -531,6 +571,8 @@ class SimulatedDrive:
             self._x_prev = self._mc_prev = 0
             self._demand = float(actual)
         self.plant.step(mc if self._powered else 0, period)
+        if self._head_limit is not None:
+            self._check_head()
         if self.plant.index_seen:
             self.plant.clear_index()
             self._touch_probe_edge()
@@ -543,6 +585,21 @@ class SimulatedDrive:
                 self._window_s = 0.0
                 self._reached = False
         self._publish()
+
+    def _check_head(self) -> None:
+        """HEAD_BEYOND_LIMIT once per excursion of the true head beyond the limit."""
+        assert self._head_limit is not None
+        theta = self.plant.true_azimuth_counts
+        out = abs(theta) > self._head_limit
+        if out and not self._head_out and self._audit is not None:
+            self._audit.record(
+                Rule.HEAD_BEYOND_LIMIT,
+                f"CiA 402 node {self.node_id}: the true head is {theta:+.1f} counts from true "
+                f"zero, beyond +-{self._head_limit:g}, while the position actual reads "
+                f"{self._actual()}: the cable is being wound",
+                TRUE_POS=round(theta),
+            )
+        self._head_out = out
 
     def _check_following(self, error: int, period: float) -> None:
         if self._state is not DriveState.OPERATION_ENABLED:
@@ -914,6 +971,7 @@ class SimulatedDrive:
         shift = self._values[(0x607C, 0)] - actual
         self._offset += shift
         self._demand += shift
+        self._history.clear()  # the readings before were on the old zero
         self._move_target = self._actual()
         self._homing_attained = True
 

@@ -6,10 +6,15 @@ undoes it. The driver sees only registers and interrupts, exactly as on the VME 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from sim.bit3 import Bit3Coupler
 from sim.irqgate import InterruptGate
 from sim.supervisor import BirisSupervisor
 from sim.tech80 import Model7600
+
+if TYPE_CHECKING:
+    from sim.cia402 import SimulatedDrive
 
 __all__ = ["FaultPanel"]
 
@@ -26,9 +31,13 @@ class FaultPanel:
         coupler: Bit3Coupler,
         level2: InterruptGate,
         level3: InterruptGate,
+        pan_drive: SimulatedDrive | None = None,
     ) -> None:
         self._supervisor = supervisor
         self._board = board
+        self._pan_drive = pan_drive
+        """The pan's CiA 402 drive when the axes are on CAN (``axes="canopen"``): the motor
+        faults then act on its plant, under its lock."""
         self._coupler = coupler
         self._gates = (level2, level3)
         self._level2 = level2
@@ -66,15 +75,22 @@ class FaultPanel:
         on time, MOTOR_END_OF_SCAN fires, and the encoder stays where the shaft locked, so only
         a driver that compares the encoder with the destination sees the failure.
         """
-        with self._board.lock:
-            self._board.catch_up()
-            self._board.plants[0].stalled = True
+        self._pan_plant("stalled", True)
 
     def clear_stall(self) -> None:
         """The shaft turns again; the head then runs to wherever the chip commands it."""
+        self._pan_plant("stalled", False)
+
+    def _pan_plant(self, attribute: str, value: bool) -> None:
+        """Set one of the pan plant's failure flags, caught up to now under its owner's lock
+        (the board's, or the CAN drive's: a CiA 402 drive notices a locked shaft by its
+        following error and faults, EMCY 0x8611)."""
+        if self._pan_drive is not None:
+            self._pan_drive.set_plant(attribute, value)
+            return
         with self._board.lock:
             self._board.catch_up()
-            self._board.plants[0].stalled = False
+            setattr(self._board.plants[0], attribute, value)
 
     def dead_amplifier(self) -> None:
         """The pan amplifier dies: its output stays at 0 V, so no torque reaches the shaft.
@@ -83,15 +99,11 @@ class FaultPanel:
         coasts to rest (friction and the back emf brake it) and then stays put. The failure a
         real target shows for a blown fuse or an amplifier left disabled.
         """
-        with self._board.lock:
-            self._board.catch_up()
-            self._board.plants[0].amplifier_dead = True
+        self._pan_plant("amplifier_dead", True)
 
     def clear_dead_amplifier(self) -> None:
         """The amplifier drives again; the head runs to wherever the chip commands it."""
-        with self._board.lock:
-            self._board.catch_up()
-            self._board.plants[0].amplifier_dead = False
+        self._pan_plant("amplifier_dead", False)
 
     # -- interrupts ------------------------------------------------------------------------------
     def coalesce_interrupts(self, enabled: bool = True, burst: int = 3) -> None:

@@ -250,8 +250,11 @@ class _DriverPort:
         self._name = handshake.shm
         self._stop_fd = stop_fd
         self._log = log
+        motion = rig.hardware.motion
+        if motion is None:
+            raise ValueError("a rig whose axes are CAN drives has no motion window to serve")
         self._windows: dict[Region, BusWindow] = {
-            Region.MOTION: rig.hardware.motion,
+            Region.MOTION: motion,
             Region.COUPLER: rig.hardware.coupler,
         }
         self._client: socket.socket | None = None

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import threading
+import uuid
 from types import TracebackType
 from typing import TYPE_CHECKING
 
@@ -25,7 +26,7 @@ from regs import biexec
 from regs.bit3 import Bit3Reg
 from regs.hctl1000 import COUNTS_PER_REV
 from regs.layout import BirisMemoryMap
-from regs.tech80 import DEFAULT_IRQ_VECTOR, MOTION_WINDOW_SIZE, BoardReg
+from regs.tech80 import DEFAULT_IRQ_VECTOR, MOTION_WINDOW_SIZE, Axis, BoardReg
 from sim.audit import Audit
 from sim.bit3 import Bit3Coupler
 from sim.clock import SimClock
@@ -38,9 +39,39 @@ from sim.supervisor import BirisSupervisor
 from sim.tech80 import Model7600
 
 if TYPE_CHECKING:
+    import canopen
+
+    from biris_hw.axes.cia402 import Cia402Axes
+    from sim.cia402 import SimulatedDrive
     from sim.vmusb import SimulatedVmUsb, VmUsbBackend
 
-__all__ = ["TRANSPORTS", "USB_ROUND_TRIP_S", "VME_MAP", "VMUSB_SERIAL", "SimulatedBiris"]
+__all__ = [
+    "AXES",
+    "CAN_BUS_OPTIONS",
+    "CAN_NODES",
+    "TRANSPORTS",
+    "USB_ROUND_TRIP_S",
+    "VME_MAP",
+    "VMUSB_SERIAL",
+    "SimulatedBiris",
+]
+
+AXES = ("hctl1000", "canopen")
+"""What drives pan and tilt: the Model 7600's HCTL-1000s, or two CiA 402 drives on a virtual
+CAN bus (``axes="canopen"``)."""
+
+CAN_NODES = {Axis.AZIMUTH: 2, Axis.ELEVATION: 3}
+"""The simulated drives' CANopen node ids."""
+
+CAN_BUS_OPTIONS: dict[str, float] = {
+    "heartbeat_period_s": 0.05,
+    "heartbeat_timeout_s": 1.0,
+    "sdo_timeout_s": 1.0,
+    "state_timeout_s": 2.0,
+}
+"""The driver's CAN timing on the simulated bus (real seconds): looser than a robot's defaults,
+because a test host shared with other test runs can stall a thread for a few hundred ms, and a
+heartbeat or SDO answer that late is not a lost drive."""
 
 TRANSPORTS = ("memory", "vmusb")
 """How ``rig.hardware`` reaches the simulated target: in-process windows and eventfd lines, or
@@ -137,6 +168,14 @@ class SimulatedBiris:
     by default) must lie within the pan head's stops, +-(4096 + 256): start it near +-4096 to
     play a head left wound round by a previous driver.
 
+    ``axes="canopen"`` replaces the Model 7600 by two CiA 402 drives (:data:`CAN_NODES`,
+    :class:`sim.cia402.SimulatedDrive`) on a python-can ``virtual`` channel of the rig's own
+    (:attr:`can_channel`), closing their loops around the same motor plants; the rest of the
+    rig is unchanged. :attr:`hardware` then has no ``motion`` window: its ``axes`` are the
+    driver's :class:`~biris_hw.axes.cia402.Cia402Axes` and ``level3`` their end-of-motion
+    line. :attr:`drives` are the drives (their audits, ``emcy()``, ``lose_power()``); the
+    fault panel's motor faults act on the pan drive's plant.
+
     ``transport="vmusb"`` puts the boards in a VME crate behind a simulated Wiener VM-USB
     (:data:`VME_MAP`): :attr:`hardware` is then made of the driver's ``vmusb`` windows and
     lines, found through pyusb and :attr:`usb_backend`, so every register access is a USB
@@ -160,10 +199,25 @@ class SimulatedBiris:
         initial_elevation_counts: float = 0.0,
         transport: str = "memory",
         usb_round_trip_s: float | None = None,
+        axes: str = "hctl1000",
     ) -> None:
         if transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, not {transport!r}")
+        if axes not in AXES:
+            raise ValueError(f"axes must be one of {', '.join(AXES)}, not {axes!r}")
+        if axes == "canopen" and transport != "memory":
+            raise ValueError('axes="canopen" goes with the memory transport only')
         self.transport = transport
+        self.axes = axes
+        self.drives: dict[Axis, SimulatedDrive] = {}
+        """The CiA 402 drives by axis (``axes="canopen"``): their audits, fault panels
+        (``emcy``, ``lose_power``, ``stall``) and backdoors."""
+        self.can_axes: Cia402Axes | None = None
+        """The driver's side of the CAN bus (``axes="canopen"``): ``rig.hardware.axes``."""
+        self.can_channel: str | None = None
+        """The python-can ``virtual`` channel the drives are on: unique per rig, so that
+        rigs in one process never hear each other (``axes="canopen"``)."""
+        self._can_network: canopen.Network | None = None
         self._usb_round_trip_s = usb_round_trip_s
         self.usb_device: SimulatedVmUsb | None = None
         """The simulated VM-USB (``transport="vmusb"``): its counters and audit of the USB side."""
@@ -214,6 +268,12 @@ class SimulatedBiris:
         az_plant = MotorPlant(rngs[0], initial_azimuth_counts=initial_azimuth_counts)
         # the tilt wakes where it was left (level by default): a tilt head rests on its stops
         el_plant = MotorPlant(rngs[1], initial_azimuth_counts=self._initial_elevation)
+        if self.axes == "canopen":
+            self._make_drives(az_plant, el_plant)
+            # the Model 7600 is not in this rig: the board object stays, idle, on plants of
+            # its own, for what refers to it (the fault panel's coupler side, rig.board)
+            az_plant = MotorPlant(np.random.default_rng(0), initial_azimuth_counts=0.0)
+            el_plant = MotorPlant(np.random.default_rng(0), initial_azimuth_counts=0.0)
         self.board = Model7600(
             self.clock,
             rngs[2],
@@ -249,13 +309,21 @@ class SimulatedBiris:
         )
         tap.target = self.supervisor
         self.faults = FaultPanel(
-            self.supervisor, self.board, self.coupler, self.level2_gate, self.level3_gate
+            self.supervisor,
+            self.board,
+            self.coupler,
+            self.level2_gate,
+            self.level3_gate,
+            pan_drive=self.drives.get(Axis.AZIMUTH),
         )
         self._motion_window: BusWindow = self.board.window()
         self._coupler_window: BusWindow = self.coupler.window()
         assert self._motion_window.size == MOTION_WINDOW_SIZE
         if self.transport == "vmusb":
             self.hardware = self._vmusb_hardware(time_scale)
+            return
+        if self.axes == "canopen":
+            self.hardware = self._can_hardware(time_scale)
             return
         self.hardware = BirisHardware(
             biris=self._driver_window,
@@ -268,6 +336,85 @@ class SimulatedBiris:
             clock=self.clock.now,
             time_scale=time_scale,
         )
+
+    # -- CiA 402 axes on a virtual CAN bus -------------------------------------------------------
+    def _make_drives(self, az_plant: MotorPlant, el_plant: MotorPlant) -> None:
+        """Pan and tilt as CiA 402 drives (canopen LocalNodes) on a virtual channel of this
+        rig's own, both on one canopen network (the simulator's side of the bus)."""
+        import canopen
+
+        from biris_hw.axes.cia402 import NOTIFIER_CYCLE_S
+        from sim.cia402 import SimulatedDrive
+        from sim.hctl1000 import HEAD_LIMIT_COUNTS
+
+        self.can_channel = f"biris-sim-{uuid.uuid4().hex}"
+        network = canopen.Network()
+        network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+        network.NOTIFIER_SHUTDOWN_TIMEOUT = 4 * NOTIFIER_CYCLE_S
+        network.connect(interface="virtual", channel=self.can_channel)
+        self._can_network = network
+        try:
+            for axis, plant, name in (
+                (Axis.AZIMUTH, az_plant, "pan drive"),
+                (Axis.ELEVATION, el_plant, "tilt drive"),
+            ):
+                self.drives[axis] = SimulatedDrive(
+                    network,
+                    CAN_NODES[axis],
+                    plant,
+                    self.clock.now,
+                    self.audit,
+                    name=name,
+                    head_limit=HEAD_LIMIT_COUNTS if axis is Axis.AZIMUTH else None,
+                )
+        except BaseException:
+            self._close_drives()
+            raise
+
+    def _can_hardware(self, time_scale: float) -> BirisHardware:
+        """BIRIS and the coupler in memory as usual; the axes are the driver's
+        :class:`~biris_hw.axes.cia402.Cia402Axes` on the rig's channel, and level 3 is their
+        end-of-motion line."""
+        from biris_hw.axes.cia402 import Cia402Axes
+
+        axes = Cia402Axes(
+            pan_node=CAN_NODES[Axis.AZIMUTH],
+            tilt_node=CAN_NODES[Axis.ELEVATION],
+            clock=self.clock.now,
+            time_scale=time_scale,
+            heartbeat_period_s=CAN_BUS_OPTIONS["heartbeat_period_s"],
+            heartbeat_timeout_s=CAN_BUS_OPTIONS["heartbeat_timeout_s"],
+            sdo_timeout_s=CAN_BUS_OPTIONS["sdo_timeout_s"],
+            state_timeout_s=CAN_BUS_OPTIONS["state_timeout_s"],
+            interface="virtual",
+            channel=self.can_channel,
+        )
+        self.can_axes = axes
+        self._level3.close()  # the board's line: no board here
+        return BirisHardware(
+            biris=self._driver_window,
+            motion=None,
+            coupler=self._coupler_window,
+            level2=self._level2,
+            level3=axes.end_of_motion,
+            biexec_offset=self.memory_map.biexec_offset,
+            biris_base=self.memory_map.biris_base,
+            clock=self.clock.now,
+            time_scale=time_scale,
+            axes=axes,
+        )
+
+    def _close_drives(self) -> None:
+        for drive in self.drives.values():
+            drive.close()
+        if self._can_network is not None:
+            self._can_network.disconnect()
+            self._can_network = None
+
+    @property
+    def drive_violations(self) -> list[str]:
+        """Every CiA 402 drive's own audit, as text (empty without drives, or when clean)."""
+        return [str(v) for drive in self.drives.values() for v in drive.violations]
 
     # -- the VM-USB transport ----------------------------------------------------------------------
     def _vmusb_hardware(self, time_scale: float) -> BirisHardware:
@@ -355,15 +502,24 @@ class SimulatedBiris:
     # -- what BIRIS sees -----------------------------------------------------------------------
     def _encoder_azimuth(self, t: float) -> float:
         """What BIRIS read from the motor controller at clock time ``t`` to tag an acquisition
-        (its supervisor may get round to it late: the reading is the one of that moment)."""
+        (its supervisor may get round to it late: the reading is the one of that moment). On
+        CAN the drive's position actual at that moment."""
+        if self.drives:
+            return float(self.drives[Axis.AZIMUTH].position_at(t))
         return float(self.board.position_at(0, t))
 
     def _encoder_elevation(self, t: float) -> float:
+        if self.drives:
+            return float(self.drives[Axis.ELEVATION].position_at(t))
         return float(self.board.position_at(1, t))
 
     def _true_elevation(self, t: float) -> float:
         """The tilt the optics see at clock time ``t`` (counts from level): the encoder's
         reading then, moved by the encoder's offset from the truth (constant while it moves)."""
+        if self.drives:
+            drive = self.drives[Axis.ELEVATION]
+            true, actual, _ = drive.pose()
+            return float(drive.position_at(t)) + true - actual
         with self.board.lock:
             self.board.catch_up()
             plant, chip = self.board.plants[1], self.board.elevation
@@ -371,6 +527,8 @@ class SimulatedBiris:
             return float(self.board.position_at(1, t)) + offset
 
     def _tilting(self) -> bool:
+        if self.drives:
+            return abs(self.drives[Axis.ELEVATION].pose()[2]) > 1.0
         with self.board.lock:
             self.board.catch_up()
             return abs(self.board.plants[1].velocity_counts_per_s) > 1.0
@@ -386,11 +544,16 @@ class SimulatedBiris:
         encoder's offset from the truth (its zero, and the fraction of a count), which does not
         change while the head moves.
         """
-        with self.board.lock:
-            self.board.catch_up()
-            az_plant, el_plant = self.board.plants
-            az_off = az_plant.true_azimuth_counts - self.board.azimuth.actual_position
-            el_off = el_plant.true_azimuth_counts - self.board.elevation.actual_position
+        if self.drives:
+            az_true, az_actual, _ = self.drives[Axis.AZIMUTH].pose()
+            el_true, el_actual, _ = self.drives[Axis.ELEVATION].pose()
+            az_off, el_off = az_true - az_actual, el_true - el_actual
+        else:
+            with self.board.lock:
+                self.board.catch_up()
+                az_plant, el_plant = self.board.plants
+                az_off = az_plant.true_azimuth_counts - self.board.azimuth.actual_position
+                el_off = el_plant.true_azimuth_counts - self.board.elevation.actual_position
         true_az = azimuth_rad + az_off * _TWO_PI_PER_COUNT
         true_tilt = tilt_rad + el_off * _TWO_PI_PER_COUNT
         frame = self.optics.acquire(self.scene, true_az, true_tilt, lut_tilt_rad=lut_tilt_rad)
@@ -400,6 +563,8 @@ class SimulatedBiris:
     @property
     def azimuth_counts(self) -> float:
         """The head's true azimuth in counts (0 = the zero index), read without side effects."""
+        if self.drives:
+            return float(self.drives[Axis.AZIMUTH].pose()[0])
         with self.board.lock:
             self.board.catch_up()
             return float(self.board.plants[0].true_azimuth_counts)
@@ -407,6 +572,8 @@ class SimulatedBiris:
     @property
     def elevation_counts(self) -> float:
         """The head's true tilt in counts (0 = level, the tilt's zero index), positive up."""
+        if self.drives:
+            return float(self.drives[Axis.ELEVATION].pose()[0])
         with self.board.lock:
             self.board.catch_up()
             return float(self.board.plants[1].true_azimuth_counts)
@@ -434,7 +601,8 @@ class SimulatedBiris:
         self.board.stop()
         self.level2_gate.close()
         self.level3_gate.close()
-        self.hardware.close()
+        self.hardware.close()  # the driver's CAN bus first: the drives outlive its last frame
+        self._close_drives()
         self._supervisor_window.close()
         if self.usb_device is not None:
             self.usb_device.close()

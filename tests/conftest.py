@@ -133,6 +133,11 @@ class _Watch:
                         "the simulator's audit recorded driver rule violations:\n  "
                         + "\n  ".join(map(str, rig.audit.violations))
                     )
+                if rig.drive_violations:
+                    found.append(
+                        "a simulated CiA 402 drive recorded driver rule violations:\n  "
+                        + "\n  ".join(rig.drive_violations)
+                    )
                 if rig.usb_device is not None and rig.usb_device.violations:
                     found.append(
                         "the simulated VM-USB recorded protocol misuse:\n  "

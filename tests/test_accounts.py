@@ -636,6 +636,7 @@ def test_continuous_acquisition_accounts_for_every_ring_frame(
     assert accounts.idle >= 10 and accounts.constant_azimuth > 0
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_continuous_acquisition_a_fault_mid_sweep_then_reset_accounts_for_every_frame(
     rig: SimulatedBiris, ring_server: BirisServer
 ) -> None:

@@ -274,6 +274,7 @@ def test_a_power_cut_during_a_long_move_is_position_lost(
     assert read_journal(journal)["offset"] == [0, 0]
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_journal_that_does_not_fit_the_counter_is_not_believed(
     make_rig: RigFactory, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

@@ -43,11 +43,23 @@ def test_the_readme_has_its_examples() -> None:
     assert len(_all_examples()) >= 8, "README.md and docs/*.md lost runnable Python examples"
 
 
-@pytest.mark.parametrize("example", _all_examples(), ids=_example_id)
+def _tiered(example: tuple[Path, str]) -> object:
+    """The README's examples run in the fast tier; the longer pages' in ``make test-slow``
+    (fast-tier budget, issues 13-15)."""
+    marks = [] if example[0] == README else [pytest.mark.slow]
+    return pytest.param(example, id=_example_id(example), marks=marks)
+
+
+@pytest.mark.parametrize("example", [_tiered(e) for e in _all_examples()])
 def test_example_runs_as_written(
-    example: tuple[Path, str], no_leaks: None, capsys: pytest.CaptureFixture[str]
+    example: tuple[Path, str],
+    no_leaks: None,
+    capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     page, block = example
+    monkeypatch.chdir(tmp_path)  # an example that writes a file ("run.mcap") writes it there
     if "biris_hw.affinity" in block and not affinity_allowed():
         pytest.skip("this platform does not let a thread choose its CPUs")
     exec(compile(block, str(page), "exec"), {"__name__": "__readme__"})

@@ -105,6 +105,7 @@ def test_start_continuous_while_idle_starts_the_ring_and_scans_are_sweeps_over_i
     assert server.status().accounts().adds_up
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_start_continuous_during_continuous_scanning_waits_for_its_end(
     rig: SimulatedBiris, server: BirisServer
 ) -> None:

@@ -164,6 +164,7 @@ def test_continuous_scanning_over_the_ring(make_rig: RigFactory) -> None:
     assert data.dropped == 0 and counters["dropped_acquisitions"] == 0
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_coalesced_and_lost_interrupts_lose_no_acquisition(
     rig: SimulatedBiris, cserver: BirisServer
 ) -> None:
@@ -197,6 +198,7 @@ def test_a_tilt_stops_and_restarts_the_ring(rig: SimulatedBiris, cserver: BirisS
     _check_sweep(scan, 0, 341)
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_hung_biris_times_out_during_a_sweep(rig: SimulatedBiris, cserver: BirisServer) -> None:
     conn = cserver.open()
     conn.timeout_enable()

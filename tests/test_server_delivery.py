@@ -116,6 +116,7 @@ def test_every_acquisition_streams_points_as_they_are_read(make_rig: RigFactory)
     assert stream.dropped == 0
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_every_acquisition_overflow_drops_the_oldest_points(server: BirisServer) -> None:
     conn = server.open()
     stream = server.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_ACQUISITION, depth=4)

@@ -119,6 +119,7 @@ def test_continuous_scanning_feeds_every_data_connection_in_order(server: BirisS
     assert last_cw is not None and last_cw.seq >= 2
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_stop_ends_continuous_scanning_at_the_end_of_the_sweep(server: BirisServer) -> None:
     conn = server.open()
     data = server.open(ConnectionKind.DATA)
@@ -154,6 +155,7 @@ def test_home_is_pending_during_a_single_scan(rig: SimulatedBiris, server: Biris
     assert server.status()["azimuth"] == 0
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_home_during_continuous_scanning_waits_for_stop(
     rig: SimulatedBiris, server: BirisServer
 ) -> None:
@@ -214,6 +216,7 @@ def test_bad_requests_change_nothing(server: BirisServer) -> None:
     assert conn.request_scan_data(Direction.CW) is None
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_coalesced_and_lost_interrupts_lose_no_acquisition(
     rig: SimulatedBiris, server: BirisServer
 ) -> None:
@@ -233,6 +236,7 @@ def test_coalesced_and_lost_interrupts_lose_no_acquisition(
     assert server.status()["counters"]["dropped_acquisitions"] == 0
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_spurious_interrupts_are_harmless(rig: SimulatedBiris, server: BirisServer) -> None:
     conn = server.open()
     rig.faults.spurious_interrupt()
@@ -243,6 +247,7 @@ def test_spurious_interrupts_are_harmless(rig: SimulatedBiris, server: BirisServ
     assert scan is not None and scan.dropped == 0
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_128_sample_mode(make_rig: RigFactory) -> None:
     rig = make_rig(samples=128)
     with BirisServer(rig.hardware) as server:
@@ -257,6 +262,7 @@ def test_128_sample_mode(make_rig: RigFactory) -> None:
         assert not np.any(scan.range_mm == POISON)
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_motor_parameters_change_speed_and_acquisition_count(
     rig: SimulatedBiris, server: BirisServer
 ) -> None:
@@ -308,6 +314,7 @@ def _catch(fn: object, into: list[BaseException]) -> None:
         into.append(exc)
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_hung_biris_times_out_when_enabled(rig: SimulatedBiris, server: BirisServer) -> None:
     conn = server.open()
     conn.timeout_enable()
@@ -322,6 +329,7 @@ def test_a_hung_biris_times_out_when_enabled(rig: SimulatedBiris, server: BirisS
     conn.wait_idle(timeout=WAIT)
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_without_the_timeout_a_hang_is_only_a_wait(
     rig: SimulatedBiris, server: BirisServer
 ) -> None:
@@ -336,6 +344,7 @@ def test_without_the_timeout_a_hang_is_only_a_wait(
     conn.wait_idle(timeout=WAIT)
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_stalled_motor_is_reported(rig: SimulatedBiris, server: BirisServer) -> None:
     conn = server.open()
     conn.single_scan(90.0)
@@ -348,6 +357,7 @@ def test_a_stalled_motor_is_reported(rig: SimulatedBiris, server: BirisServer) -
     assert abs(rig.azimuth_counts) <= 3.0
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_connection_whose_thread_ended_is_released(server: BirisServer) -> None:
     conn = server.open()
     made: list[int] = []
@@ -379,6 +389,7 @@ def test_closed_connections_and_servers_refuse_calls(rig: SimulatedBiris) -> Non
         server.open()
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_garbage_from_biris_is_a_protocol_fault_and_reset_recovers(
     rig: SimulatedBiris, server: BirisServer
 ) -> None:
@@ -394,6 +405,7 @@ def test_garbage_from_biris_is_a_protocol_fault_and_reset_recovers(
     conn.wait_idle(timeout=WAIT)
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_fault_during_reset_ends_it_promptly(rig: SimulatedBiris, server: BirisServer) -> None:
     conn = server.open()
     rig.faults.stall_motor()  # re-initialisation homes the head: the stall stops it

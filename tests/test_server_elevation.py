@@ -130,6 +130,7 @@ def test_tilted_points_lie_on_the_cylinder(make_rig: RigFactory) -> None:
             assert abs(int(np.median(scan.range_mm)) - 2000) > 15
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_scan_asked_for_during_a_tilt_waits_for_it(
     rig: SimulatedBiris, server: BirisServer
 ) -> None:
@@ -155,6 +156,7 @@ def test_a_scan_asked_for_during_a_tilt_waits_for_it(
     assert rig.supervisor.loaded_lut == 114
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_tilt_asked_for_during_continuous_scanning_happens_between_sweeps(
     rig: SimulatedBiris, server: BirisServer
 ) -> None:
@@ -177,6 +179,7 @@ def test_a_tilt_asked_for_during_continuous_scanning_happens_between_sweeps(
     assert rig.supervisor.loaded_lut == 68
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_tilt_while_homing_runs_both_axes(rig: SimulatedBiris, server: BirisServer) -> None:
     conn = server.open()
     conn.single_scan(60.0)
@@ -187,6 +190,7 @@ def test_tilt_while_homing_runs_both_axes(rig: SimulatedBiris, server: BirisServ
     assert abs(rig.azimuth_counts) <= 3.0 and abs(rig.elevation_counts + 57) <= 3.0
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_the_simulator_catches_a_tilt_behind_the_servers_back(
     make_rig: RigFactory,
 ) -> None:

@@ -118,6 +118,7 @@ def test_live_positions_are_the_encoders_not_the_destinations(make_rig: RigFacto
 # --- counters and latency --------------------------------------------------------------------
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_counters_interrupts_and_latency(server: BirisServer) -> None:
     conn = server.open()
     latest = server.open(ConnectionKind.DATA)

@@ -4,7 +4,8 @@ it is logged with its traceback, and the next reset brings the task back.
 
 The supervisor on its own first (no simulator), then end to end: an exception injected once
 into a function that one task calls, for a notifier, a worker, the command notifier and the
-data notifier (the guest task in the level-2 routine's thread).
+data notifier (the guest task in the level-2 routine's thread). A HardwareFault a task raises
+(the level-3 routine's held drive fault) keeps its own kind instead.
 """
 
 from __future__ import annotations
@@ -18,14 +19,19 @@ from typing import Any
 import pytest
 
 from biris_hw import ConnectionKind, Direction
+from biris_hw import protocol as p
 from biris_hw.errors import BusError, HardwareFault
 from biris_hw.ipc import Mailbox, TaskStopped
 from biris_hw.irq import EventFdLine
 from biris_hw.server import BirisServer, scan_assembly, tasks
+from biris_hw.server.isr import Level3Demux
 from biris_hw.server.messages import BirisParityErr, TaskFailed
 from biris_hw.server.task_table import Restart, Starts, threads
+from regs.biexec import BiCommand
+from regs.tech80 import Axis
 from sim.rig import SimulatedBiris
 from tests.conftest import WAIT, until
+from tests.core import Core
 
 DETECTION_S = 1.0
 """Bound on the time from a task's failure to every blocked caller holding the fault: a one-way
@@ -213,6 +219,114 @@ def test_a_refused_report_is_logged_and_the_notifier_carries_on(
         notifier.join(WAIT)
         assert not notifier.is_alive()
     assert any("refused BirisParityErr" in r.getMessage() for r in caplog.records)
+
+
+# -- the kind a failure is reported as, without threads -----------------------------------------
+
+
+class HeldFault:
+    """A motion controller holding one fault, as a CiA 402 controller does after a drive's EMCY
+    (:class:`~biris_hw.axes.cia402.Cia402Controller`); nothing has ended, nothing is touched."""
+
+    def __init__(self, fault: HardwareFault) -> None:
+        self.fault: HardwareFault | None = fault
+
+    def take_fault(self) -> HardwareFault | None:
+        fault, self.fault = self.fault, None
+        return fault
+
+    def ended_axes(self) -> int:
+        return 0
+
+    def acknowledge(self, axis: Axis) -> None:
+        raise AssertionError("nothing ended")
+
+    def reset_chip(self, axis: Axis) -> None:
+        raise AssertionError("not here")
+
+    def enable_end_of_scan(self, axis: Axis, vector: int, enabled: bool = True) -> None:
+        raise AssertionError("not here")
+
+    def disable_all(self) -> None:
+        raise AssertionError("not here")
+
+    def index_seen(self, axis: Axis) -> bool:
+        raise AssertionError("not here")
+
+    def clear_index(self, axis: Axis) -> None:
+        raise AssertionError("not here")
+
+
+EMCY_TEXT = "drive node 1 (azimuth) reported EMCY 0x2310 (Current), error register 0x01"
+
+
+@pytest.mark.parametrize(
+    ("exc", "kind"),
+    [
+        pytest.param(HardwareFault("motor_stall", EMCY_TEXT), "motor_stall", id="emcy"),
+        pytest.param(
+            HardwareFault("bus", "drive node 2 (elevation): no heartbeat"), "bus", id="lost"
+        ),
+        pytest.param(BusError("simulator 'x': connection lost"), "bus", id="bus-error"),
+        pytest.param(
+            HardwareFault("protocol", "an impossible register"), "protocol", id="protocol"
+        ),
+        pytest.param(InjectedFailure("a bug"), "internal", id="bug"),
+    ],
+)
+def test_a_failure_keeps_its_fault_kind_to_every_caller(
+    core: Core, exc: Exception, kind: str
+) -> None:
+    """Thread-free, the supervisor's report of a failure into the administrator's case: a
+    HardwareFault keeps its own kind (the level-3 routine raising a drive's EMCY is
+    ``motor_stall``, not ``internal``), any other BusError is ``bus``, a bug ``internal``; and
+    every parked caller is told that kind. The server is busy with the pan standing (BIRIS has
+    not started the scan's sequence, so no move was ordered): no move's end or refusal could
+    have carried it."""
+    assert tasks.failure_kind(exc) == kind
+    conn = core.open()
+    data = core.open(ConnectionKind.DATA)
+    assert core.call(p.SingleScanRqst(conn, 1024)) == 1024
+    acquire = core.command(start=False)
+    assert acquire is not None and acquire.code == BiCommand.BI_ACQUIRE
+    assert core.move() is None  # the pan stands: its order waits for the sequence
+    waiting = [core.send(p.WaitIdle(conn)), core.send(p.ReadyForData(data))]
+    assert not any(ticket.done for ticket in waiting)
+    supervisor = tasks.Supervisor(core.inbox)
+    supervisor.failed("level3_isr", exc)
+    env = core.inbox.try_receive()
+    assert env is not None and env.oneway and isinstance(env.message, TaskFailed)
+    assert env.message.kind == kind
+    core.admin.handle(env)
+    assert core.admin.status()["state"] == f"fault:{kind}"
+    for ticket in waiting:
+        with pytest.raises(HardwareFault) as told:
+            ticket.wait(0)
+        assert told.value.kind == kind
+        assert "level3_isr" in told.value.message
+
+
+def test_the_level3_routine_raises_a_held_drive_fault_with_its_kind() -> None:
+    """Thread-free: one wake of the level-3 routine over a controller that holds a drive's
+    EMCY raises it as the HardwareFault it is (before looking for ended axes), and the
+    supervisor reports it as ``motor_stall`` with the drive's own words."""
+    inbox = Mailbox("BIRISSERV")
+    held = HardwareFault("motor_stall", EMCY_TEXT)
+    with EventFdLine() as line:
+        demux = Level3Demux(line, HeldFault(held))  # not started: no thread
+        try:
+            with pytest.raises(HardwareFault) as raised:
+                demux._service(1)
+            assert raised.value is held
+            assert demux.counts == dict.fromkeys(demux.carries, 0)  # no end raised
+        finally:
+            demux.close()
+    supervisor = tasks.Supervisor(inbox)
+    supervisor.failed("level3_isr", raised.value)
+    env = inbox.try_receive()
+    assert env is not None and env.message == TaskFailed("level3_isr", "motor_stall", EMCY_TEXT)
+    env.reply(None)
+    inbox.close()
 
 
 # -- end to end: one failure injected into one task ------------------------------------------------

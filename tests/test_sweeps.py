@@ -55,6 +55,7 @@ def test_stop_hands_over_the_sweep_that_completes_after_it(server: BirisServer) 
     assert sweeps.received + sweeps.dropped == completed
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_next_says_none_when_no_sweep_is_ready(server: BirisServer) -> None:
     with sweeping(server, -20.0, 20.0, timeout=WAIT_S) as sweeps:
         assert sweeps.next(timeout=0.0) is None  # the head has only just set off
@@ -63,6 +64,7 @@ def test_next_says_none_when_no_sweep_is_ready(server: BirisServer) -> None:
     assert sweeps.conn.closed and sweeps.data.closed
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_an_error_in_the_block_stops_the_scan_and_closes_both(server: BirisServer) -> None:
     before = _open_idents(server)
     with pytest.raises(KeyError, match="the caller's own"), sweeping(server, -20.0, 20.0) as sweeps:

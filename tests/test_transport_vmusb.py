@@ -124,6 +124,7 @@ def test_a_vanished_bridge_is_a_bus_fault_for_every_caller(usb_rig: SimulatedBir
         assert reset.value.kind == "bus"
 
 
+@pytest.mark.slow  # fast-tier budget (issues 13-15); make test-slow
 def test_a_coupler_bus_error_is_seen_in_the_irq_stack_and_recovered_from(
     usb_rig: SimulatedBiris,
 ) -> None:

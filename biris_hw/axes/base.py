@@ -18,12 +18,16 @@ import threading
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
+from biris_hw.errors import HardwareFault
+from biris_hw.irq.base import InterruptLine
+from biris_hw.pan_reference import PanReference
 from biris_hw.records import MotorParams
 from regs.tech80 import Axis
 
 __all__ = [
     "SETTLE_HOLD_S",
     "SETTLE_LIMIT_S",
+    "AxisSet",
     "MotionAxis",
     "MotionController",
     "wait_settled",
@@ -135,6 +139,55 @@ class MotionController(Protocol):
 
     def ended_axes(self) -> int:
         """Bitmask (:class:`regs.tech80.AxisBit`) of axes whose profile ended, unacknowledged."""
+        ...
+
+    def take_fault(self) -> HardwareFault | None:
+        """A fault the controller saw on its own since last asked, once, as the exception to
+        raise with its kind: a drive's heartbeat lost or a communication EMCY (``bus``), any
+        other EMCY (``motor_stall``), whether or not an axis was moving; None when there is
+        none. A controller that comes to hold one raises its end-of-motion line, so the
+        level-3 routine asks at that wake (and every other) and raises it, and the server's
+        supervisor reports it to every caller with that kind. The Model 7600 has no such
+        faults (a register it cannot read raises as it happens): always None."""
+        ...
+
+
+@runtime_checkable
+class AxisSet(Protocol):
+    """Axes that are not on the Model 7600: the pan, the tilt and their controller, with the
+    line the controller raises at the end of a move (the bundle's ``level3``).
+
+    A :class:`~biris_hw.hardware.BirisHardware` given one drives its axes through it instead of
+    the HCTL-1000s; it hands the set its pan reference (the pan's true zero) as it is built, and
+    closes it with itself.
+    """
+
+    @property
+    def azimuth(self) -> MotionAxis:
+        """The pan axis."""
+        ...
+
+    @property
+    def elevation(self) -> MotionAxis:
+        """The tilt axis."""
+        ...
+
+    @property
+    def controller(self) -> MotionController:
+        """End-of-motion bits, resets, index latches of both axes."""
+        ...
+
+    @property
+    def end_of_motion(self) -> InterruptLine:
+        """The line raised when an enabled axis's move ends: the bundle's level 3."""
+        ...
+
+    def use_pan_reference(self, reference: PanReference) -> None:
+        """Record every pan move there first and cut its destination, as the HCTL driver does."""
+        ...
+
+    def close(self) -> None:
+        """Stop listening, close the line and whatever connection the set owns; idempotent."""
         ...
 
 

@@ -62,13 +62,24 @@ at that sample period); ``params_index`` moves the record elsewhere.
 controller's), handed to every fault listener: communication codes (0x81xx, 0x82xx) are kind
 ``bus``, every other code ``motor_stall`` (the head can no longer be trusted to move: a
 following error, a blocked motor, over-current, a drive fault); an error reset (0x00xx) is only
-logged. A drive in FAULT refuses moves with HardwareFault("motor_stall") and never reports the
-interrupted move as ended. **Heartbeat loss** (no heartbeat for ``heartbeat_timeout_s``, or a
-boot-up message: the drive restarted and lost its set-up) makes every later access of that axis
-raise :class:`DriveBusError` -- a :class:`~biris_hw.errors.BusError` *and* a
-``HardwareFault("bus")`` -- and closes the controller's ``end_of_motion`` line, so the server's
-supervisor reports a ``bus`` fault. SDO aborts and timeouts are DriveBusErrors too, naming the
-node and the object.
+logged. A drive in FAULT refuses moves with HardwareFault("motor_stall") (its statusword never
+shows the interrupted move's target reached). **Heartbeat loss** (no heartbeat for
+``heartbeat_timeout_s``, or a boot-up message: the drive restarted and lost its set-up) makes
+every later access of that axis raise :class:`DriveBusError` -- a
+:class:`~biris_hw.errors.BusError` *and* a ``HardwareFault("bus")``. **Every fault reaches the
+server at once**, whatever the drive was doing: the controller holds it and raises its
+``end_of_motion`` line, the server's level-3 routine takes it
+(:meth:`Cia402Controller.take_fault`) and raises it, and its supervisor reports it with its kind
+(``bus`` or ``motor_stall``) to every caller -- an EMCY from a drive standing idle included,
+which would otherwise surface only when the next move was refused. One fault is held until the
+server's reset (the controller's notes say why and what is dropped). A ``motor_stall`` EMCY also
+ends the move it interrupted, as the HCTL-1000 ends its profile whatever the shaft does. SDO
+aborts and timeouts are DriveBusErrors too, naming the node and the object. A reset clears a
+drive's FAULT (fault reset); a drive whose heartbeat was lost stays lost for the life of its
+:class:`Cia402Bus`.
+
+:class:`Cia402Axes` is the whole set a hardware bundle takes (``BirisHardware(axes=...)``): the
+bus, the pan and tilt drives, the controller and its line.
 """
 
 from __future__ import annotations
@@ -90,6 +101,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from biris_hw.angles import clamp_counts
 from biris_hw.axes.base import (
     SETTLE_LIMIT_S,
+    AxisSet,
     MotionAxis,
     MotionController,
     wait_settled,
@@ -107,6 +119,7 @@ __all__ = [
     "DEFAULT_MASTER_ID",
     "PARAM_KEYS",
     "TOUCH_PROBE_INDEX",
+    "Cia402Axes",
     "Cia402Axis",
     "Cia402Bus",
     "Cia402Controller",
@@ -654,6 +667,23 @@ class Cia402Axis:
         self._fault(
             DriveFault(self.node_id, self.axis, kind, entry.code, entry.register, text, "emcy")
         )
+        if kind == "motor_stall":
+            self._interrupted()
+
+    def _interrupted(self) -> None:
+        """A fault stopped the move under way: report it ended, as the HCTL-1000 ends its
+        profile whatever the shaft does. The fault itself reaches the server first (the
+        controller holds it and the level-3 routine raises it before it looks at ended axes);
+        a level-3 routine that did not ask for faults would still find the head short of its
+        destination here (verified arrival), not wait for the watchdog. Runs in the CAN
+        receive thread: no SDO here."""
+        with self._cond:
+            if self._move not in (_Move.REQUESTED, _Move.ACKNOWLEDGED):
+                return
+            self._move = _Move.ENDED
+            self._cond.notify_all()
+        for listener in self._end_listeners:
+            listener(self.axis)
 
     def _heartbeat_lost(self, reason: str) -> None:
         text = f"{self._who}: {reason}; it is no longer driven"
@@ -955,6 +985,8 @@ class Cia402Axis:
         """:func:`biris_hw.axes.base.wait_settled` on 0x6064 against 0x6062 (the HCTL rule),
         only while the drive is OPERATION ENABLED (a faulted drive's demand follows the head);
         the settle position goes to the pan reference."""
+        if self._state() in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
+            return False  # its demand follows the head: nothing to wait for
         pos = wait_settled(
             lambda: (self.actual_position(), self.command_position()),
             self._clock,
@@ -1000,9 +1032,25 @@ class Cia402Controller:
     """The board's part for CiA 402 axes: a :class:`~biris_hw.axes.base.MotionController`.
 
     ``end_of_motion`` is the level-3 line: triggered when an axis's move ends (its bit newly
-    set in :meth:`ended_axes` while enabled), closed when a drive's heartbeat is lost.
-    ``on_fault`` (and :attr:`faults`) receive every :class:`DriveFault` of every axis: the
-    server maps them with :meth:`DriveFault.error`.
+    set in :meth:`ended_axes` while enabled), and whenever the controller comes to *hold* a
+    fault, whatever the axes are doing and whether or not their end of scan is enabled: a
+    drive's heartbeat lost or a communication EMCY (kind ``bus``), or any other EMCY (kind
+    ``motor_stall``: over-current, a following error, a drive fault), from a drive standing
+    idle as much as from one moving. :meth:`take_fault` then hands the held fault, once, to the
+    level-3 routine, which raises it; the server's supervisor reports it with its own kind to
+    every caller at once (not when the next move is asked for), and the line stays usable after
+    the reset. A ``motor_stall`` EMCY also ends the move it interrupted
+    (:meth:`Cia402Axis._interrupted`), as the HCTL-1000 ends its profile.
+
+    **One report per fault.** Once a fault is held, later EMCYs (a drive often sends several
+    for one failure, and the other drive may react to it) are recorded but not held again
+    until the next chip reset (:meth:`reset_chip`: the server's reset, whose fault resets clear
+    them). Otherwise one held after the level-3 routine had raised the first (and so waits for
+    the reset) would be raised as that reset restarts the routine, before the initialiser's
+    chip resets clear it, and fail the reset with a fault already gone. A held ``motor_stall``
+    fault of an axis is dropped by that axis's chip reset. A lost heartbeat is always held
+    (the drive stays lost: every reset must fail with ``bus``). ``on_fault`` (and
+    :attr:`faults`) receive every :class:`DriveFault` of every axis.
     """
 
     def __init__(
@@ -1020,6 +1068,9 @@ class Cia402Controller:
         self._lock = threading.Lock()
         self._enabled = 0
         self._ended = 0
+        self._pending: DriveFault | None = None
+        self._reported = False
+        """A fault has been held since the last chip reset: later EMCYs are only recorded."""
         for driver in self.axes.values():
             driver.add_end_listener(self._move_ended)
             driver.add_fault_listener(self._fault)
@@ -1042,10 +1093,20 @@ class Cia402Controller:
                 log.info("end of motion on %s not raised: %s", axis.name, exc)
 
     def _fault(self, fault: DriveFault) -> None:
+        """Record every fault; hold one and raise the line (see the class notes)."""
         with self._lock:
             self.faults.append(fault)
-        if fault.source == "heartbeat":
-            self.end_of_motion.close()
+            hold = self._pending is None and (fault.source == "heartbeat" or not self._reported)
+            if hold:
+                self._pending = fault
+                self._reported = True
+        if hold and not self.end_of_motion.closed:
+            try:
+                self.end_of_motion.trigger()
+            except Exception as exc:  # closed meanwhile: the server is closing
+                log.info("fault on %s not raised: %s", fault.axis.name, exc)
+        elif not hold:
+            log.info("%s: recorded; a fault is already being reported", fault.text)
         if self.on_fault is not None:
             self.on_fault(fault)
 
@@ -1057,9 +1118,17 @@ class Cia402Controller:
 
     # -- MotionController -----------------------------------------------------------------------
     def reset_chip(self, axis: Axis) -> None:
+        """The drive's fault reset, then its count restarted at 0 where the head stands
+        (:meth:`Cia402Axis.reset`). Its ``motor_stall`` fault still held is dropped (the
+        fault reset cleared it), and faults are held again from here on."""
         self._axis(axis).reset()
         with self._lock:
             self._ended &= ~_AXIS_BIT[axis]
+            pending = self._pending
+            if pending is not None and pending.axis is axis and pending.kind != "bus":
+                log.info("%s: cleared by the chip reset", pending.text)
+                self._pending = None
+            self._reported = self._pending is not None
 
     def enable_end_of_scan(self, axis: Axis, vector: int, enabled: bool = True) -> None:
         """``vector`` has no meaning on CAN and is ignored."""
@@ -1085,11 +1154,111 @@ class Cia402Controller:
         with self._lock:
             return self._ended
 
+    def take_fault(self) -> HardwareFault | None:
+        """The fault held since last asked, as the exception to raise, once: a
+        :class:`DriveBusError` for ``bus``, a ``HardwareFault("motor_stall")`` naming the EMCY
+        otherwise; None when there is none."""
+        with self._lock:
+            pending, self._pending = self._pending, None
+        return pending.error() if pending is not None else None
+
     def close(self) -> None:
         """Stop listening to the drives and close the line (the bus is its owner's)."""
         for driver in self.axes.values():
             driver.close()
         self.end_of_motion.close()
+
+
+class Cia402Axes:
+    """Pan and tilt as two CiA 402 drives on one CAN bus: an :class:`~biris_hw.axes.base.AxisSet`.
+
+    Owns the :class:`Cia402Bus` it makes from ``can_config`` (python-can's ``can.Bus`` keywords;
+    none at all: python-can's own configuration, its config file or ``CAN_*`` environment) and
+    closes it. Nothing is sent before the first use: the drives are set up by the server's
+    initialisation (or :meth:`start`).
+
+    Raises:
+        DriveBusError: the CAN interface cannot be opened.
+        ValueError: a node id outside 1..127, both axes on one node, or bad heartbeat times.
+    """
+
+    def __init__(
+        self,
+        *,
+        pan_node: int,
+        tilt_node: int,
+        clock: Callable[[], float] = time.monotonic,
+        time_scale: float = 1.0,
+        heartbeat_period_s: float = 0.1,
+        heartbeat_timeout_s: float = 0.35,
+        master_id: int | None = DEFAULT_MASTER_ID,
+        sdo_timeout_s: float = 0.3,
+        state_timeout_s: float = 0.5,
+        homing_method: int = 35,
+        params_index: int = Obj.MOTOR_PARAMS,
+        **can_config: Any,
+    ) -> None:
+        if pan_node == tilt_node:
+            raise ValueError(f"pan and tilt cannot both be node {pan_node}")
+        for node in (pan_node, tilt_node):
+            if not 1 <= node <= 127:
+                raise ValueError(f"CANopen node id {node} out of range 1..127")
+        self.bus = Cia402Bus(
+            heartbeat_period_s=heartbeat_period_s,
+            heartbeat_timeout_s=heartbeat_timeout_s,
+            master_id=master_id,
+            sdo_timeout_s=sdo_timeout_s,
+            **can_config,
+        )
+        options: dict[str, Any] = {
+            "params_index": params_index,
+            "homing_method": homing_method,
+            "state_timeout_s": state_timeout_s,
+        }
+        self.pan = Cia402Axis(self.bus, pan_node, Axis.AZIMUTH, clock, time_scale, **options)
+        self.tilt = Cia402Axis(self.bus, tilt_node, Axis.ELEVATION, clock, time_scale, **options)
+        self._controller = Cia402Controller(
+            self.bus, {Axis.AZIMUTH: self.pan, Axis.ELEVATION: self.tilt}
+        )
+        self._closed = False
+
+    def __repr__(self) -> str:
+        return f"Cia402Axes(pan node {self.pan.node_id}, tilt node {self.tilt.node_id})"
+
+    @property
+    def azimuth(self) -> MotionAxis:
+        return self.pan
+
+    @property
+    def elevation(self) -> MotionAxis:
+        return self.tilt
+
+    @property
+    def controller(self) -> Cia402Controller:
+        return self._controller
+
+    @property
+    def end_of_motion(self) -> EventFdLine:
+        return self._controller.end_of_motion
+
+    @property
+    def faults(self) -> list[DriveFault]:
+        """Every fault either drive reported, oldest first."""
+        return list(self._controller.faults)
+
+    def use_pan_reference(self, reference: PanReference) -> None:
+        self.pan.reference = reference
+
+    def start(self) -> None:
+        """Set both drives up now (the server does it on first use otherwise)."""
+        self._controller.start()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._controller.close()
+        self.bus.close()
 
 
 def stop_periodic_task(task: Any) -> None:
@@ -1105,10 +1274,10 @@ def stop_periodic_task(task: Any) -> None:
 
 
 def _conforms(
-    axis: Cia402Axis, controller: Cia402Controller
-) -> tuple[MotionAxis, MotionController]:
-    """Never called: mypy checks the two classes against the protocols here."""
-    return axis, controller
+    axis: Cia402Axis, controller: Cia402Controller, axes: Cia402Axes
+) -> tuple[MotionAxis, MotionController, AxisSet]:
+    """Never called: mypy checks the classes against the protocols here."""
+    return axis, controller, axes
 
 
 def _ms(seconds: float) -> int:

@@ -34,7 +34,7 @@ import traceback
 from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol, TextIO
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TextIO, overload
 
 from biris_hw.angles import counts_to_deg, deg_to_counts
 from biris_hw.commands.argtypes import (
@@ -45,7 +45,9 @@ from biris_hw.commands.argtypes import (
     seconds,
     time_scale_warning,
 )
+from biris_hw.data import ConnectionKind, DeliveryPolicy
 from biris_hw.errors import (
+    AccessDenied,
     BirisError,
     BusError,
     ConnectionClosed,
@@ -56,6 +58,7 @@ from biris_hw.errors import (
 from biris_hw.hardware import BirisHardware
 from biris_hw.records import BirisInitRecord
 from biris_hw.server import BirisServer
+from biris_hw.status import ServerStatus
 from regs.biexec import BiCommand
 from regs.hctl1000 import COUNTS_PER_REV
 
@@ -69,17 +72,20 @@ __all__ = [
     "EXIT_USAGE",
     "HALF_TURN_COUNTS",
     "LAG_CHECK_S",
+    "PASSWORD_ENV",
     "PROGRESS_LOGGER",
     "TARGET_ENV",
     "AuditFailure",
     "LagWatch",
     "Lagging",
+    "Sensor",
     "Session",
     "SetupError",
     "UsageError",
     "add_continuous_argument",
     "add_debug_argument",
     "add_quiet_argument",
+    "add_service_client_arguments",
     "add_target_arguments",
     "add_timeout_argument",
     "add_yes_argument",
@@ -96,6 +102,7 @@ __all__ = [
     "open_session",
     "prog_of",
     "progress_to_stderr",
+    "read_toml",
     "report_error",
     "stderr_is_terminal",
     "wants_progress",
@@ -104,6 +111,9 @@ __all__ = [
 EXIT_FAULT = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+
+PASSWORD_ENV = "BIRIS_PASSWORD"
+"""With ``--user``: the controller's password (never on the command line, where ``ps`` shows it)."""
 
 TARGET_ENV = "BIRIS_TARGET"
 """A target file to use when neither --sim nor --target is given: set once on the robot."""
@@ -155,8 +165,12 @@ def add_debug_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_target_arguments(parser: argparse.ArgumentParser) -> None:
-    """The sensor to use and how to start its server: the flags every hardware command takes."""
+def add_target_arguments(parser: argparse.ArgumentParser, *, remote: bool = True) -> None:
+    """The sensor to use and how to start its server: the flags every hardware command takes.
+
+    ``remote``: also ``--connect NAME`` and its flags (a running service instead of a server of
+    our own); ``biris serve``, which is the service, says False.
+    """
     where = parser.add_argument_group("sensor")
     choice = where.add_mutually_exclusive_group()
     choice.add_argument("--sim", action="store_true", help="use the simulator")
@@ -171,6 +185,14 @@ def add_target_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="NAME",
         help="a simulator process started with `biris sim --shm NAME`",
     )
+    if remote:
+        choice.add_argument(
+            "--connect",
+            metavar="NAME",
+            help="a running sensor service (`biris serve --name NAME`) instead of a server of "
+            "our own",
+        )
+        add_service_client_arguments(parser)
     where.add_argument(
         "--init",
         type=path,
@@ -181,6 +203,36 @@ def add_target_arguments(parser: argparse.ArgumentParser) -> None:
     add_simulator_arguments(sim, default_time_scale=DEFAULT_TIME_SCALE, deferred=True)
     add_quiet_argument(parser)
     add_debug_argument(parser)
+
+
+def add_service_client_arguments(parser: argparse.ArgumentParser) -> None:
+    """How to reach a service with ``--connect``: endpoints, credentials, TLS (no passwords on
+    the command line: a file, or ``$BIRIS_PASSWORD`` with ``--user``)."""
+    net = parser.add_argument_group("service (with --connect)")
+    net.add_argument(
+        "--endpoint",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint of the service, e.g. tcp/robot:7447 (repeatable; default: "
+        "found by multicast scouting)",
+    )
+    net.add_argument(
+        "--user",
+        metavar="USER",
+        help=f"controller's user name; the password is read from ${PASSWORD_ENV}",
+    )
+    net.add_argument(
+        "--credentials",
+        type=path,
+        metavar="FILE",
+        help='controller\'s credentials, a TOML file: user = "...", password = "..."',
+    )
+    net.add_argument(
+        "--tls-ca",
+        type=path,
+        metavar="FILE",
+        help="root CA certificate (PEM) for a tls/ endpoint",
+    )
 
 
 def add_quiet_argument(parser: argparse.ArgumentParser) -> None:
@@ -228,6 +280,14 @@ _SIM_ONLY = ("scene", "samples", "time_scale", "seed")
 def check_target_arguments(args: argparse.Namespace) -> None:
     """Resolve --sim / --target / $BIRIS_TARGET and the simulator's defaults, in place."""
     attach = getattr(args, "attach", None)
+    if getattr(args, "connect", None) is not None:
+        given = [key for key in (*_SIM_ONLY, "init") if getattr(args, key, None) is not None]
+        if given:
+            flag = "--" + given[0].replace("_", "-")
+            raise UsageError(f"{flag} does not apply to a running service (--connect)")
+        return
+    if getattr(args, "endpoint", None) or getattr(args, "user", None):
+        raise UsageError("--endpoint and --user go with --connect NAME")
     if not args.sim and args.target is None and attach is None:
         args.target = os.environ.get(TARGET_ENV) or None
         if args.target is None:
@@ -250,12 +310,51 @@ def check_target_arguments(args: argparse.Namespace) -> None:
 # -- sessions --------------------------------------------------------------------------------------
 
 
+class Sensor(Protocol):
+    """What a command needs of the sensor: a local :class:`~biris_hw.BirisServer`, a service
+    reached with ``--connect`` (:class:`biris_hw.net.RemoteSensor`), or anything else with
+    these three methods (a replayed recording). Connections are duck-typed alike."""
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: Literal[DeliveryPolicy.EVERY_ACQUISITION],
+        depth: int | None = ...,
+    ) -> Any: ...
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: Literal[DeliveryPolicy.LATEST, DeliveryPolicy.EVERY_BUFFER] = ...,
+        depth: int | None = ...,
+    ) -> Any: ...
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: DeliveryPolicy,
+        depth: int | None = ...,
+    ) -> Any: ...
+
+    def status(self) -> ServerStatus: ...
+
+    def close(self) -> None: ...
+
+
 @dataclass
 class Session:
     """A running server on a sensor, as a command sees it."""
 
-    server: BirisServer
-    hardware: BirisHardware
+    server: Sensor
+    """The sensor: a server of this command's own, or a running service (--connect)."""
+    hardware: BirisHardware | None
+    """The hardware under a server of our own; None through a service."""
     record: BirisInitRecord
     rig: SimulatedBiris | None = None
     """The simulator, with --sim: its scene, true azimuth and audit."""
@@ -264,6 +363,9 @@ class Session:
     breaks if it turns a long way, so it is never asked for --yes."""
     prog: str = "biris"
     """``biris <command>``: what the command's own lines on stderr start with."""
+    remote: bool = False
+    """Through a running service (--connect): the record is the default one, not the
+    service's, and the server is not ours to home or stop."""
 
 
 def prog_of(args: argparse.Namespace) -> str:
@@ -329,6 +431,10 @@ def open_session(args: argparse.Namespace) -> Iterator[Session]:
     leaves naming the BIRIS command that was not answered (:func:`_name_unanswered`).
     """
     check_target_arguments(args)
+    if getattr(args, "connect", None) is not None:
+        with _connect(args) as session:
+            yield session
+        return
     record = _load_record(args.init)
     if getattr(args, "continuous", False):
         record = dataclasses.replace(record, continuous_acquisition=True)
@@ -363,6 +469,67 @@ def open_session(args: argparse.Namespace) -> Iterator[Session]:
             f"the simulator's audit recorded {len(found)} driver rule violation(s); "
             f"first: {found[0]}"
         )
+
+
+def _credentials(args: argparse.Namespace) -> tuple[str | None, str | None]:
+    """(user, password) from --credentials FILE or --user and $BIRIS_PASSWORD, or (None, None)."""
+    file = getattr(args, "credentials", None)
+    user = getattr(args, "user", None)
+    if file is not None:
+        table = read_toml(file)
+        found_user, password = table.get("user"), table.get("password")
+        if not isinstance(found_user, str) or not isinstance(password, str):
+            raise SetupError(f'{file}: needs user = "..." and password = "..."')
+        if user is not None and user != found_user:
+            raise UsageError(f"--user {user} disagrees with {file} (user {found_user})")
+        return found_user, password
+    if user is not None:
+        password = os.environ.get(PASSWORD_ENV)
+        if not password:
+            raise UsageError(f"--user {user} needs the password in ${PASSWORD_ENV}")
+        return user, password
+    return None, None
+
+
+def read_toml(file: str | os.PathLike[str]) -> dict[str, Any]:
+    """A TOML file's table (credentials files); SetupError naming the file if it cannot be."""
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # tomli is a declared dependency below 3.11
+        import tomli as tomllib  # type: ignore[import-not-found, unused-ignore]
+    try:
+        with open(file, "rb") as stream:
+            table: dict[str, Any] = tomllib.load(stream)
+    except OSError as exc:
+        raise SetupError(f"cannot read {file}: {exc.strerror or exc}") from exc
+    except ValueError as exc:  # tomllib.TOMLDecodeError
+        raise SetupError(f"{file}: not TOML: {exc}") from exc
+    return table
+
+
+@contextlib.contextmanager
+def _connect(args: argparse.Namespace) -> Iterator[Session]:
+    """A session on a running service: nothing is started, homed or stopped on the way out."""
+    try:
+        from biris_hw.net import RemoteSensor, tls_options
+    except ImportError as exc:
+        raise SetupError(
+            f"--connect needs the net extra (pip install 'biris-hw[net]'): {exc}"
+        ) from exc
+    user, password = _credentials(args)
+    ca = getattr(args, "tls_ca", None)
+    try:
+        remote = RemoteSensor(
+            args.connect,
+            getattr(args, "endpoint", None),
+            user,
+            password,
+            options=tls_options(root_ca=str(ca)) if ca is not None else None,
+        )
+    except ConnectionClosed as exc:
+        raise SetupError(str(exc)) from exc
+    with remote:
+        yield Session(remote, None, BirisInitRecord(), None, False, prog_of(args), remote=True)
 
 
 def _name_unanswered(exc: HardwareFault, hardware: BirisHardware) -> HardwareFault:
@@ -577,7 +744,8 @@ def exit_status(exc: BaseException) -> int:
     """2 for what the user must fix, 1 for what the hardware did, 130 for Ctrl-C."""
     if isinstance(exc, KeyboardInterrupt):
         return EXIT_INTERRUPTED
-    if isinstance(exc, (UsageError, SetupError, RequestError, UnknownKind, ModuleNotFoundError)):
+    usage = (UsageError, SetupError, RequestError, UnknownKind, ModuleNotFoundError, AccessDenied)
+    if isinstance(exc, usage):  # AccessDenied: give a controller's credentials
         return EXIT_USAGE
     if isinstance(exc, (HardwareFault, AuditFailure, ConnectionClosed, BusError, TimeoutError)):
         return EXIT_FAULT

@@ -93,6 +93,11 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
 
         check_output_file("--save-init", args.save_init)
     with open_session(args) as session:
+        if session.hardware is None:  # the chip's registers are read, not just the server asked
+            raise UsageError(
+                "motor-params reads the HCTL-1000 itself: run it where the sensor is, "
+                "not through --connect"
+            )
         params = dataclasses.replace(session.record.motor, **changes)
         if changes:
             with session.server.open() as conn:

@@ -72,7 +72,7 @@ def latest_point(
     """The server's latest point; scans to ``to_deg`` first when it has none yet (asking for
     ``--yes`` in ``args`` first if that is more than half a turn on a real head)."""
     with session.server.open() as conn:
-        point = conn.request_point()
+        point: Point | None = conn.request_point()
         if point is None:
             dest = destination_counts(to_deg, "--to")
             confirm_moves(session, args or argparse.Namespace(), [(f"--to {to_deg:g}", dest)])

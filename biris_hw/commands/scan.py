@@ -9,8 +9,11 @@ sweep runs from where the head stands to the CW limit, so it is shorter than the
 ``--save PATH`` writes PATH.npz (every scan whole, for programs:
 :func:`biris_hw.scanfile.load_scans` reads it back into equal :class:`~biris_hw.Scan` objects)
 and PATH.csv (one row per acquisition with its range profile, for spreadsheets); see
-:mod:`biris_hw.scanfile`. ``--plot PATH`` draws every scan the command made. Both are checked
-before the sensor is touched, so a typo in a folder name costs nothing.
+:mod:`biris_hw.scanfile`. ``--save PATH.mcap`` writes that one MCAP file instead (extra
+``.[record]``): each scan's ``sensor_msgs/msg/PointCloud2`` and its lossless record, which
+Foxglove, Lichtblick and ``ros2 bag`` open and ``biris replay`` plays back
+(:func:`biris_hw.record.write_scans`). ``--plot PATH`` draws every scan the command made. Both
+are checked before the sensor is touched, so a typo in a folder name costs nothing.
 
 An angle beyond _Scan_limit (+-360 degrees) is clamped by the server and the command says so; on
 a real target a move of more than half a turn needs ``--yes``. Ctrl-C during ``--sweeps N``
@@ -84,7 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--save",
         type=path,
         metavar="PATH",
-        help="write PATH.npz (every scan, whole) and PATH.csv (ranges, for spreadsheets)",
+        help="write PATH.npz (every scan, whole) and PATH.csv (ranges, for spreadsheets); "
+        "PATH.mcap: one MCAP file (ROS 2 point clouds, replayable) instead",
     )
     out.add_argument(
         "--plot",
@@ -144,11 +148,12 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         else:
             interrupted = _sweeps(session, args, stream, scans)
         outline = session.rig.scene.outline_2d() if session.rig is not None else None
+        metadata = _mcap_metadata(session, args)
     written: list[Path] = []
     if scans and args.save is not None:
-        npz, table = save_files(args.save, scans)
-        print(f"saved {npz} and {table}", file=stream)
-        written += [npz, table]
+        saved = save_files(args.save, scans, metadata)
+        print(f"saved {' and '.join(map(str, saved))}", file=stream)
+        written += saved
     if scans and args.plot is not None:
         from biris_hw.plots import save_polar
 
@@ -265,18 +270,38 @@ def scan_to_json(scan: Scan) -> dict[str, Any]:
 # -- files -----------------------------------------------------------------------------------------
 
 
-def save_paths(path: str | Path) -> tuple[Path, Path]:
-    """The two files ``--save PATH`` writes: PATH.npz and PATH.csv (a given .npz or .csv suffix
-    is replaced)."""
+def save_paths(path: str | Path) -> tuple[Path, ...]:
+    """The files ``--save PATH`` writes: PATH.mcap alone for a ``.mcap`` name, else PATH.npz and
+    PATH.csv (a given .npz or .csv suffix is replaced)."""
     stem = Path(path)
+    if stem.suffix == ".mcap":
+        return (stem,)
     if stem.suffix in (".npz", ".csv"):
         stem = stem.with_suffix("")
     return stem.with_name(stem.name + ".npz"), stem.with_name(stem.name + ".csv")
 
 
-def save_files(path: str | Path, scans: list[Scan]) -> tuple[Path, Path]:
-    """``--save PATH``: PATH.npz and PATH.csv (:func:`save_paths`), in a folder made if need
-    be; returns both paths."""
-    npz, table = save_paths(path)
-    npz.parent.mkdir(parents=True, exist_ok=True)
+def save_files(
+    path: str | Path, scans: list[Scan], metadata: dict[str, object] | None = None
+) -> tuple[Path, ...]:
+    """``--save PATH``: the files of :func:`save_paths`, in a folder made if need be; returns
+    their paths. An MCAP file gets ``metadata`` in its ``biris`` record (the scene, the
+    command)."""
+    files = save_paths(path)
+    files[0].parent.mkdir(parents=True, exist_ok=True)
+    if files[0].suffix == ".mcap":
+        from biris_hw.record import write_scans
+
+        return (write_scans(files[0], scans, metadata=metadata),)
+    npz, table = files
     return scanfile.save_scans(npz, scans), scanfile.export_csv(table, scans)
+
+
+def _mcap_metadata(session: Session, args: argparse.Namespace) -> dict[str, object] | None:
+    """What an MCAP ``--save`` says about the sensor (the simulator's scene and settings, the
+    target description), read while the session is open; None for other files."""
+    if args.save is None or Path(args.save).suffix != ".mcap":
+        return None
+    from biris_hw.commands.record import recording_metadata
+
+    return recording_metadata(session, args)

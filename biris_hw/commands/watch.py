@@ -25,6 +25,7 @@ from typing import Any, TextIO
 from biris_hw.angles import counts_to_deg, destination_counts
 from biris_hw.commands.argtypes import degrees, seconds
 from biris_hw.commands.common import (
+    Sensor,
     UsageError,
     add_continuous_argument,
     add_target_arguments,
@@ -36,7 +37,6 @@ from biris_hw.commands.common import (
     open_session,
 )
 from biris_hw.errors import BirisError, HardwareFault
-from biris_hw.server import BirisServer
 from biris_hw.status import ServerState, ServerStatus
 from biris_hw.sweeps import sweeping
 
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     return 0
 
 
-def _giving_up(server: BirisServer, status: ServerStatus) -> HardwareFault:
+def _giving_up(server: Sensor, status: ServerStatus) -> HardwareFault:
     """The fault the server is in, with its own message (a poll raises it), and why watching
     stops: nothing in this run will reset the server, so the status would never change."""
     kind = status.fault or "internal"

@@ -141,31 +141,38 @@ def _plain_section(
 
 def snapshot_regions(
     biris: Region,
-    motion: Region,
+    motion: Region | None,
     coupler: Region,
     memory_map: BirisMemoryMap,
     *,
     frame_size: int | None = None,
     source: str = "",
 ) -> Dump:
-    """Read and decode the three areas; ``frame_size`` overrides the map's (as BIRIS reports it)."""
+    """Read and decode the three areas; ``frame_size`` overrides the map's (as BIRIS reports it).
+    ``motion`` is None on a target whose axes are CiA 402 drives (no Model 7600): its three
+    sections are then left out, and the layout has no ``motion`` entry."""
     mm = memory_map
     size = mm.frame_size if frame_size is None else frame_size
     needed = FRAME_DTYPE.itemsize * (mm.samples + 1)
     if size < needed or size % 2:
         raise DumpError(f"a frame of {mm.samples} samples needs an even frame size >= {needed}")
     biexec, values = _biexec_section(biris, mm)
+    board: tuple[Section, ...] = ()
+    if motion is not None:
+        board = (
+            _hctl_section(motion, Axis.AZIMUTH),
+            _hctl_section(motion, Axis.ELEVATION),
+            _plain_section("board", motion, BOARD_REGISTERS),
+        )
     sections = (
         biexec,
         frames_section(biris, mm, size, values["ACQ_LINE"], values["CURRENT_FRAME"]),
-        _hctl_section(motion, Axis.AZIMUTH),
-        _hctl_section(motion, Axis.ELEVATION),
-        _plain_section("board", motion, BOARD_REGISTERS),
+        *board,
         _plain_section("coupler", coupler, BIT3_REGISTERS, _coupler_rows),
     )
     layout = {
         "coupler": coupler.base,
-        "motion": motion.base,
+        **({"motion": motion.base} if motion is not None else {}),
         "biris": biris.base,
         "biris_base": mm.biris_base,
         "biexec_offset": mm.biexec_offset,
@@ -205,7 +212,7 @@ def snapshot_hardware(
     mm = memory_map or BirisMemoryMap(biris_base=hw.biris_base, biexec_offset=hw.biexec_offset)
     return snapshot_regions(
         Region(hw.biris, 0, hw.biris.size),
-        Region(hw.motion, 0, hw.motion.size),
+        Region(hw.motion, 0, hw.motion.size) if hw.motion is not None else None,
         Region(hw.coupler, 0, hw.coupler.size),
         mm,
         frame_size=frame_size,

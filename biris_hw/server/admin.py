@@ -698,10 +698,12 @@ class Administrator:
             self._fault("motor_stall", f"the {axis.name} motor did not reach its destination")
 
     def _on_task_failed(self, env: Envelope, msg: m.TaskFailed) -> None:
-        """A task hit a bus error (the target is gone) or an unexpected exception: a fault of
-        that kind; the task waits for the next reset, which restarts it."""
+        """A task hit a bus error (the target is gone), raised a hardware fault (a CiA 402
+        drive's EMCY, taken by the level-3 routine: ``motor_stall``) or an unexpected exception:
+        a fault of the kind it reports (anything unknown is ``internal``); the task waits for
+        the next reset, which restarts it."""
         env.reply(None)
-        self._fault("bus" if msg.kind == "bus" else "internal", f"{msg.task}: {msg.text}")
+        self._fault(_fault_kind(msg.kind), f"{msg.task}: {msg.text}")
 
     # -- BIRIS_HOME and BIRIS_MOTOR_PARAMS ---------------------------------------------------
     def _on_motor_params(self, env: Envelope, msg: p.BirisMotorParams) -> None:

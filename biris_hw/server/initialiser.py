@@ -43,7 +43,11 @@ and notifiers as scans. Every step is bounded: no index where it may be, a comma
 completes, or a move that never ends is a HardwareFault, never a hang.
 
 The registers are reached through the hardware bundle's one set of drivers
-(``BirisHardware.devices``), the same objects the server's tasks use.
+(``BirisHardware.devices``), the same objects the server's tasks use, and only through the axis
+interface (:class:`~biris_hw.axes.base.MotionAxis`, :class:`~biris_hw.axes.base.
+MotionController`): the same homing runs on the Model 7600's HCTL-1000s and on CiA 402 drives
+over CAN (index latch = the drive's touch probe on the zero impulse; chip reset = fault reset,
+disable and homing on the current position).
 """
 
 from __future__ import annotations
@@ -54,7 +58,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from biris_hw.angles import counts_to_deg
-from biris_hw.devices import LEVEL2_VECTOR, AxisDriver
+from biris_hw.axes.base import MotionAxis
+from biris_hw.devices import LEVEL2_VECTOR
 from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
@@ -219,19 +224,19 @@ class Initialiser:
         self.board.disable_all()
         counter = self._locate_pan()
         self._tilt_level = self._locate_tilt()
-        for axis, params in (
-            (self.azimuth, self.record.motor),
-            (self.elevation, self.record.tilt_motor),
+        for which, axis, params in (
+            (Axis.AZIMUTH, self.azimuth, self.record.motor),
+            (Axis.ELEVATION, self.elevation, self.record.tilt_motor),
         ):
-            self.board.reset_chip(axis.axis)
-            if axis is self.azimuth:
+            self.board.reset_chip(which)
+            if which is Axis.AZIMUTH:
                 # after the reset (a crash between them reads as a chip reset, see pan_reference)
                 self.reference.chip_reset(counter)
             axis.configure(params)
             axis.wait_still(self.stop)  # after a reset the motor coasts
             axis.hold_here()
-            self.board.acknowledge(axis.axis)
-            self._position[axis.axis] = axis.command_position()
+            self.board.acknowledge(which)
+            self._position[which] = axis.command_position()
         self.board.enable_end_of_scan(Axis.AZIMUTH, DEFAULT_IRQ_VECTOR)
         self.board.enable_end_of_scan(Axis.ELEVATION, DEFAULT_IRQ_VECTOR)
 
@@ -417,7 +422,7 @@ class Initialiser:
             reach *= 2
         return None
 
-    def _stand_on_index(self, axis: Axis, driver: AxisDriver, bracket: tuple[int, int]) -> None:
+    def _stand_on_index(self, axis: Axis, driver: MotionAxis, bracket: tuple[int, int]) -> None:
         """Bisect the bracket to one count, always crossing from below, then stand there as
         encoder count 0."""
         board = self.board

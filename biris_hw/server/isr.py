@@ -40,8 +40,9 @@ it raises BIT3_BERR and the routine keeps running.
 
 **Failure.** The server runs both routines under its supervisor
 (:meth:`~biris_hw.irq.Demultiplexer.serve`). A physical line that is closed under a routine, or
-that fails, means the target has gone: the supervisor reports a ``bus`` fault. Anything else a
-routine raises is an ``internal`` one. Either way the routine then waits for the next reset and
+that fails, means the target has gone: the supervisor reports a ``bus`` fault. A HardwareFault a
+routine raises (level 3's held drive fault) is reported with its own kind; anything else is an
+``internal`` one. Either way the routine then waits for the next reset and
 runs again. The data notifier that shares the level-2 thread reports its own failures and is
 detached until that reset re-attaches it (:meth:`Level2Demux.attach_data_notifier`).
 
@@ -55,11 +56,15 @@ wake-up; measured, that added 50-100 us to the interrupt-to-client latency (p50)
 make BIRIS_CMD's service any prompter (numbers: :mod:`biris_hw.server.task_table`). With no
 notifier attached the line is raised as for every other logical interrupt.
 
-**Level 3** (the Model 7600 board): IRQ_STATUS names the axes whose trapezoidal profile ended.
-Each set bit is written back (write 1 to acknowledge) *before* its logical interrupt is raised,
+**Level 3** (the motion controller: the Model 7600 board, or CiA 402 drives over CAN):
+``ended_axes()`` (the board's IRQ_STATUS) names the axes whose trapezoidal profile ended.
+Each is acknowledged (the board: write 1 to its bit) *before* its logical interrupt is raised,
 so the acknowledgement can never clear the end of a move the woken notifier has already started:
 azimuth raises MOTOR_END_OF_SCAN, elevation ELEVATION_END_OF_SCAN. An interrupt with no bit set
-is spurious: counted, nothing raised.
+is spurious: counted, nothing raised. Before any of that, a fault the controller holds
+(``take_fault()``: CiA 402 drives' EMCYs and lost heartbeats; never on the Model 7600) is
+raised as the HardwareFault it is, with its kind (``motor_stall`` or ``bus``), and the
+supervisor reports that kind to every caller at once, even with both axes standing idle.
 
 **Registers read by the interrupt itself.** A line that reads registers at interrupt time
 (the VM-USB runs an IRQ stack and sends what it read with the interrupt:
@@ -77,14 +82,15 @@ import logging
 import threading
 from collections.abc import Callable
 
+from biris_hw.axes.base import MotionController
 from biris_hw.bus.base import BusWindow
-from biris_hw.devices import LEVEL2_PREFETCH, LEVEL3_PREFETCH
+from biris_hw.devices import LEVEL2_PREFETCH, LEVEL3_PREFETCH, MotionBoard
 from biris_hw.errors import BusError
 from biris_hw.irq.base import InterruptLine
 from biris_hw.irq.demux import Demultiplexer
 from regs.biexec import OFF_COMMAND
 from regs.bit3 import Bit3Reg, LocalStatus
-from regs.tech80 import AxisBit, BoardReg
+from regs.tech80 import Axis, AxisBit
 
 __all__ = [
     "LEVEL2_LOGICALS",
@@ -253,32 +259,52 @@ class Level2Demux(Demultiplexer[Logical]):
 
 
 _AXES = (
-    (int(AxisBit.AZIMUTH), Logical.MOTOR_END_OF_SCAN),
-    (int(AxisBit.ELEVATION), Logical.ELEVATION_END_OF_SCAN),
+    (Axis.AZIMUTH, int(AxisBit.AZIMUTH), Logical.MOTOR_END_OF_SCAN),
+    (Axis.ELEVATION, int(AxisBit.ELEVATION), Logical.ELEVATION_END_OF_SCAN),
 )
 
 
 class Level3Demux(Demultiplexer[Logical]):
-    """Level 3: the Model 7600's end-of-profile interrupts, one logical line per axis."""
+    """Level 3: the end-of-motion interrupts of the motion controller, one logical line per axis.
 
-    def __init__(self, line: InterruptLine, motion: BusWindow, name: str = LEVEL3_THREAD) -> None:
+    ``controller`` is the device's :class:`~biris_hw.axes.base.MotionController`: the Model
+    7600's board registers (:class:`~biris_hw.devices.MotionBoard`; its window alone will do),
+    or the controller of CiA 402 drives over CAN, whose line is raised by the drives' event
+    TPDOs.
+    """
+
+    def __init__(
+        self,
+        line: InterruptLine,
+        controller: MotionController | BusWindow,
+        name: str = LEVEL3_THREAD,
+    ) -> None:
         super().__init__(line, LEVEL3_LOGICALS, name)
-        self._motion = motion
+        if isinstance(controller, BusWindow):  # the Model 7600's window: its board registers
+            controller = MotionBoard(controller)
+        self._controller: MotionController = controller
 
     def _service(self, count: int) -> None:
-        """Acknowledge and raise each axis that ended its profile.
+        """Raise a fault the controller holds, else acknowledge and raise each axis that ended.
 
-        A BusError on IRQ_STATUS is raised on: the board sits on the host's own bus, so this is
-        not a coupler fault that BIT3_BERR could carry, and waiting for the motor watchdog would
-        report a lost board as a stalled motor. Under the server's supervisor it is a ``bus``
-        fault at once.
+        A fault the controller holds (:meth:`MotionController.take_fault`: a CAN drive's
+        heartbeat lost or communication EMCY, ``bus``; any other EMCY, ``motor_stall``, from a
+        drive moving or standing idle) is raised here as the HardwareFault it is, so the
+        server's supervisor reports it with that kind to every caller at once, rather than the
+        motor watchdog later or the next move's refusal. A BusError on the board's
+        IRQ_STATUS is raised on too: the board sits on the host's own bus, so this is not a
+        coupler fault that BIT3_BERR could carry, and waiting for the motor watchdog would
+        report a lost board as a stalled motor.
         """
+        fault = self._controller.take_fault()
+        if fault is not None:
+            raise fault
         pre = prefetched(self._line, len(LEVEL3_PREFETCH))
-        status = self._motion.read8(BoardReg.IRQ_STATUS) if pre is None else pre[0]
-        ended = [(bit, logical) for bit, logical in _AXES if status & bit]
+        status = self._controller.ended_axes() if pre is None else pre[0]
+        ended = [(axis, logical) for axis, bit, logical in _AXES if status & bit]
         if not ended:
             self._count_spurious(count)
             return
-        for bit, logical in ended:
-            self._motion.write8(BoardReg.IRQ_STATUS, bit)
+        for axis, logical in ended:
+            self._controller.acknowledge(axis)
             self._raise(logical)

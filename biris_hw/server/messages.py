@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from biris_hw.errors import FaultKind
 from biris_hw.records import MotorParams
 from regs.tech80 import Axis
 
@@ -170,13 +171,15 @@ class BirisParityErr:
 @dataclass(frozen=True, slots=True)
 class TaskFailed:
     """A task met what it cannot carry on from (beyond the report): a bus error reading the
-    target -- the link is gone -- or an exception nobody expected. Posted one-way; the
-    administrator turns it into a fault of ``kind`` ("bus" or "internal") that every caller is
-    told about, and a reset restarts the task."""
+    target -- the link is gone --, a hardware fault it raised (the level-3 routine's held drive
+    fault), or an exception nobody expected. Posted one-way; the administrator turns it into a
+    fault of ``kind`` that every caller is told about, and a reset restarts the task."""
 
     task: str
-    kind: str
-    """"bus" or "internal" (a :data:`biris_hw.errors.FaultKind`)."""
+    kind: FaultKind
+    """The fault's kind: a HardwareFault's own (``motor_stall`` for a CiA 402 drive's EMCY,
+    ``bus`` for its lost heartbeat...), ``bus`` for any other BusError, ``internal`` for
+    anything else (see :meth:`~biris_hw.server.tasks.Supervisor.failed`)."""
     text: str
 
 

@@ -22,9 +22,9 @@ from types import TracebackType
 from typing import Literal, overload
 
 from biris_hw.affinity import check_cpus, pinned
+from biris_hw.axes.base import MotionAxis
 from biris_hw.client import Connection
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
-from biris_hw.devices import AxisDriver
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox
@@ -78,7 +78,7 @@ class BirisServer:
         self.el_moves = tasks.MoveLedger()
         self.supervisor = tasks.Supervisor(self.inbox)
         self.level2 = Level2Demux(hw.level2, hw.coupler, hw.biris, hw.biexec_offset)
-        self.level3 = Level3Demux(hw.level3, hw.motion)
+        self.level3 = Level3Demux(hw.level3, self.devices.board)
         self.biris_timeout = tasks.DeadlineTimer(
             task("biris_timeout").thread, self.inbox, hw.clock, hw.time_scale, BirisTimeoutErr
         )
@@ -319,7 +319,7 @@ class BirisServer:
         )
 
     @staticmethod
-    def _encoder(axis: AxisDriver) -> int | None:
+    def _encoder(axis: MotionAxis) -> int | None:
         """Where the axis is now, by its encoder, not where it was sent: ``azimuth`` is the
         latter. Read here, in the caller's thread, because the administrator never waits on the
         bus; None when the board cannot be read (the fault is reported by the tasks that hit it).

@@ -15,8 +15,10 @@ not with the server. A test compares the table with ``threading.enumerate()`` bo
 
 **Supervision** (``restart``). Every thread the server starts from the table runs its body under
 :class:`~biris_hw.server.tasks.Supervisor`, so no task dies of an exception. A failure is logged
-with its traceback and reported to the administrator one-way as TaskFailed: kind ``bus`` for a
-BusError (a window or interrupt line of a target that has gone), ``internal`` for anything else.
+with its traceback and reported to the administrator one-way as TaskFailed: a HardwareFault keeps
+its own kind (a CiA 402 drive's EMCY raised by the level-3 routine is ``motor_stall``), kind
+``bus`` for any other BusError (a window or interrupt line of a target that has gone),
+``internal`` for anything else.
 The thread then stays alive, under its name, and waits for the next reset
 (``Restart.ON_RESET``), when it runs its body again. So a reset brings every task back, the
 threads still match this table, and a task that keeps failing fails once per reset and never
@@ -188,7 +190,7 @@ TASKS: tuple[TaskSpec, ...] = (
         "biris_az_notifier",
         TaskKind.NOTIFIER,
         waits_on="MOTOR_END_OF_SCAN (logical, from level3_isr), then the head at rest "
-        "(AxisDriver.wait_settled)",
+        "(MotionAxis.wait_settled)",
         sends="in continuous mode the sweep's completed acquisitions (one-way), then AZ_SCAN_DONE "
         "with where the head stands, whether it settled, and which move ended",
         thread="biris_az_notifier",

@@ -22,8 +22,9 @@ routine takes for every acquisition.
 **Supervision.** The server runs every task under a :class:`Supervisor` (the task table's
 ``restart`` column). The bodies here therefore catch nothing they cannot carry on from. A
 BusError (a register of a target that has gone) and any unexpected exception propagate to the
-supervisor, which logs the failure, reports it one-way as TaskFailed (``bus`` or ``internal``),
-and restarts the body at the next reset. A body ends only once the administrator's mailbox has
+supervisor, which logs the failure, reports it one-way as TaskFailed (a HardwareFault's own
+kind, ``bus`` for any other BusError, ``internal`` for the rest), and restarts the body at the
+next reset. A body ends only once the administrator's mailbox has
 stopped or its line has been closed, and both happen only when the server closes. What the
 administrator *answers* with an error is the administrator's own failure: a notifier or timer
 logs the refusal (:func:`_tell`) and carries on with its next interrupt, while a worker, which
@@ -43,7 +44,8 @@ import threading
 import time
 from collections.abc import Callable
 
-from biris_hw.devices import AxisDriver, BirisLink
+from biris_hw.axes.base import MotionAxis
+from biris_hw.devices import BirisLink
 from biris_hw.errors import BirisError, BusError, FaultKind, HardwareFault, LineClosed
 from biris_hw.ipc import Mailbox, TaskStopped
 from biris_hw.irq.base import InterruptLine
@@ -83,6 +85,7 @@ __all__ = [
     "biris_parity_err",
     "el_scan_notifier",
     "el_scan_start",
+    "failure_kind",
 ]
 
 log = logging.getLogger(__name__)
@@ -129,22 +132,35 @@ def _tell(admin: Mailbox, message: object) -> object:
 # --- supervision ---------------------------------------------------------------------------------
 
 
+def failure_kind(exc: BaseException) -> FaultKind:
+    """The fault kind a task's failure with ``exc`` is reported as: a HardwareFault's own
+    (a CiA 402 drive's EMCY that the level-3 routine raises is ``motor_stall``; a
+    :class:`~biris_hw.axes.cia402.DriveBusError` is ``bus``), ``bus`` for any other BusError
+    (a register or interrupt line of a target that has gone), ``internal`` for anything else."""
+    if isinstance(exc, HardwareFault):
+        return exc.kind
+    if isinstance(exc, BusError):
+        return "bus"
+    return "internal"
+
+
 class Supervisor:
     """Runs the server's tasks so that an exception never kills one for good (issue 11).
 
-    Each thread the server starts from the task table runs :meth:`run` with its task's body.
-    A body that raises anything but TaskStopped has failed, and so has a body that returns while
-    the server runs, since every body runs until the server stops. The failure is logged with
-    its traceback and reported to the administrator one-way as ``TaskFailed(task, kind, text)``:
-    ``bus`` for a BusError (a register or interrupt line of a target that has gone),
-    ``internal`` for anything else (a bug). The administrator turns it into a fault of that kind
-    and tells every caller. The thread stays alive under its table name and, for
-    ``Restart.ON_RESET``, waits until :meth:`reset` (the administrator starting the
-    initialiser), then runs its body again. A task that keeps failing therefore reports once per
-    reset and never spins. The administrator's own thread is ``Restart.AT_ONCE``: it carries out
-    resets, so it is restarted at once. Its failure is posted to its own inbox and handled as
-    soon as it runs again. Should it keep failing, the restarts back off up to
-    :data:`ADMIN_BACKOFF_MAX_S`.
+    Each thread the server starts from the task table runs :meth:`run` with its task's body. A
+    body that raises anything but TaskStopped has failed, and so has a body that returns while
+    the server runs, since every body runs until the server stops. The failure is logged (a bug
+    with its traceback) and reported to the administrator one-way as ``TaskFailed(task, kind,
+    text)`` (:meth:`failed`): a HardwareFault keeps its own kind (the level-3 routine raising a
+    CiA 402 drive's EMCY is ``motor_stall``, its lost heartbeat ``bus``), any other BusError is
+    ``bus`` (a register or interrupt line of a target that has gone), anything else ``internal``
+    (a bug). The administrator turns it into a fault of that kind and tells every caller. The
+    thread stays alive under its table name and, for ``Restart.ON_RESET``, waits until
+    :meth:`reset` (the administrator starting the initialiser), then runs its body again. A task
+    that keeps failing therefore reports once per reset and never spins. The administrator's own
+    thread is ``Restart.AT_ONCE``: it carries out resets, so it is restarted at once. Its
+    failure is posted to its own inbox and handled as soon as it runs again. Should it keep
+    failing, the restarts back off up to :data:`ADMIN_BACKOFF_MAX_S`.
 
     A task that runs in another task's thread (biris_data_notifier in level2_isr) is a *guest*:
     :meth:`guest` attaches it, it reports its own failure through :meth:`failed`, and its host
@@ -248,16 +264,19 @@ class Supervisor:
                 return
 
     def failed(self, name: str, exc: BaseException) -> None:
-        """Task ``name`` failed with ``exc``: log it (traceback included), report it one-way,
-        and mark the task as waiting for the next reset."""
-        kind: FaultKind = "bus" if isinstance(exc, BusError) else "internal"
+        """Task ``name`` failed with ``exc``: log it, report it one-way as TaskFailed of
+        :func:`failure_kind`, and mark the task as waiting for the next reset. A bug and a
+        BusError are logged with their traceback (where the code broke, where the target was
+        found gone); any other HardwareFault, which the hardware reported, with its message
+        only, which is also the report's text (its kind is the report's kind)."""
+        kind = failure_kind(exc)
         with self._cond:
             if self._closed:
                 return
             self._down[name] = self._resets
             self.failures[name] = self.failures.get(name, 0) + 1
             self._cond.notify_all()
-        if kind == "bus":
+        if isinstance(exc, BusError):
             log.error(
                 "%s: bus error, the target is gone or unreachable (%s); "
                 "it waits for the next reset",
@@ -265,9 +284,13 @@ class Supervisor:
                 exc,
                 exc_info=exc,
             )
+        elif isinstance(exc, HardwareFault):
+            log.error("%s: hardware fault (%s); it waits for the next reset", name, exc)
         else:
             log.error("%s failed; it waits for the next reset", name, exc_info=exc)
-        _post_quietly(self._admin, TaskFailed(name, kind, f"{type(exc).__name__}: {exc}"))
+        # a hardware fault's message already says what broke; its kind goes in the report
+        text = exc.message if isinstance(exc, HardwareFault) else f"{type(exc).__name__}: {exc}"
+        _post_quietly(self._admin, TaskFailed(name, kind, text))
 
     def guest(self, name: str, attach: Callable[[], None]) -> None:
         """Attach guest task ``name`` now, and again at every reset after it has failed."""
@@ -428,7 +451,7 @@ class BirisDataNotifier:
 def _axis_notifier(
     line: InterruptLine,
     admin: Mailbox,
-    axis: AxisDriver,
+    axis: MotionAxis,
     stop: threading.Event,
     done: type[AzScanDone] | type[ElScanDone],
     reader: AcquisitionReader | None = None,
@@ -462,7 +485,7 @@ def _axis_notifier(
 def biris_az_notifier(
     line: InterruptLine,
     admin: Mailbox,
-    axis: AxisDriver,
+    axis: MotionAxis,
     stop: threading.Event,
     reader: AcquisitionReader | None = None,
     moves: MoveLedger | None = None,
@@ -470,7 +493,7 @@ def biris_az_notifier(
     """MOTOR_END_OF_SCAN -> AZ_SCAN_DONE, once the head has actually come to rest.
 
     The chip signals the end of the profile when it issues the last setpoint, not when the motor
-    stops; the notifier polls the position briefly (:meth:`AxisDriver.wait_settled`, given up
+    stops; the notifier polls the position briefly (:meth:`MotionAxis.wait_settled`, given up
     when ``stop`` is set) so that AZ_SCAN_DONE means what the report says: motion has
     terminated. AZ_SCAN_DONE carries where the head stands, whether it settled, and which move
     ended (``moves``, shared with az_scan_start). In continuous mode it first tells the reader
@@ -482,7 +505,7 @@ def biris_az_notifier(
 def el_scan_notifier(
     line: InterruptLine,
     admin: Mailbox,
-    axis: AxisDriver,
+    axis: MotionAxis,
     stop: threading.Event,
     moves: MoveLedger | None = None,
 ) -> None:
@@ -555,7 +578,7 @@ def biris_cmd_transfer(
 
 def _axis_worker(
     admin: Mailbox,
-    axis: AxisDriver,
+    axis: MotionAxis,
     make_ready: Callable[[str | None, str | None], object],
     reader: AcquisitionReader | None = None,
     moves: MoveLedger | None = None,
@@ -592,7 +615,7 @@ def _axis_worker(
             ready = make_ready(str(exc), kind)
 
 
-def _start_move(axis: AxisDriver, order: MoveOrder, moves: MoveLedger | None) -> None:
+def _start_move(axis: MotionAxis, order: MoveOrder, moves: MoveLedger | None) -> None:
     """Start ``order``'s trapezoid, its token recorded first (the end may come at once); a
     move that did not start gives the ledger its previous token back."""
     if moves is None:
@@ -608,7 +631,7 @@ def _start_move(axis: AxisDriver, order: MoveOrder, moves: MoveLedger | None) ->
 
 def az_scan_start(
     admin: Mailbox,
-    axis: AxisDriver,
+    axis: MotionAxis,
     reader: AcquisitionReader | None = None,
     moves: MoveLedger | None = None,
 ) -> None:
@@ -621,7 +644,7 @@ def az_scan_start(
     _axis_worker(admin, axis, lambda error, kind: AzReady(error, kind), reader, moves)
 
 
-def el_scan_start(admin: Mailbox, axis: AxisDriver, moves: MoveLedger | None = None) -> None:
+def el_scan_start(admin: Mailbox, axis: MotionAxis, moves: MoveLedger | None = None) -> None:
     """EL_READY, then start the tilt the reply carries; forever (the report's future
     _el_scan_start)."""
     _axis_worker(admin, axis, lambda error, kind: ElReady(error, kind), None, moves)

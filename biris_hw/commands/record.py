@@ -1,0 +1,169 @@
+"""``biris record``: record a sensor to MCAP (ROS 2 message types) while it scans.
+
+``biris record --sim --out run.mcap --duration 10 --cw -45 --ccw 45`` starts a server (or uses
+the sensor named by the session flags), opens a :class:`~biris_hw.record.Recorder` on it, sweeps
+between the limits (``--to DEG``: one scan; neither: nothing is commanded, whatever the sensor
+does is recorded) and stops after ``--duration`` seconds or at Ctrl-C. The file is checked
+before the sensor is touched; it is closed with its summary however the run ends, and the
+command prints what it holds and what was dropped (exit 130 after Ctrl-C, with the file
+complete). A full disk during the run stops it with exit status 2 and a valid, shorter file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
+
+from biris_hw.commands.argtypes import degrees, path, positive_float
+from biris_hw.commands.common import (
+    EXIT_INTERRUPTED,
+    Session,
+    UsageError,
+    add_continuous_argument,
+    add_target_arguments,
+    add_timeout_argument,
+    add_yes_argument,
+    check_output_file,
+    confirm_moves,
+    note_clamped,
+    open_session,
+    prog_of,
+)
+
+if TYPE_CHECKING:
+    from biris_hw.record import Recorder
+
+__all__ = ["add_arguments", "recording_metadata", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    out = parser.add_argument_group("recording")
+    out.add_argument("--out", type=path, required=True, metavar="FILE", help="the .mcap file")
+    out.add_argument(
+        "--duration",
+        type=positive_float,
+        default=None,
+        metavar="S",
+        help="stop after S real seconds (default: after --to's scan, else at Ctrl-C)",
+    )
+    out.add_argument(
+        "--frame",
+        choices=("vehicle", "sensor"),
+        default="vehicle",
+        help="frame of the scan clouds on /biris/points (default vehicle)",
+    )
+    out.add_argument(
+        "--no-profiles",
+        action="store_true",
+        help="leave out the per-acquisition profile clouds (the lossless data stay)",
+    )
+    how = parser.add_argument_group("what to scan meanwhile (optional)")
+    how.add_argument("--to", type=degrees, metavar="DEG", help="one scan to DEG degrees")
+    how.add_argument("--cw", type=degrees, metavar="DEG", help="sweep: clockwise limit")
+    how.add_argument("--ccw", type=degrees, metavar="DEG", help="sweep: counter-clockwise limit")
+    add_continuous_argument(parser)
+    add_yes_argument(parser)
+    add_timeout_argument(parser)
+    add_target_arguments(parser)
+
+
+def _check(args: argparse.Namespace) -> None:
+    sweep = args.cw is not None or args.ccw is not None
+    if args.to is not None and sweep:
+        raise UsageError("give either --to, or --cw and --ccw, not both")
+    if sweep and (args.cw is None or args.ccw is None):
+        raise UsageError("sweeping needs both --cw and --ccw")
+    if sweep and args.cw >= args.ccw:
+        raise UsageError(f"--cw ({args.cw:g}) must lie clockwise of (below) --ccw ({args.ccw:g})")
+    if args.to is None and args.duration is None:
+        raise UsageError("say how long to record: --duration S (or --to DEG for one scan)")
+    check_output_file("--out", Path(args.out), suffixes={".mcap"})
+
+
+def recording_metadata(session: Session, args: argparse.Namespace) -> dict[str, object]:
+    """What the file's ``biris`` metadata says about the sensor: the simulator's scene and
+    settings, or the target description's text."""
+    meta: dict[str, object] = {"command": " ".join(sys.argv[1:]) or "biris record"}
+    if session.rig is not None:
+        rig = session.rig
+        meta["scene"] = repr(rig.scene)
+        meta["simulator"] = {
+            "scene": getattr(args, "scene", None),
+            "samples": rig.samples,
+            "time_scale": rig.time_scale,
+            "seed": rig.seed,
+        }
+    target = getattr(args, "target", None)
+    if target is not None:
+        try:
+            meta["target_description"] = Path(target).read_text()
+        except OSError as exc:
+            meta["target_description"] = f"unreadable: {exc}"
+    return meta
+
+
+def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    """Record; 0 when done, 130 after Ctrl-C (the file complete either way)."""
+    from biris_hw.record import Recorder
+
+    stream = out or sys.stdout
+    _check(args)
+    interrupted = False
+    with open_session(args) as session:
+        recorder = Recorder(
+            session.server,
+            args.out,
+            frame=args.frame,
+            profiles=not args.no_profiles,
+            metadata=recording_metadata(session, args),
+        )
+        try:
+            with recorder:
+                _scan(session, args, recorder)
+        except KeyboardInterrupt:
+            interrupted = True
+    summary = recorder.summary
+    assert summary is not None
+    print(f"recorded {summary}", file=stream, flush=True)
+    if interrupted:
+        print(f"{prog_of(args)}: interrupted: {args.out} is complete up to then", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0
+
+
+def _scan(session: Session, args: argparse.Namespace, recorder: Recorder) -> None:
+    """Command the head as asked while ``recorder`` runs, until the duration is over."""
+    from biris_hw.angles import destination_counts
+    from biris_hw.sweeps import sweeping
+
+    end = None if args.duration is None else time.monotonic() + args.duration
+
+    def left() -> float | None:
+        return None if end is None else max(0.0, end - time.monotonic())
+
+    if args.cw is not None:
+        limits = [
+            (f"--cw {args.cw:g}", destination_counts(args.cw, "--cw")),
+            (f"--ccw {args.ccw:g}", destination_counts(args.ccw, "--ccw")),
+        ]
+        confirm_moves(session, args, limits)
+        with sweeping(session.server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
+            note_clamped(session.prog, "--cw", args.cw, sweeps.limits[0])
+            note_clamped(session.prog, "--ccw", args.ccw, sweeps.limits[1])
+            while not recorder.failed.is_set() and (left() or 0.0) > 0.0:
+                sweeps.next(timeout=min(left() or 0.0, args.timeout))
+    elif args.to is not None:
+        with session.server.open() as conn:
+            confirm_moves(
+                session, args, [(f"--to {args.to:g}", destination_counts(args.to, "--to"))]
+            )
+            dest = conn.single_scan(args.to)
+            note_clamped(session.prog, "--to", args.to, dest)
+            conn.wait_idle(timeout=args.timeout)
+        if args.duration is not None:
+            recorder.failed.wait(left())
+    else:
+        recorder.failed.wait(left())

@@ -1,0 +1,301 @@
+"""``biris serve``: run the sensor as a long-running service on Zenoh (:mod:`biris_hw.net`).
+
+Every other command starts a server of its own, and so homes the head each time (some 12 s of
+hardware time); on a robot the sensor runs once, as a service, several programs read it and one
+commands it. This command starts the server on ``--sim``/``--target``/``--attach`` as the others
+do, serves it as ``--name`` on the ``--listen`` endpoints until Ctrl-C or SIGTERM (or
+``--duration``), and takes everything down in order.
+
+Credentials never go on the command line (``ps`` shows it to every user): ``--credentials FILE``
+is TOML with a ``[controllers]`` table (user = "password": those who may move and configure) and
+optionally ``[readers]`` (then reading needs credentials too). Without it the service is
+read-only. TLS: ``--listen tls/host:port --tls-cert FILE --tls-key FILE``; anything else Zenoh
+offers (user/password on the link, access control) through ``--zenoh-option KEY=JSON``.
+
+``--foxglove PORT`` also shows the served sensor live in Foxglove or Lichtblick
+(:class:`~biris_hw.liveview.LiveView`) for as long as the service runs: one process, one server,
+both views. ``--replay FILE`` serves a recording instead of a sensor
+(:class:`~biris_hw.replay.ReplayServer`), at the recorded pace times ``--speed``: clients
+``--connect`` to it as to a live sensor, and get the recorded Scans, equal; motion and
+configuration are refused with the replay's own error (a RequestError on the client). Playing
+begins when the first client opens a DATA connection, so that it sees the recording from its
+start (``--replay-now``: at once, as a live sensor would).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import signal
+import sys
+import threading
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from types import FrameType
+from typing import Any, TextIO
+
+from biris_hw.commands.argtypes import path, positive_float, seconds
+from biris_hw.commands.common import (
+    SetupError,
+    UsageError,
+    add_target_arguments,
+    open_session,
+    read_toml,
+)
+from biris_hw.errors import BirisError
+
+__all__ = ["add_arguments", "run"]
+
+DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    service = parser.add_argument_group("service")
+    service.add_argument(
+        "--name",
+        default="biris0",
+        help="the service's name, which clients give to --connect (default biris0)",
+    )
+    service.add_argument(
+        "--listen",
+        nargs="+",
+        action="extend",
+        metavar="ENDPOINT",
+        help=f"Zenoh endpoints to listen on (default {DEFAULT_LISTEN}); tls/HOST:PORT with "
+        "--tls-cert and --tls-key",
+    )
+    service.add_argument(
+        "--credentials",
+        type=path,
+        metavar="FILE",
+        help='TOML: [controllers] user = "password" (may move and configure), optionally '
+        "[readers] (then reading needs credentials too); default: read-only for everyone",
+    )
+    service.add_argument("--tls-cert", type=path, metavar="FILE", help="TLS certificate (PEM)")
+    service.add_argument("--tls-key", type=path, metavar="FILE", help="TLS private key (PEM)")
+    service.add_argument(
+        "--zenoh-option",
+        action="append",
+        default=[],
+        metavar="KEY=JSON",
+        help="any Zenoh setting, e.g. access_control/enabled=true (repeatable)",
+    )
+    service.add_argument(
+        "--no-multicast",
+        action="store_true",
+        help="no multicast scouting: clients must give --endpoint",
+    )
+    service.add_argument(
+        "--duration",
+        type=seconds,
+        metavar="S",
+        help="stop after S real seconds (default: at Ctrl-C or SIGTERM)",
+    )
+    view = parser.add_argument_group("live view")
+    view.add_argument(
+        "--foxglove",
+        type=int,
+        metavar="PORT",
+        help="also serve a Foxglove WebSocket live view on PORT (8765 is Foxglove's usual; 0 "
+        "picks a free one) for as long as the service runs",
+    )
+    view.add_argument(
+        "--foxglove-host",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="where the live view listens (default 127.0.0.1: its protocol has no "
+        "authentication, so reach it through an SSH tunnel rather than opening it)",
+    )
+    replay = parser.add_argument_group("replay (instead of --sim/--target/--attach)")
+    replay.add_argument(
+        "--replay",
+        type=path,
+        metavar="FILE",
+        help="serve a recording (.mcap from biris record) as if it were the sensor",
+    )
+    replay.add_argument(
+        "--speed",
+        type=positive_float,
+        default=1.0,
+        metavar="X",
+        help="with --replay: X times the recorded pace (default 1)",
+    )
+    replay.add_argument(
+        "--replay-now",
+        action="store_true",
+        help="with --replay: play at once (default: when the first client opens a DATA "
+        "connection, so that it sees the recording from its start)",
+    )
+    add_target_arguments(parser, remote=False)
+
+
+_SENSOR_FLAGS = ("sim", "target", "attach", "init", "scene", "samples", "time_scale", "seed")
+
+
+def _check_replay_arguments(args: argparse.Namespace) -> None:
+    """--replay replaces the sensor: no sensor flags beside it; --speed goes with it."""
+    if getattr(args, "replay", None) is None:
+        if getattr(args, "replay_now", False) or getattr(args, "speed", 1.0) != 1.0:
+            raise UsageError("--speed and --replay-now go with --replay FILE")
+        return
+    for key in _SENSOR_FLAGS:
+        value = getattr(args, key, None)
+        if value not in (None, False):
+            raise UsageError(f"--{key.replace('_', '-')} does not go with --replay (a recording)")
+    if not Path(args.replay).is_file():
+        raise UsageError(f"--replay {args.replay}: no such file")
+
+
+@contextlib.contextmanager
+def _sensor(args: argparse.Namespace) -> Iterator[Any]:
+    """The sensor to serve: a server of our own on --sim/--target/--attach, or a replay."""
+    if args.replay is None:
+        with open_session(args) as session:
+            yield session.server
+        return
+    from biris_hw.replay import ReplayError, ReplayServer
+
+    try:
+        # autostart off: the service's own feeds open DATA connections at once, and would
+        # start it before any client is there; _start_playing decides when
+        replay = ReplayServer(args.replay, speed=args.speed, autostart=False)
+    except ReplayError as exc:
+        raise SetupError(str(exc)) from exc
+    with replay:
+        yield replay
+
+
+def _start_playing(replay: Any, service: Any, now: bool, stop: threading.Event) -> None:
+    """Start the replay at once, or when a client first opens a DATA connection."""
+
+    def wait_for_client() -> None:
+        while not stop.is_set():
+            if service.data_opened.wait(0.25):
+                with contextlib.suppress(BirisError):  # closed meanwhile: nothing to play
+                    replay.start()
+                return
+
+    if now:
+        replay.start()
+    else:
+        threading.Thread(target=wait_for_client, name="biris-replay-start", daemon=True).start()
+
+
+@contextlib.contextmanager
+def _live_view(args: argparse.Namespace, sensor: Any, stream: TextIO) -> Iterator[None]:
+    """``--foxglove PORT``: the sensor shown live for as long as the block runs."""
+    if args.foxglove is None:
+        yield
+        return
+    if not 0 <= args.foxglove <= 65535:
+        raise UsageError(f"--foxglove {args.foxglove}: not a TCP port")
+    try:
+        from biris_hw.liveview import LiveView
+    except ImportError as exc:
+        raise SetupError(
+            f"--foxglove needs the record extra (pip install 'biris-hw[record]'): {exc}"
+        ) from exc
+    view = LiveView(sensor, host=args.foxglove_host, port=args.foxglove)
+    try:
+        view.start()
+    except RuntimeError as exc:  # the port is taken
+        raise SetupError(f"--foxglove {args.foxglove}: {exc}") from exc
+    try:
+        print(f"live view: {view.urls['websocket']} ({view.urls['foxglove']})", file=stream)
+        yield
+    finally:
+        view.close()
+
+
+def _tables(file: Any) -> tuple[dict[str, str] | None, dict[str, str] | None]:
+    """(controllers, readers) from a credentials file."""
+    if file is None:
+        return None, None
+    table = read_toml(file)
+    unknown = set(table) - {"controllers", "readers"}
+    if unknown:
+        raise SetupError(f"{file}: unknown table(s) {', '.join(sorted(unknown))}")
+    found: list[dict[str, str] | None] = []
+    for key in ("controllers", "readers"):
+        users = table.get(key)
+        if users is None:
+            found.append(None)
+            continue
+        if not isinstance(users, Mapping) or not all(
+            isinstance(v, str) and v for v in users.values()
+        ):
+            raise SetupError(f'{file}: [{key}] must hold user = "password" lines')
+        found.append(dict(users))
+    return found[0], found[1]
+
+
+def _zenoh_options(args: argparse.Namespace) -> dict[str, Any]:
+    options: dict[str, Any] = {}
+    if (args.tls_cert is None) != (args.tls_key is None):
+        raise UsageError("--tls-cert and --tls-key go together")
+    if args.tls_cert is not None:
+        options["transport/link/tls/listen_certificate"] = str(args.tls_cert)
+        options["transport/link/tls/listen_private_key"] = str(args.tls_key)
+    for item in args.zenoh_option:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise UsageError(f"--zenoh-option {item!r}: expected KEY=JSON")
+        try:
+            options[key] = json.loads(value)
+        except ValueError:
+            options[key] = value  # a bare word is a string
+    return options
+
+
+def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    stream = out or sys.stdout
+    try:
+        from biris_hw.net import serve
+    except ImportError as exc:
+        raise SetupError(
+            f"biris serve needs the net extra (pip install 'biris-hw[net]'): {exc}"
+        ) from exc
+    _check_replay_arguments(args)
+    controllers, readers = _tables(args.credentials)
+    options = _zenoh_options(args)
+    listen = args.listen or [DEFAULT_LISTEN]
+    stop = threading.Event()
+
+    def on_term(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        with (
+            _sensor(args) as sensor,
+            serve(
+                sensor,
+                name=args.name,
+                listen=listen,
+                controllers=controllers,
+                readers=readers,
+                multicast=not args.no_multicast,
+                options=options,
+                playback=args.replay is not None,
+            ) as service,
+            _live_view(args, sensor, stream),
+        ):
+            if args.replay is not None:
+                who = f"replay of {args.replay} at x{args.speed:g}, read-only"
+                _start_playing(sensor, service, args.replay_now, stop)
+            elif controllers:
+                who = f"{len(controllers)} controller(s)"
+            else:
+                who = "read-only"
+            print(
+                f"serving {service.name} on {' '.join(listen)} ({who}); Ctrl-C to stop",
+                file=stream,
+                flush=True,
+            )
+            stop.wait(args.duration)
+            print(f"stopping {service.name}", file=stream, flush=True)
+    finally:
+        stop.set()  # ends the thread waiting to start a replay, if any
+        signal.signal(signal.SIGTERM, previous)
+    return 0

@@ -1,0 +1,129 @@
+"""``biris view``: the sensor live in Foxglove or Lichtblick (a Foxglove WebSocket server).
+
+``biris view --sim --cw -45 --ccw 45`` starts a simulator and a server, sweeps between the
+limits and serves the live view (:class:`~biris_hw.liveview.LiveView`) on ``--port`` (8765)
+until ``--duration`` is over or Ctrl-C; without limits nothing is commanded and whatever the
+sensor does is shown. ``biris view --replay run.mcap`` shows a recording instead. The command
+prints the WebSocket URL to open in the viewer (README: "Live view").
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+from biris_hw.commands.argtypes import degrees, path, positive_float
+from biris_hw.commands.common import (
+    EXIT_INTERRUPTED,
+    UsageError,
+    add_continuous_argument,
+    add_target_arguments,
+    add_timeout_argument,
+    add_yes_argument,
+    confirm_moves,
+    open_session,
+    prog_of,
+)
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    view = parser.add_argument_group("live view")
+    view.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
+    view.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default 127.0.0.1; the protocol has no authentication)",
+    )
+    view.add_argument(
+        "--duration",
+        type=positive_float,
+        metavar="S",
+        help="stop after S seconds (default: Ctrl-C)",
+    )
+    view.add_argument(
+        "--frame", choices=("vehicle", "sensor"), default="vehicle", help="frame of /biris/points"
+    )
+    view.add_argument("--replay", type=path, metavar="FILE", help="show a recording instead")
+    view.add_argument(
+        "--speed", type=positive_float, default=1.0, metavar="X", help="--replay's pace (1)"
+    )
+    how = parser.add_argument_group("what to scan meanwhile (optional)")
+    how.add_argument("--cw", type=degrees, metavar="DEG", help="sweep: clockwise limit")
+    how.add_argument("--ccw", type=degrees, metavar="DEG", help="sweep: counter-clockwise limit")
+    add_continuous_argument(parser)
+    add_yes_argument(parser)
+    add_timeout_argument(parser)
+    add_target_arguments(parser)
+
+
+def _wait(duration: float | None, stop: threading.Event) -> None:
+    stop.wait(duration)
+
+
+def run(args: argparse.Namespace, out: TextIO | None = None, ready: Any = None) -> int:
+    """Serve the live view; 0 after ``--duration``, 130 after Ctrl-C. ``ready`` (tests), if
+    given, is called with the :class:`LiveView` once it listens."""
+    from biris_hw.liveview import LiveView
+
+    stream = out or sys.stdout
+    sweep = args.cw is not None or args.ccw is not None
+    if sweep and (args.cw is None or args.ccw is None or args.cw >= args.ccw):
+        raise UsageError("sweeping needs --cw below --ccw")
+    stop = threading.Event()
+    try:
+        if args.replay is not None:
+            from biris_hw.replay import ReplayServer
+
+            if sweep:
+                raise UsageError("a replay cannot be commanded: --cw/--ccw go with a sensor")
+            if not Path(args.replay).is_file():
+                raise UsageError(f"--replay {args.replay}: no such file")
+            replay = ReplayServer(args.replay, speed=args.speed, autostart=False)
+            with replay, LiveView(replay, host=args.host, port=args.port, frame=args.frame) as view:
+                replay.start()
+                _announce(view, stream, ready)
+                _wait(args.duration, stop)
+            return 0
+        with (
+            open_session(args) as session,
+            LiveView(session.server, host=args.host, port=args.port, frame=args.frame) as view,
+        ):
+            _announce(view, stream, ready)
+            if not sweep:
+                _wait(args.duration, stop)
+                return 0
+            from biris_hw.angles import destination_counts
+            from biris_hw.sweeps import sweeping
+
+            confirm_moves(
+                session,
+                args,
+                [
+                    ("--cw", destination_counts(args.cw, "--cw")),
+                    ("--ccw", destination_counts(args.ccw, "--ccw")),
+                ],
+            )
+            end = None if args.duration is None else time.monotonic() + args.duration
+            with sweeping(session.server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
+                while end is None or time.monotonic() < end:
+                    wait = args.timeout if end is None else max(0.0, end - time.monotonic())
+                    sweeps.next(timeout=min(wait, args.timeout))
+    except KeyboardInterrupt:
+        print(f"{prog_of(args)}: stopped", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0
+
+
+def _announce(view: Any, stream: TextIO, ready: Any) -> None:
+    urls = view.urls
+    print(
+        f"live view on {urls['websocket']} (Foxglove: {urls['foxglove']})", file=stream, flush=True
+    )
+    if ready is not None:
+        ready(view)

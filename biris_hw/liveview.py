@@ -1,0 +1,230 @@
+"""The live view: a Foxglove WebSocket server publishing the sensor as ROS 2 messages.
+
+Foxglove and Lichtblick connect to a ``foxglove.websocket.v1`` server and show what it
+advertises; :class:`LiveView` is that server (foxglove-sdk), fed through the client API
+(:class:`~biris_hw.ros2.SensorFeed`), so it works on a local server, a network client's sensor
+or a replay alike. It publishes the recorder's standard channels, with the same ros2msg schemas
+and CDR bytes (:mod:`biris_hw.ros2`): ``/biris/profile`` and ``/tf`` per acquisition,
+``/biris/points`` per completed scan, ``/diagnostics`` and ``/tf_static`` at the status period
+(static transforms are re-sent because a viewer may connect at any time and the WebSocket does
+not latch), and ``/biris/sweep``: the current sweep's cloud, growing as acquisitions arrive
+(re-sent at most every ``sweep_period_s``, since each message carries the whole sweep so far).
+
+Messages are only built for channels a viewer subscribes to, so a live view nobody watches costs
+almost nothing; what is built is built in batches, in the feed's one thread and out of step
+with the acquisitions (:class:`~biris_hw.ros2.SensorFeed`), so a watched live view adds little
+to the moment an acquisition reaches the sensor's other clients. ``docs/foxglove-layout.json``
+opens the panels.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Mapping
+from types import TracebackType
+from typing import Any
+
+from numpy.typing import NDArray
+
+from biris_hw import ros2
+from biris_hw.data import Point, Scan
+from biris_hw.geometry import Frame, Mount
+
+__all__ = ["DEFAULT_PORT", "LiveView", "viewer_urls"]
+
+DEFAULT_PORT = 8765
+"""Foxglove's usual WebSocket port."""
+
+
+def viewer_urls(host: str, port: int) -> dict[str, str]:
+    """Where to point a viewer: the WebSocket URL, and Foxglove's web app opening it."""
+    ws = f"ws://{host}:{port}"
+    return {
+        "websocket": ws,
+        "foxglove": f"https://app.foxglove.dev/view?ds=foxglove-websocket&ds.url={ws}",
+    }
+
+
+class LiveView:
+    """A Foxglove WebSocket server showing ``source`` live, while the ``with`` block runs.
+
+    ``port`` 0 picks a free one (:attr:`port` says which); ``host`` is where it listens
+    (localhost by default: the protocol has no authentication). ``frame`` is the frame of the
+    completed scans' clouds, as for the recorder.
+
+    Raises:
+        RuntimeError: the server cannot listen there (the port is taken).
+        ConnectionClosed: the source has stopped.
+    """
+
+    def __init__(
+        self,
+        source: ros2.SensorSource,
+        *,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        frame: Frame = "vehicle",
+        name: str = "biris",
+        status_period_s: float = 1.0,
+        sweep_period_s: float = 0.1,
+        batch_s: float = ros2.BATCH_S,
+    ) -> None:
+        ros2.cloud_frame_id(frame)
+        self.source = source
+        self.host = host
+        self.frame: Frame = frame
+        self.name = name
+        self._wanted_port = port
+        self._sweep_period = sweep_period_s
+        self._feed = ros2.SensorFeed(
+            source,
+            on_points=self._points,
+            on_scans=self._scans,
+            on_status=self._status,
+            status_period_s=status_period_s,
+            batch_s=batch_s,
+            point_depth=1024,
+            scan_depth=8,
+        )
+        self._server: Any = None
+        self._context: Any = None
+        self._channels: dict[str, Any] = {}
+        self._lock = threading.Lock()
+        record = getattr(source, "record", None)
+        self._mount: Mount | None = getattr(record, "mount", None)
+        self._now = 0.0
+        self._sweep: list[NDArray[Any]] = []
+        self._sweep_key: tuple[int, int] | None = None
+        self._sweep_t0 = 0.0
+        self._sweep_sent = 0.0
+        self.published: dict[str, int] = {}
+        """Messages published per topic (to at least one subscriber)."""
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> LiveView:
+        """Listen and begin publishing (``with`` does this)."""
+        import foxglove
+
+        self._context = foxglove.Context()
+        self._server = foxglove.start_server(
+            name=self.name, host=self.host, port=self._wanted_port, context=self._context
+        )
+        for topic, msgtype in ros2.TOPICS.items():
+            schema = foxglove.Schema(
+                name=msgtype, encoding="ros2msg", data=ros2.schema_text(msgtype).encode()
+            )
+            self._channels[topic] = foxglove.Channel(
+                topic, schema=schema, message_encoding="cdr", context=self._context
+            )
+        try:
+            self._feed.start()
+        except BaseException:
+            self._server.stop()
+            raise
+        return self
+
+    @property
+    def port(self) -> int:
+        """The port the server listens on."""
+        return int(self._server.port) if self._server is not None else self._wanted_port
+
+    @property
+    def urls(self) -> dict[str, str]:
+        """:func:`viewer_urls` for this server."""
+        return viewer_urls(self.host, self.port)
+
+    @property
+    def error(self) -> BaseException | None:
+        """Why publishing stopped early, or None."""
+        return self._feed.error
+
+    def close(self) -> None:
+        """Stop reading and publishing, close the server. Idempotent."""
+        self._feed.stop()
+        if self._server is not None:
+            for channel in self._channels.values():
+                channel.close()
+            self._server.stop()
+            self._server = None
+
+    def __enter__(self) -> LiveView:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- publishing --------------------------------------------------------------------------
+    def _wanted(self, topic: str) -> bool:
+        channel = self._channels.get(topic)
+        return channel is not None and bool(channel.has_sinks())
+
+    def _publish(self, message: ros2.Encoded, log_time_ns: int | None = None) -> None:
+        t = message.log_time_ns if log_time_ns is None else log_time_ns
+        self._channels[message.topic].log(message.data, log_time=t)
+        self.published[message.topic] = self.published.get(message.topic, 0) + 1
+
+    def _points(self, points: list[Point]) -> None:
+        self._now = max(self._now, points[-1].t)
+        self._mount = points[-1].mount
+        if self._wanted("/biris/profile"):
+            for message in ros2.profile_clouds(points):
+                self._publish(message)
+        if self._wanted("/tf"):
+            for point in points:
+                self._publish(ros2.transforms(point))
+        if not self._wanted("/biris/sweep"):
+            self._sweep_key = None
+            self._sweep = []
+            return
+        for begins, group in self._sweeps(points):
+            if begins:
+                self._sweep = []
+                self._sweep_t0 = group[0].t
+            self._sweep += ros2.point_rows(group, "vehicle", self._sweep_t0)
+            now = time.monotonic()
+            if now - self._sweep_sent >= self._sweep_period:
+                self._sweep_sent = now
+                self._publish(ros2.sweep_cloud(self._sweep, self._sweep_t0, group[-1].t))
+
+    def _sweeps(self, points: list[Point]) -> list[tuple[bool, list[Point]]]:
+        """The batch cut where a sweep begins (a new scan, or the acquisition index going
+        back): (whether that piece begins a sweep, its points)."""
+        pieces: list[tuple[bool, list[Point]]] = []
+        for point in points:
+            key = (point.scan_seq, point.acq)
+            last = self._sweep_key
+            begins = last is None or key[0] != last[0] or key[1] < last[1]
+            self._sweep_key = key
+            if begins or not pieces:
+                pieces.append((begins, [point]))
+            else:
+                pieces[-1][1].append(point)
+        return pieces
+
+    def _scans(self, scans: list[Scan]) -> None:
+        for scan in scans:
+            if scan.mount is not None:
+                self._mount = scan.mount
+            if self._wanted("/biris/points"):
+                self._publish(ros2.scan_cloud(scan, self.frame))
+
+    def _status(self, status: Mapping[str, Any] | None, error: str | None) -> None:
+        hardware = getattr(self.source, "hardware", None)
+        clock = getattr(hardware, "clock", None)
+        t = float(clock()) if clock is not None else self._now
+        if self._wanted("/tf_static"):
+            self._publish(ros2.static_transforms(self._mount, t))
+        if self._wanted("/diagnostics"):
+            extra = {
+                "live view": {
+                    "dropped_points": self._feed.dropped_points,
+                    "dropped_scans": self._feed.dropped_scans,
+                }
+            }
+            self._publish(ros2.diagnostics(status, t, extra=extra, error=error))

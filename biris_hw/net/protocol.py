@@ -1,0 +1,204 @@
+"""What the service and its clients agree on: key expressions, operations, errors, limits.
+
+Kept in one small module, apart from the code that serves or calls, so that the contract
+``docs/wire-format.md`` writes down for non-Python clients is one page of Python too. Requests are
+JSON objects (small, and every language has a parser); the sensor's data are CDR (:mod:`biris_hw.
+wire`), since they are large and must come back bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from typing import Any
+
+from biris_hw.errors import (
+    AccessDenied,
+    BirisError,
+    ConnectionClosed,
+    HardwareFault,
+    RequestError,
+)
+
+__all__ = [
+    "CONTROL_OPS",
+    "MAX_REQUEST",
+    "MAX_WAIT_S",
+    "OPS",
+    "READ_OPS",
+    "Keys",
+    "error_payload",
+    "raise_error",
+]
+
+MAX_REQUEST = 4096
+"""Largest request payload the service parses (bytes): every request is a few dozen bytes of JSON,
+so anything bigger is refused unread."""
+
+MAX_WAIT_S = 5.0
+"""Longest a blocking request (ready_for_data, wait_idle) is held by the service; a client that
+wants to wait longer asks again. Keeps a worker from being held for ever by a client that left,
+and bounds how long a client waits before it learns that the service has gone."""
+
+READ_OPS = frozenset(
+    {"open", "close", "status", "request_point", "request_scan_data", "ready_for_data", "wait_idle"}
+)
+"""Operations that read: free for anyone unless the service is given ``readers``."""
+
+CONTROL_OPS = frozenset(
+    {
+        "single_scan",
+        "continuous_scan",
+        "set_elevation",
+        "stop_scan",
+        "start_continuous",
+        "stop_continuous",
+        "home",
+        "set_motor_params",
+        "timeout_enable",
+        "timeout_disable",
+        "reset",
+    }
+)
+"""Operations that move the head or change the configuration: controllers only."""
+
+OPS = READ_OPS | CONTROL_OPS
+
+_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def check_name(name: str, what: str) -> str:
+    """A service or client name usable as one key-expression chunk (no ``/``, ``*``, ``$``...)."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise RequestError(
+            f"{what}: {name!r} is not 1 to 64 letters, digits, '-' or '_' (one key chunk)"
+        )
+    return name
+
+
+@dataclass(frozen=True)
+class Keys:
+    """The key expressions of service ``name`` (all under ``biris/<name>/``)."""
+
+    name: str
+
+    @property
+    def prefix(self) -> str:
+        return f"biris/{self.name}"
+
+    @property
+    def point(self) -> str:
+        """Every acquisition, as ``biris_msgs/msg/Point``."""
+        return f"{self.prefix}/point"
+
+    def scan(self, direction: str) -> str:
+        """Every completed scan of ``direction`` ("cw" or "ccw"), as ``biris_msgs/msg/Scan``."""
+        return f"{self.prefix}/scan/{direction}"
+
+    @property
+    def scans(self) -> str:
+        return f"{self.prefix}/scan/*"
+
+    @property
+    def status(self) -> str:
+        """``biris_msgs/msg/Status`` on change and periodically."""
+        return f"{self.prefix}/status"
+
+    @property
+    def fault(self) -> str:
+        """``biris_msgs/msg/Fault`` when the server enters a fault."""
+        return f"{self.prefix}/fault"
+
+    def rpc(self, op: str) -> str:
+        """The queryable answering operation ``op``."""
+        return f"{self.prefix}/rpc/{op}"
+
+    @property
+    def rpcs(self) -> str:
+        return f"{self.prefix}/rpc/*"
+
+    @property
+    def service_token(self) -> str:
+        """Liveliness token: the service is up."""
+        return f"{self.prefix}/alive/service"
+
+    def client_token(self, client: str) -> str:
+        """Liveliness token of one client; when it goes, the client's connections are closed."""
+        return f"{self.prefix}/alive/client/{client}"
+
+    @property
+    def client_tokens(self) -> str:
+        return f"{self.prefix}/alive/client/*"
+
+
+# -- errors ----------------------------------------------------------------------------------------
+
+_ERRORS: dict[str, type[BirisError]] = {
+    "RequestError": RequestError,
+    "ConnectionClosed": ConnectionClosed,
+    "AccessDenied": AccessDenied,
+}
+
+
+def error_payload(exc: BaseException) -> bytes:
+    """The JSON of an error reply: ``{"error": <name>, "message": ..., ["kind": ...]}``.
+
+    ``error`` is one of RequestError, HardwareFault (with ``kind``), ConnectionClosed,
+    AccessDenied, TimeoutError, BadRequest (malformed, unknown or oversized: a RequestError to a
+    client) and Busy (too many requests from this client; nothing was done). ``class`` names
+    the exception's own class when it is a subclass of those (``EndOfRecording``, a
+    ConnectionClosed; ``ReplayRefused``, a RequestError).
+    """
+    body: dict[str, Any]
+    if isinstance(exc, HardwareFault):
+        body = {"error": "HardwareFault", "kind": exc.kind, "message": exc.message}
+    elif isinstance(exc, AccessDenied):
+        body = {"error": "AccessDenied", "message": str(exc)}
+    elif isinstance(exc, BadRequest):
+        body = {"error": "BadRequest", "message": str(exc)}
+    elif isinstance(exc, Busy):
+        body = {"error": "Busy", "message": str(exc)}
+    elif isinstance(exc, RequestError):
+        body = {"error": "RequestError", "message": str(exc)}
+    elif isinstance(exc, ConnectionClosed):
+        body = {"error": "ConnectionClosed", "message": str(exc)}
+    elif isinstance(exc, TimeoutError):
+        body = {"error": "TimeoutError", "message": str(exc) or "timed out"}
+    else:
+        body = {"error": "InternalError", "message": f"{type(exc).__name__}: {exc}"}
+    if type(exc).__name__ != body["error"]:
+        # the exact class where it is a refinement (EndOfRecording, ReplayRefused from a served
+        # recording): a client may tell "the recording is over" from "the link is closed"
+        body["class"] = type(exc).__name__
+    return json.dumps(body).encode()
+
+
+class BadRequest(RequestError):
+    """The service could not read a request: not JSON, unknown operation, too big, bad fields."""
+
+
+class Busy(RequestError):
+    """Too many requests from one client at once: refused unread, nothing was done."""
+
+
+def raise_error(payload: bytes, op: str) -> None:
+    """Raise the exception an error reply describes (RequestError for anything unreadable)."""
+    try:
+        body = json.loads(payload)
+        name = str(body["error"])
+        message = str(body.get("message", ""))
+    except (ValueError, KeyError, TypeError):
+        raise RequestError(f"{op}: the service replied with an unreadable error") from None
+    if name == "HardwareFault":
+        kind = body.get("kind")
+        if kind not in ("timeout", "bus", "parity", "motor_stall", "protocol", "internal"):
+            kind = "internal"
+        raise HardwareFault(kind, message)
+    if name == "TimeoutError":
+        raise TimeoutError(message)
+    if name == "BadRequest":
+        raise BadRequest(message)
+    if name == "Busy":
+        raise Busy(message)
+    raise _ERRORS.get(name, RequestError)(message)

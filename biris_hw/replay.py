@@ -1,0 +1,499 @@
+"""A recording served as a sensor: the client API over an MCAP file's lossless channels.
+
+Code written against :class:`~biris_hw.BirisServer` runs unchanged on a recorded run::
+
+    from biris_hw.replay import ReplayServer
+    with ReplayServer("run.mcap", speed=1.0) as replay:
+        data = replay.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_BUFFER)
+        while True:
+            try:
+                scan = data.ready_for_data(timeout=5.0)   # the recorded Scans, equal
+            except EndOfRecording:
+                break
+
+The player reads ``/biris/raw/scan``, ``/biris/raw/point`` and ``/biris/raw/status`` (written by
+:mod:`biris_hw.record` with :mod:`biris_hw.wire`) in log-time order and hands each item over as
+the server did: to every DATA connection by its delivery policy (LATEST keeps the newest,
+EVERY_BUFFER and EVERY_ACQUISITION queue up to their depth, the oldest dropped and counted), and
+as the answer to REQUEST_POINT / REQUEST_SCAN_DATA. ``speed`` scales the recorded timing (2.0 is
+twice as fast); ``speed=None`` plays as fast as the readers take it: the player waits while a
+queueing connection (EVERY_BUFFER, EVERY_ACQUISITION) is full, so those lose nothing.
+
+Playback starts when the first DATA connection opens (or at :meth:`ReplayServer.start`; pass
+``autostart=False`` to open several connections first). A replay cannot move anything: motion
+and configuration requests raise :class:`ReplayRefused` (a :class:`~biris_hw.errors.RequestError`)
+and change nothing. When the recording is over, READY_FOR_DATA with nothing left raises
+:class:`EndOfRecording` (a :class:`~biris_hw.errors.ConnectionClosed`, so a loop that stops on a
+closed server stops here too) and ``wait_idle`` returns.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Generic, TypeVar
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from biris_hw import wire
+from biris_hw.angles import is_real
+from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
+from biris_hw.errors import BirisError, ConnectionClosed, RequestError
+from biris_hw.records import BirisInitRecord
+from biris_hw.server.delivery import check_policy
+from biris_hw.status import ConnectionStatus, ServerState, ServerStatus
+
+__all__ = ["EndOfRecording", "ReplayConnection", "ReplayError", "ReplayRefused", "ReplayServer"]
+
+_RAW_SCAN, _RAW_POINT, _RAW_STATUS = "/biris/raw/scan", "/biris/raw/point", "/biris/raw/status"
+
+D = TypeVar("D", Scan, Point)
+
+
+class ReplayError(BirisError, OSError):
+    """The file cannot be replayed: missing, not MCAP, or without the lossless channels."""
+
+
+class ReplayRefused(RequestError):
+    """A request a recording cannot carry out (motion, configuration); nothing changed."""
+
+
+class EndOfRecording(ConnectionClosed):
+    """The recording has been played to its end and nothing more waits for this connection."""
+
+
+def _seconds(timeout: object) -> float | None:
+    """None (wait as long as it takes), 0 (poll) or positive seconds; RequestError otherwise."""
+    if timeout is None:
+        return None
+    if not is_real(timeout):
+        raise RequestError(f"timeout: must be None, 0 or a positive number, not {timeout!r}")
+    seconds = float(timeout)  # type: ignore[arg-type]
+    if math.isnan(seconds) or seconds < 0:
+        raise RequestError(f"timeout: must be None, 0 or a positive number, not {timeout!r}")
+    return None if seconds >= threading.TIMEOUT_MAX else seconds
+
+
+class ReplayConnection(Generic[D]):
+    """A connection to a :class:`ReplayServer`, with the methods of
+    :class:`~biris_hw.client.Connection`."""
+
+    def __init__(
+        self,
+        replay: ReplayServer,
+        ident: int,
+        kind: ConnectionKind,
+        policy: DeliveryPolicy,
+        depth: int,
+    ) -> None:
+        self._replay = replay
+        self.ident = ident
+        self.kind = kind
+        self.policy = policy
+        self.depth = depth
+        self.dropped = 0
+        self.delivered = 0
+        self._queue: deque[Scan | Point] = deque()
+        self._closed = False
+
+    def __repr__(self) -> str:
+        return f"<ReplayConnection {self.ident} {self.kind.name} {self.policy.name}>"
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def _lossless(self) -> bool:
+        return self.kind is ConnectionKind.DATA and self.policy is not DeliveryPolicy.LATEST
+
+    def _wants(self, item: Scan | Point) -> bool:
+        if self.kind is not ConnectionKind.DATA or self._closed:
+            return False
+        return isinstance(item, Point) == (self.policy is DeliveryPolicy.EVERY_ACQUISITION)
+
+    def _offer(self, item: Scan | Point) -> None:
+        self._queue.append(item)
+        while len(self._queue) > self.depth:
+            self._queue.popleft()
+            self.dropped += 1
+
+    def _check(self) -> None:
+        if self._closed:
+            raise ConnectionClosed(f"replay connection {self.ident} is closed")
+        self._replay._check_open()
+
+    # -- data --------------------------------------------------------------------------------
+    def request_point(self) -> Point | None:
+        """The latest acquisition played so far, or None before the first."""
+        with self._replay._cond:
+            self._check()
+            return self._replay._point
+
+    def request_scan_data(self, direction: Direction | int) -> Scan | None:
+        """The latest complete scan played so far in that direction, or None.
+
+        Raises:
+            RequestError: no such direction.
+        """
+        try:
+            if isinstance(direction, bool):
+                raise ValueError(direction)
+            d = Direction(direction)
+        except (ValueError, TypeError):
+            raise RequestError(
+                f"direction: no direction {direction!r}; use Direction.CW or CCW"
+            ) from None
+        with self._replay._cond:
+            self._check()
+            return self._replay._scans[d]
+
+    def ready_for_data(self, timeout: object = None) -> D:
+        """The next item for this DATA connection, as its policy says (see the module).
+
+        Raises:
+            RequestError: not a DATA connection, or a bad timeout.
+            TimeoutError: nothing within ``timeout`` seconds (at once for 0).
+            EndOfRecording: the recording is over and nothing waits.
+            ConnectionClosed: this connection or the replay is closed.
+        """
+        if self.kind is not ConnectionKind.DATA:
+            raise RequestError("READY_FOR_DATA is for DATA connections")
+        seconds = _seconds(timeout)
+        replay = self._replay
+        deadline = None if seconds is None else time.monotonic() + seconds
+        with replay._cond:
+            while True:
+                self._check()
+                if self._queue:
+                    item = self._queue.popleft()
+                    self.delivered += 1
+                    replay._cond.notify_all()  # the player may wait for room
+                    return item  # type: ignore[return-value]  # the policy says which
+                if replay._done.is_set():
+                    raise EndOfRecording(f"{replay.path}: the recording has been played to its end")
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    raise TimeoutError(f"no data for replay connection {self.ident}")
+                if not replay._started.is_set() and replay._autostart:
+                    replay.start()
+                replay._cond.wait(left)
+
+    def wait_idle(self, timeout: object = None) -> None:
+        """Until the recording has been played to its end (a replay's head stops there).
+
+        Raises:
+            TimeoutError: not over within ``timeout`` seconds.
+        """
+        seconds = _seconds(timeout)
+        self._check()
+        if not self._replay._done.wait(seconds):
+            raise TimeoutError(f"{self._replay.path}: still playing")
+
+    # -- what a replay cannot do -------------------------------------------------------------
+    def _refuse(self, what: str) -> Any:
+        self._check()
+        raise ReplayRefused(
+            f"{what}: a replay of {self._replay.path.name} cannot move or configure the sensor"
+        )
+
+    def single_scan(self, to_deg: object) -> int:
+        return int(self._refuse("single_scan"))
+
+    def continuous_scan(self, cw_deg: object, ccw_deg: object) -> tuple[int, int]:
+        return self._refuse("continuous_scan")  # type: ignore[no-any-return]
+
+    def set_elevation(self, deg: object) -> int:
+        return int(self._refuse("set_elevation"))
+
+    def stop_scan(self) -> None:
+        self._refuse("stop_scan")
+
+    def start_continuous(self) -> None:
+        self._refuse("start_continuous")
+
+    def stop_continuous(self) -> None:
+        self._refuse("stop_continuous")
+
+    def home(self) -> None:
+        self._refuse("home")
+
+    def set_motor_params(self, params: object) -> None:
+        self._refuse("set_motor_params")
+
+    def timeout_enable(self) -> None:
+        self._refuse("timeout_enable")
+
+    def timeout_disable(self) -> None:
+        self._refuse("timeout_disable")
+
+    def reset(self) -> None:
+        self._refuse("reset")
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def close(self) -> None:
+        """Close; calling it again does nothing."""
+        with self._replay._cond:
+            self._closed = True
+            self._queue.clear()
+            self._replay._cond.notify_all()
+
+    def __enter__(self) -> ReplayConnection[D]:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class ReplayServer:
+    """Serve a recording through the client API (see the module).
+
+    Raises:
+        ReplayError: the file is missing, not MCAP, or has no lossless channels.
+        ValueError: ``speed`` is not None or a positive number.
+    """
+
+    def __init__(
+        self, path: str | os.PathLike[str], speed: float | None = 1.0, *, autostart: bool = True
+    ) -> None:
+        if speed is not None and not (
+            isinstance(speed, (int, float)) and speed > 0 and math.isfinite(speed)
+        ):
+            raise ValueError(f"speed must be a positive number or None, not {speed!r}")
+        self.path = Path(path)
+        self.speed = speed
+        self._autostart = autostart
+        self.metadata: dict[str, str] = {}
+        self._topics = self._inspect()
+        self.record: BirisInitRecord | None = None
+        if "init_record" in self.metadata:
+            try:
+                self.record = BirisInitRecord.from_dict(json.loads(self.metadata["init_record"]))
+            except (ValueError, RequestError):
+                self.record = None
+        self._cond = threading.Condition()
+        self._conns: list[ReplayConnection[Any]] = []
+        self._next = 1
+        self._scans: dict[Direction, Scan | None] = {Direction.CW: None, Direction.CCW: None}
+        self._point: Point | None = None
+        self._status: ServerStatus | None = None
+        self.played = {"scans": 0, "points": 0, "statuses": 0}
+        self._started = threading.Event()
+        self._done = threading.Event()
+        self._stop = threading.Event()
+        self._closed = False
+        self.error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+
+    def _inspect(self) -> list[str]:
+        """Read the summary and metadata; the raw topics present."""
+        try:
+            with open(self.path, "rb") as f:
+                reader = make_reader(f)
+                for record in reader.iter_metadata():
+                    if record.name == "biris":
+                        self.metadata = dict(record.metadata)
+                summary = reader.get_summary()
+                raw = {_RAW_SCAN, _RAW_POINT, _RAW_STATUS}
+                if summary is not None and summary.channels:
+                    topics = {c.topic for c in summary.channels.values()} & raw
+                else:  # a file cut short (a full disk) has no summary: look at the messages
+                    f.seek(0)
+                    found = make_reader(f).iter_messages(topics=sorted(raw))
+                    topics = {channel.topic for _s, channel, _m in found}
+        except OSError as exc:
+            raise ReplayError(f"cannot read {self.path}: {exc.strerror or exc}") from exc
+        except (McapError, ValueError, EOFError) as exc:
+            raise ReplayError(f"{self.path} is not a readable MCAP file: {exc}") from exc
+        if not topics:
+            raise ReplayError(
+                f"{self.path} has no lossless BIRIS channels ({_RAW_SCAN}, {_RAW_POINT}): "
+                "not a biris recording"
+            )
+        return sorted(topics)
+
+    # -- playing -----------------------------------------------------------------------------
+    def start(self) -> ReplayServer:
+        """Begin playing (once; the first DATA connection does it unless ``autostart=False``)."""
+        with self._cond:
+            self._check_open()
+            if self._started.is_set():
+                return self
+            self._started.set()
+            self._thread = threading.Thread(target=self._play, name="biris-replay", daemon=True)
+            self._thread.start()
+        return self
+
+    def _messages(self) -> Iterator[tuple[str, int, bytes]]:
+        with open(self.path, "rb") as f:
+            reader = make_reader(f)
+            for _schema, channel, message in reader.iter_messages(
+                topics=self._topics, log_time_order=True
+            ):
+                yield channel.topic, message.log_time, message.data
+
+    def _play(self) -> None:
+        try:
+            first: int | None = None
+            begun = time.monotonic()
+            for topic, log_time, data in self._messages():
+                if self._stop.is_set():
+                    return
+                if self.speed is not None:
+                    first = log_time if first is None else first
+                    due = begun + (log_time - first) / 1e9 / self.speed
+                    if self._stop.wait(max(0.0, due - time.monotonic())):
+                        return
+                self._hand_over(topic, data)
+        except BaseException as exc:  # a damaged file: said to every reader, not lost
+            self.error = exc
+        finally:
+            with self._cond:
+                self._done.set()
+                self._cond.notify_all()
+
+    def _hand_over(self, topic: str, data: bytes) -> None:
+        item: Scan | Point
+        if topic == _RAW_STATUS:
+            status = wire.decode_status(data)
+            with self._cond:
+                self._status = status
+                self.played["statuses"] += 1
+            return
+        item = wire.decode_scan(data) if topic == _RAW_SCAN else wire.decode_point(data)
+        with self._cond:
+            if self.speed is None:  # as fast as the queueing readers go: wait for room
+                self._cond.wait_for(lambda: self._stop.is_set() or self._room(item))
+            if isinstance(item, Scan):
+                self._scans[item.direction] = item
+                self.played["scans"] += 1
+            else:
+                self._point = item
+                self.played["points"] += 1
+            for conn in self._conns:
+                if conn._wants(item):
+                    conn._offer(item)
+            self._cond.notify_all()
+
+    def _room(self, item: Scan | Point) -> bool:
+        return all(len(c._queue) < c.depth for c in self._conns if c._lossless and c._wants(item))
+
+    @property
+    def finished(self) -> bool:
+        """The whole recording has been played (or playing stopped on an error)."""
+        return self._done.is_set()
+
+    def wait_done(self, timeout: float | None = None) -> bool:
+        """Wait until the recording has been played; True if it has."""
+        return self._done.wait(timeout)
+
+    # -- the server's API --------------------------------------------------------------------
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ConnectionClosed(f"the replay of {self.path} is closed")
+
+    def open(
+        self,
+        kind: ConnectionKind = ConnectionKind.NORMAL,
+        *,
+        policy: DeliveryPolicy = DeliveryPolicy.LATEST,
+        depth: int | None = None,
+    ) -> Any:
+        """OPEN_REQUEST, as :meth:`BirisServer.open <biris_hw.BirisServer.open>`.
+
+        Raises:
+            ConnectionClosed: the replay is closed.
+            RequestError: an unknown kind, policy or depth.
+        """
+        try:
+            kind = ConnectionKind(kind)
+        except ValueError:
+            raise RequestError(
+                f"no connection kind {kind!r}; use ConnectionKind.NORMAL or DATA"
+            ) from None
+        chosen, used = check_policy(kind, policy, depth)
+        with self._cond:
+            self._check_open()
+            conn: ReplayConnection[Any] = ReplayConnection(self, self._next, kind, chosen, used)
+            self._next += 1
+            self._conns = [c for c in self._conns if not c.closed] + [conn]
+        if kind is ConnectionKind.DATA and self._autostart:
+            self.start()
+        return conn
+
+    def status(self) -> ServerStatus:
+        """The latest recorded status, with the replay's own state and connections: SCANNING
+        while playing, IDLE before and after.
+
+        Raises:
+            ConnectionClosed: the replay is closed.
+        """
+        with self._cond:
+            self._check_open()
+            playing = self._started.is_set() and not self._done.is_set()
+            conns = {
+                c.ident: ConnectionStatus(
+                    kind=c.kind.name,
+                    policy=c.policy.name,
+                    depth=c.depth,
+                    queued=len(c._queue),
+                    delivered=c.delivered,
+                    dropped=c.dropped,
+                    latency={},
+                )
+                for c in self._conns
+                if not c.closed
+            }
+            base = self._status
+            point = self._point
+        state = ServerState.SCANNING if playing else ServerState.IDLE
+        if base is None:
+            base = ServerStatus(
+                state=state,
+                fault=None,
+                azimuth=point.azimuth if point else 0,
+                elevation=point.elevation if point else 0,
+                calibration=None,
+                continuous=False,
+                acquisition=point.acquisition if point else "single",
+                ring="off",
+                counters={"scans": self.played["scans"]},
+                connections={},
+            )
+        return dataclasses.replace(base, state=state, fault=None, connections=conns)
+
+    def close(self) -> None:
+        """Stop playing, close every connection (their waiters get ConnectionClosed)."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            self._stop.set()
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join()
+
+    def __enter__(self) -> ReplayServer:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

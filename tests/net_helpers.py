@@ -1,0 +1,291 @@
+"""Helpers for the network-service tests: free ports, a service or a client in another process.
+
+Run as a program (``python -m tests.net_helpers ROLE ...``) it is that other process:
+
+* ``serve --port P --name N [--controllers USER:PW] [--tls DIR] [--samples S]`` -- a simulator,
+  a server and the service, printing ``ready`` once it serves, until killed or stdin closes;
+* ``cli-serve ARGS...`` -- ``biris serve ARGS`` (the command module, whatever cli.py lists);
+* ``reader --endpoint E --name N --scans K`` -- subscribes to scans and reads K through a DATA
+  connection, tries a motion request, prints one JSON line of what it saw;
+* ``controller --endpoint E --name N --user U --password P`` -- opens connections, starts a
+  continuous scan, prints ``scanning``, then waits to be killed.
+
+Every wait is bounded by an event or a subprocess read with a timeout, never a sleep.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+
+START_S = 30.0
+"""Longest a helper process may take to say it is ready (a slow CI host)."""
+
+
+def free_port() -> int:
+    """A TCP port on loopback nobody listens on now (the service binds it a moment later)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def endpoint(port: int, scheme: str = "tcp", host: str = "127.0.0.1") -> str:
+    return f"{scheme}/{host}:{port}"
+
+
+class Helper:
+    """A helper process whose stdout lines arrive on a queue (read by a thread of ours)."""
+
+    def __init__(self, args: Sequence[str], env: dict[str, str] | None = None) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "tests.net_helpers", *args],
+            cwd=ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, **(env or {})},
+        )
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.put(line.rstrip("\n"))
+        self.lines.put(None)
+
+    def expect(self, prefix: str, timeout: float = START_S) -> str:
+        """The next stdout line starting with ``prefix``; fails with the helper's stderr."""
+        while True:
+            try:
+                line = self.lines.get(timeout=timeout)
+            except queue.Empty:
+                raise AssertionError(
+                    f"helper said nothing like {prefix!r} in {timeout} s"
+                ) from None
+            if line is None:
+                err = self.proc.stderr.read() if self.proc.stderr else ""
+                raise AssertionError(f"helper ended before {prefix!r}:\n{err}")
+            if line.startswith(prefix):
+                return line
+
+    def kill(self) -> None:
+        """SIGKILL: the process vanishes without closing anything."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.close()
+
+    def close(self, timeout: float = START_S) -> int:
+        """Ask it to end (stdin closed, then SIGTERM) and reap it."""
+        if self.proc.poll() is None:
+            if self.proc.stdin is not None:
+                with contextlib.suppress(OSError):
+                    self.proc.stdin.close()
+            self.proc.terminate()  # biris serve ends on SIGTERM; the roles raise KeyboardInterrupt
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+        code = self.proc.wait(timeout=timeout)
+        self._reader.join(timeout)
+        for stream in (self.proc.stdout, self.proc.stderr, self.proc.stdin):
+            if stream is not None:
+                with contextlib.suppress(OSError):
+                    stream.close()
+        return code
+
+
+@contextlib.contextmanager
+def service_process(*args: str) -> Iterator[Helper]:
+    """A service in another process, ready when the block begins, ended when it ends."""
+    helper = Helper(["serve", *args])
+    try:
+        helper.expect("ready")
+        yield helper
+    finally:
+        helper.close()
+
+
+def make_tls(folder: Path) -> dict[str, Path]:
+    """A CA and a server certificate for localhost/127.0.0.1 made with the openssl CLI."""
+    ca_key, ca = folder / "ca.key", folder / "ca.pem"
+    key, csr, cert = folder / "server.key", folder / "server.csr", folder / "server.pem"
+    ext = folder / "san.ext"
+    ext.write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
+
+    def openssl(*words: str) -> None:
+        subprocess.run(["openssl", *words], check=True, capture_output=True, timeout=60)
+
+    openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj",
+            "/CN=biris-test-ca", "-keyout", str(ca_key), "-out", str(ca))  # fmt: skip
+    openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=localhost",
+            "-keyout", str(key), "-out", str(csr))  # fmt: skip
+    openssl("x509", "-req", "-in", str(csr), "-CA", str(ca), "-CAkey", str(ca_key),
+            "-CAcreateserial", "-days", "2", "-extfile", str(ext), "-out", str(cert))  # fmt: skip
+    return {"ca": ca, "cert": cert, "key": key}
+
+
+# -- the roles, when run as a program --------------------------------------------------------------
+
+
+def _serve(argv: Sequence[str]) -> None:
+    from biris_hw import BirisInitRecord, BirisServer
+    from biris_hw.net import serve
+    from sim import Scene, SimulatedBiris
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--name", default="biris0")
+    parser.add_argument("--controllers", nargs="*", default=[])
+    parser.add_argument("--tls", type=Path)
+    parser.add_argument("--samples", type=int, default=64)
+    parser.add_argument("--time-scale", type=float, default=30.0)
+    args = parser.parse_args(argv)
+    controllers = dict(item.split(":", 1) for item in args.controllers)
+    options = {}
+    scheme = "tcp"
+    if args.tls is not None:
+        scheme = "tls"
+        options = {
+            "transport/link/tls/listen_certificate": str(args.tls / "server.pem"),
+            "transport/link/tls/listen_private_key": str(args.tls / "server.key"),
+        }
+    host = "localhost" if args.tls is not None else "127.0.0.1"
+    rig = SimulatedBiris(
+        scene=Scene.circle(2.0), samples=args.samples, time_scale=args.time_scale, seed=3
+    )
+    with (
+        rig.start(),
+        BirisServer(rig.hardware, BirisInitRecord()) as server,
+        serve(
+            server,
+            name=args.name,
+            listen=[endpoint(args.port, scheme, host)],
+            controllers=controllers,
+            multicast=False,
+            options=options,
+        ),
+    ):
+        print("ready", flush=True)
+        with contextlib.suppress(KeyboardInterrupt):  # SIGTERM: leave through the with blocks
+            sys.stdin.read()  # until the test closes our stdin (or kills us)
+
+
+def _cli_serve(argv: Sequence[str]) -> None:
+    from biris_hw.commands import serve
+
+    parser = argparse.ArgumentParser(prog="biris serve")
+    serve.add_arguments(parser)
+    args = parser.parse_args(argv)
+    args.command = "serve"
+    raise SystemExit(serve.run(args))
+
+
+def _reader(argv: Sequence[str]) -> None:
+    from biris_hw import ConnectionKind
+    from biris_hw.data import DeliveryPolicy
+    from biris_hw.errors import AccessDenied
+    from biris_hw.net import connect
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--endpoint", required=True)
+    parser.add_argument("--name", default="biris0")
+    parser.add_argument("--scans", type=int, default=2)
+    args = parser.parse_args(argv)
+    published: queue.Queue[int] = queue.Queue()
+    with connect(args.name, [args.endpoint], multicast=False) as remote:
+        subscription = remote.subscribe("scan", lambda scan: published.put(scan.seq))
+        data = remote.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_BUFFER)
+        print("listening", flush=True)
+        pulled = [(int(s.direction), s.seq, s.n_acq) for s in _scans(data, args.scans)]
+        seen = [published.get(timeout=START_S) for _ in range(args.scans)]
+        denied = False
+        try:
+            remote.open().single_scan(10.0)
+        except AccessDenied:
+            denied = True
+        subscription.close()
+        print(json.dumps({"pulled": pulled, "published": seen, "denied": denied}), flush=True)
+
+
+def _scans(data: Any, n: int) -> Iterator[Any]:
+    for _ in range(n):
+        yield data.ready_for_data(timeout=START_S)
+
+
+def _controller(argv: Sequence[str]) -> None:
+    from biris_hw import ConnectionKind
+    from biris_hw.net import connect
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--endpoint", required=True)
+    parser.add_argument("--name", default="biris0")
+    parser.add_argument("--user", required=True)
+    args = parser.parse_args(argv)
+    password = os.environ["BIRIS_PASSWORD"]
+    remote = connect(args.name, [args.endpoint], args.user, password, multicast=False)
+    conn = remote.open()
+    remote.open(ConnectionKind.DATA)
+    conn.continuous_scan(-30.0, 30.0)
+    print("scanning", flush=True)
+    sys.stdin.read()  # until killed
+
+
+def main(argv: Sequence[str]) -> None:
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    roles = {"serve": _serve, "cli-serve": _cli_serve, "reader": _reader, "controller": _controller}
+    roles[argv[0]](argv[1:])
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
+
+
+class _NoSensor:
+    """A sensor that is already closed: enough for a service to start and stop."""
+
+    def open(self, *args: object, **kwargs: object) -> object:
+        from biris_hw.errors import ConnectionClosed
+
+        raise ConnectionClosed("no sensor")
+
+    def status(self) -> object:
+        from biris_hw.errors import ConnectionClosed
+
+        raise ConnectionClosed("no sensor")
+
+    def close(self) -> None:
+        pass
+
+
+_warm = False
+
+
+def warm_up_zenoh() -> None:
+    """Zenoh starts its runtimes (threads, epoll and eventfd descriptors) on first use and keeps
+    them for the life of the process. Start them once, before a test's leak check takes its
+    snapshot, so that they are not taken for the leak of whichever test came first."""
+    global _warm
+    if _warm:
+        return
+    from biris_hw.net import connect, serve
+
+    where = endpoint(free_port())
+    with serve(_NoSensor(), name="warmup", listen=[where], multicast=False):  # type: ignore[arg-type]
+        connect("warmup", [where], multicast=False).close()
+    _warm = True

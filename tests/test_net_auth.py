@@ -1,0 +1,58 @@
+"""Zenoh's own link-level user/password authentication in front of the service (docs/wire-format.md,
+"Security", point 2): a peer without the right link credentials never gets a session with the
+service, so it can neither read nor even learn that the service is there; the service's own
+controller check still applies on top for those who do get in.
+
+Slow: each refused peer is seen as a ``connect`` that times out (Zenoh drops the link during
+its handshake and gives the client no reason), so the test waits out two short timeouts.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from biris_hw import BirisServer
+from biris_hw.errors import AccessDenied, ConnectionClosed
+from biris_hw.net import connect, serve
+from tests.net_helpers import endpoint, free_port, warm_up_zenoh
+
+pytestmark = pytest.mark.slow
+
+REFUSED_WAIT_S = 1.5
+"""How long a refused peer waits for the service before connect() gives up; loopback links
+that are accepted come up in milliseconds."""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _zenoh_runtime() -> None:
+    warm_up_zenoh()
+
+
+def _link(user: str, password: str) -> dict[str, str]:
+    return {"transport/auth/usrpwd/user": user, "transport/auth/usrpwd/password": password}
+
+
+def test_link_credentials_are_required(server: BirisServer, tmp_path: Path) -> None:
+    dictionary = tmp_path / "zenoh-users.txt"
+    dictionary.write_text("robot:link-pw\n")
+    dictionary.chmod(0o600)
+    where = endpoint(free_port())
+    with serve(
+        server,
+        name="auth",
+        listen=[where],
+        controllers={"op": "s3cret"},
+        multicast=False,
+        options={"transport/auth/usrpwd/dictionary_file": str(dictionary)},
+    ):
+        with connect("auth", [where], multicast=False, options=_link("robot", "link-pw")) as ok:
+            assert ok.status()["state"] == "idle"
+            with pytest.raises(AccessDenied):  # in on the link, still not a controller
+                ok.open().home()
+        for options in ({}, _link("robot", "wrong"), _link("intruder", "link-pw")):
+            with pytest.raises(ConnectionClosed, match="no BIRIS service"):
+                connect(
+                    "auth", [where], multicast=False, options=options, timeout=REFUSED_WAIT_S
+                ).close()

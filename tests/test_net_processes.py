@@ -1,0 +1,180 @@
+"""The network service across processes (slow tier): the service in one process, clients in
+others, over loopback TCP (and TLS) with multicast scouting off."""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from biris_hw import ConnectionKind
+from biris_hw.data import DeliveryPolicy
+from biris_hw.errors import ConnectionClosed
+from biris_hw.net import connect, tls_options
+from tests.conftest import until
+from tests.net_helpers import (
+    Helper,
+    endpoint,
+    free_port,
+    make_tls,
+    service_process,
+    warm_up_zenoh,
+)
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _zenoh_runtime() -> None:
+    warm_up_zenoh()
+
+
+def test_two_readers_and_a_controller(no_leaks: None) -> None:
+    port = free_port()
+    where = endpoint(port)
+    with service_process("--port", str(port), "--controllers", "op:pw"):
+        readers = [Helper(["reader", "--endpoint", where, "--scans", "2"]) for _ in range(2)]
+        try:
+            for reader in readers:
+                reader.expect("listening")
+            with connect("biris0", [where], "op", "pw", multicast=False) as remote:
+                conn = remote.open()
+                conn.continuous_scan(-20.0, 20.0)
+                results = [json.loads(reader.expect("{")) for reader in readers]
+                conn.stop_scan()
+                conn.wait_idle(timeout=30)
+        finally:
+            for reader in readers:
+                reader.close()
+    for result in results:
+        assert len(result["pulled"]) == 2 and len(result["published"]) == 2
+        assert result["denied"] is True  # a reader is refused control
+    assert results[0]["pulled"] == results[1]["pulled"]  # both saw the same scans
+
+
+def test_controller_vanishes_mid_scan(no_leaks: None) -> None:
+    port = free_port()
+    where = endpoint(port)
+    with (
+        service_process("--port", str(port), "--controllers", "op:pw"),
+        connect("biris0", [where], multicast=False) as observer,
+    ):
+        before = len(observer.status().connections)
+        controller = Helper(
+            ["controller", "--endpoint", where, "--user", "op"], env={"BIRIS_PASSWORD": "pw"}
+        )
+        try:
+            controller.expect("scanning")
+            assert len(observer.status().connections) == before + 2
+            controller.kill()  # no CLOSE_REQUEST: the service must notice on its own
+        finally:
+            controller.close()
+        until(
+            lambda: len(observer.status().connections) == before,
+            timeout=10,
+            what="the vanished controller's connections released",
+        )
+        assert observer.status().continuous  # its scan goes on; another controller may stop it
+        with connect("biris0", [where], "op", "pw", multicast=False) as second:
+            conn = second.open()
+            conn.stop_scan()
+            conn.wait_idle(timeout=30)
+            assert not second.status().continuous
+
+
+def test_service_killed_clients_get_a_clear_error_in_bounded_time(no_leaks: None) -> None:
+    port = free_port()
+    where = endpoint(port)
+    helper = Helper(["serve", "--port", str(port)])
+    try:
+        helper.expect("ready")
+        remote = connect("biris0", [where], multicast=False)
+        data = remote.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_BUFFER)
+        outcome: list[BaseException] = []
+        waiting = threading.Event()
+
+        def wait_for_data() -> None:
+            waiting.set()
+            try:
+                data.ready_for_data(timeout=None)  # nothing will come: nobody scans
+            except BaseException as exc:
+                outcome.append(exc)
+
+        thread = threading.Thread(target=wait_for_data)
+        thread.start()
+        assert waiting.wait(5)
+        killed = time.monotonic()
+        helper.kill()
+        thread.join(timeout=15)
+        took = time.monotonic() - killed
+        assert not thread.is_alive()
+        assert outcome and isinstance(outcome[0], ConnectionClosed), outcome
+        assert took < 6.0, took  # at once when the link drops; MAX_WAIT_S at worst
+        with pytest.raises(ConnectionClosed):
+            remote.status()
+        remote.close()
+    finally:
+        helper.close()
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI")
+def test_tls(tmp_path: Path, no_leaks: None) -> None:
+    files = make_tls(tmp_path)
+    port = free_port()
+    where = endpoint(port, "tls", "localhost")
+    with service_process("--port", str(port), "--tls", str(tmp_path), "--controllers", "op:pw"):
+        options = tls_options(root_ca=str(files["ca"]))
+        with connect("biris0", [where], "op", "pw", multicast=False, options=options) as remote:
+            conn = remote.open()
+            assert conn.single_scan(10.0) == 114
+            conn.wait_idle(timeout=30)
+            assert remote.status()["state"] == "idle"
+        with pytest.raises(ConnectionClosed):  # no CA: the certificate is not trusted
+            connect("biris0", [where], multicast=False, timeout=1.0)
+
+
+def test_cli_serve_and_watch_connect(tmp_path: Path, no_leaks: None) -> None:
+    """``biris serve --sim`` in another process; ``biris watch --connect`` shows it, fast: no
+    server of its own, so no homing."""
+    from biris_hw.commands import watch
+
+    port = free_port()
+    where = endpoint(port)
+    credentials = tmp_path / "service.toml"
+    credentials.write_text('[controllers]\nop = "pw"\n')
+    serve = Helper(
+        [
+            "cli-serve",
+            "--sim",
+            "--time-scale",
+            "30",
+            "--name",
+            "cli0",
+            "--listen",
+            where,
+            "--credentials",
+            str(credentials),
+            "--no-multicast",
+        ]
+    )
+    try:
+        serve.expect("serving cli0")
+        parser = argparse.ArgumentParser()
+        watch.add_arguments(parser)
+        args = parser.parse_args(
+            ["--connect", "cli0", "--endpoint", where, "--duration", "0.3", "--interval", "0.1"]
+        )
+        args.command = "watch"
+        out = io.StringIO()
+        started = time.monotonic()
+        assert watch.run(args, out) == 0
+        assert time.monotonic() - started < 5.0
+        assert "idle" in out.getvalue()
+    finally:
+        assert serve.close() == 0
