@@ -25,7 +25,7 @@ import math
 import threading
 from fractions import Fraction
 from types import TracebackType
-from typing import TYPE_CHECKING, Generic, cast
+from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, cast, overload
 
 from biris_hw import protocol as m
 from biris_hw.angles import RealLike, destination_counts, exact_real, is_real, shown
@@ -33,6 +33,7 @@ from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import ConnectionClosed, RequestError
 from biris_hw.ipc import Mailbox
 from biris_hw.records import MotorParams
+from biris_hw.status import ServerStatus
 
 if TYPE_CHECKING:  # the default needs PEP 696; at run time a plain TypeVar does the same job
     from typing_extensions import TypeVar
@@ -43,11 +44,11 @@ else:
 
     D = TypeVar("D", Scan, Point)
 
-__all__ = ["Connection"]
+__all__ = ["Connection", "Sensor", "checked_timeout"]
 
 
 POLL = 0.0
-"""What :func:`_timeout` returns for a poll (``timeout=0``)."""
+"""What :func:`checked_timeout` returns for a poll (``timeout=0``)."""
 
 
 def _is_plus_infinity(value: object) -> bool:
@@ -58,7 +59,7 @@ def _is_plus_infinity(value: object) -> bool:
         return False
 
 
-def _timeout(value: object) -> float | None:
+def checked_timeout(value: object) -> float | None:
     """A call's ``timeout`` argument, checked: None (no deadline), :data:`POLL`, or seconds.
 
     Any real number type. A deadline no lock can wait for -- infinity, ``10**400``, or anything
@@ -176,7 +177,7 @@ class Connection(Generic[D]):
                 number, or a newer READY_FOR_DATA superseded this one.
             TimeoutError: nothing came within ``timeout`` seconds (at once for a poll).
         """
-        seconds = _timeout(timeout)
+        seconds = checked_timeout(timeout)
         if seconds == POLL:
             result = self._call(m.ReadyForData(self.ident, poll=True))
         else:
@@ -353,7 +354,7 @@ class Connection(Generic[D]):
             RequestError: a timeout that is negative, NaN or not a number.
             TimeoutError: not idle within ``timeout`` seconds (at once for a poll).
         """
-        seconds = _timeout(timeout)
+        seconds = checked_timeout(timeout)
         if seconds == POLL:
             self._call(m.WaitIdle(self.ident, poll=True))
         else:
@@ -395,3 +396,42 @@ class Connection(Generic[D]):
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+class Sensor(Protocol):
+    """What a program needs of a sensor, wherever it is: a local
+    :class:`~biris_hw.BirisServer`, a service reached over the network
+    (:class:`biris_hw.net.RemoteSensor`) or a replayed recording
+    (:class:`biris_hw.replay.ReplayServer`). The service, the recorder and every ``biris``
+    command take any of them; their connections have the methods of :class:`Connection`."""
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: Literal[DeliveryPolicy.EVERY_ACQUISITION],
+        depth: int | None = ...,
+    ) -> Any: ...
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: Literal[DeliveryPolicy.LATEST, DeliveryPolicy.EVERY_BUFFER] = ...,
+        depth: int | None = ...,
+    ) -> Any: ...
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: DeliveryPolicy,
+        depth: int | None = ...,
+    ) -> Any: ...
+
+    def status(self) -> ServerStatus: ...
+
+    def close(self) -> None: ...

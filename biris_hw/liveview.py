@@ -7,8 +7,13 @@ or a replay alike. It publishes the recorder's standard channels, with the same 
 and CDR bytes (:mod:`biris_hw.ros2`): ``/biris/profile`` and ``/tf`` per acquisition,
 ``/biris/points`` per completed scan, ``/diagnostics`` and ``/tf_static`` at the status period
 (static transforms are re-sent because a viewer may connect at any time and the WebSocket does
-not latch), and ``/biris/sweep``: the current sweep's cloud, growing as acquisitions arrive
-(re-sent at most every ``sweep_period_s``, since each message carries the whole sweep so far).
+not latch), and ``/biris/sweep``: the acquisitions that arrived since its previous message, in
+``vehicle``, at most one message every ``sweep_period_s`` (what came meanwhile waits for the
+next, and the status period sends what is left). Each message holds only the new points, so the
+work per message is bounded by the data rate, however long a sweep lasts (a message carrying the
+whole sweep so far would make the work grow with the square of its length); a viewer shows the
+sweep building up by keeping each message for a while: the 3D panel's *decay time*, which
+``docs/foxglove-layout.json`` sets for this topic.
 
 Messages are only built for channels a viewer subscribes to, so a live view nobody watches costs
 almost nothing; what is built is built in batches, in the feed's one thread and out of step
@@ -24,8 +29,6 @@ import time
 from collections.abc import Mapping
 from types import TracebackType
 from typing import Any
-
-from numpy.typing import NDArray
 
 from biris_hw import ros2
 from biris_hw.data import Point, Scan
@@ -94,9 +97,8 @@ class LiveView:
         record = getattr(source, "record", None)
         self._mount: Mount | None = getattr(record, "mount", None)
         self._now = 0.0
-        self._sweep: list[NDArray[Any]] = []
-        self._sweep_key: tuple[int, int] | None = None
-        self._sweep_t0 = 0.0
+        self._sweep: list[Point] = []
+        """Acquisitions not yet sent on ``/biris/sweep`` (at most one sweep period's worth)."""
         self._sweep_sent = 0.0
         self.published: dict[str, int] = {}
         """Messages published per topic (to at least one subscriber)."""
@@ -139,10 +141,17 @@ class LiveView:
         """Why publishing stopped early, or None."""
         return self._feed.error
 
+    @property
+    def failed(self) -> threading.Event:
+        """Set when publishing stopped on its own (the source failed: a damaged recording, a
+        callback's error): :attr:`error` says why."""
+        return self._feed.failed
+
     def close(self) -> None:
         """Stop reading and publishing, close the server. Idempotent."""
         self._feed.stop()
         if self._server is not None:
+            self._send_sweep()  # the last acquisitions the feed handed over
             for channel in self._channels.values():
                 channel.close()
             self._server.stop()
@@ -179,33 +188,21 @@ class LiveView:
             for point in points:
                 self._publish(ros2.transforms(point))
         if not self._wanted("/biris/sweep"):
-            self._sweep_key = None
             self._sweep = []
             return
-        for begins, group in self._sweeps(points):
-            if begins:
-                self._sweep = []
-                self._sweep_t0 = group[0].t
-            self._sweep += ros2.point_rows(group, "vehicle", self._sweep_t0)
-            now = time.monotonic()
-            if now - self._sweep_sent >= self._sweep_period:
-                self._sweep_sent = now
-                self._publish(ros2.sweep_cloud(self._sweep, self._sweep_t0, group[-1].t))
+        self._sweep += points
+        self._send_sweep(when_due=True)
 
-    def _sweeps(self, points: list[Point]) -> list[tuple[bool, list[Point]]]:
-        """The batch cut where a sweep begins (a new scan, or the acquisition index going
-        back): (whether that piece begins a sweep, its points)."""
-        pieces: list[tuple[bool, list[Point]]] = []
-        for point in points:
-            key = (point.scan_seq, point.acq)
-            last = self._sweep_key
-            begins = last is None or key[0] != last[0] or key[1] < last[1]
-            self._sweep_key = key
-            if begins or not pieces:
-                pieces.append((begins, [point]))
-            else:
-                pieces[-1][1].append(point)
-        return pieces
+    def _send_sweep(self, when_due: bool = False) -> None:
+        """The acquisitions waiting for ``/biris/sweep`` as one cloud (see the module); with
+        ``when_due``, only once ``sweep_period_s`` has passed since the last."""
+        if when_due and time.monotonic() - self._sweep_sent < self._sweep_period:
+            return
+        pending, self._sweep = self._sweep, []
+        if not pending or not self._wanted("/biris/sweep"):
+            return
+        self._sweep_sent = time.monotonic()
+        self._publish(ros2.sweep_cloud(pending))
 
     def _scans(self, scans: list[Scan]) -> None:
         for scan in scans:
@@ -215,9 +212,8 @@ class LiveView:
                 self._publish(ros2.scan_cloud(scan, self.frame))
 
     def _status(self, status: Mapping[str, Any] | None, error: str | None) -> None:
-        hardware = getattr(self.source, "hardware", None)
-        clock = getattr(hardware, "clock", None)
-        t = float(clock()) if clock is not None else self._now
+        self._send_sweep(when_due=True)  # what waited for the period, if no data came since
+        t = ros2.sensor_time(self.source, self._now)
         if self._wanted("/tf_static"):
             self._publish(ros2.static_transforms(self._mount, t))
         if self._wanted("/diagnostics"):

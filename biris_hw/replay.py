@@ -24,7 +24,10 @@ Playback starts when the first DATA connection opens (or at :meth:`ReplayServer.
 and configuration requests raise :class:`ReplayRefused` (a :class:`~biris_hw.errors.RequestError`)
 and change nothing. When the recording is over, READY_FOR_DATA with nothing left raises
 :class:`EndOfRecording` (a :class:`~biris_hw.errors.ConnectionClosed`, so a loop that stops on a
-closed server stops here too) and ``wait_idle`` returns.
+closed server stops here too) and ``wait_idle`` returns. A file damaged part way (a corrupt
+chunk, a cut) is played up to the damage; then READY_FOR_DATA, once what was read has been
+delivered, and ``wait_idle`` raise :class:`ReplayError` from what the reader met, never
+EndOfRecording: a damaged recording does not pass for a complete one.
 """
 
 from __future__ import annotations
@@ -45,22 +48,24 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
 from biris_hw import wire
-from biris_hw.angles import is_real
+from biris_hw.client import checked_timeout as _seconds
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
 from biris_hw.records import BirisInitRecord
+from biris_hw.ros2 import RAW_POINT_TOPIC, RAW_SCAN_TOPIC, RAW_STATUS_TOPIC
 from biris_hw.server.delivery import check_policy
 from biris_hw.status import ConnectionStatus, ServerState, ServerStatus
 
 __all__ = ["EndOfRecording", "ReplayConnection", "ReplayError", "ReplayRefused", "ReplayServer"]
 
-_RAW_SCAN, _RAW_POINT, _RAW_STATUS = "/biris/raw/scan", "/biris/raw/point", "/biris/raw/status"
-
 D = TypeVar("D", Scan, Point)
 
 
 class ReplayError(BirisError, OSError):
-    """The file cannot be replayed: missing, not MCAP, or without the lossless channels."""
+    """The file cannot be replayed: missing, not MCAP, or without the lossless channels (raised
+    by :class:`ReplayServer`); or damaged part way (raised by ``ready_for_data`` and
+    ``wait_idle`` once what was read before the damage has been played, from the reader's
+    error)."""
 
 
 class ReplayRefused(RequestError):
@@ -69,18 +74,6 @@ class ReplayRefused(RequestError):
 
 class EndOfRecording(ConnectionClosed):
     """The recording has been played to its end and nothing more waits for this connection."""
-
-
-def _seconds(timeout: object) -> float | None:
-    """None (wait as long as it takes), 0 (poll) or positive seconds; RequestError otherwise."""
-    if timeout is None:
-        return None
-    if not is_real(timeout):
-        raise RequestError(f"timeout: must be None, 0 or a positive number, not {timeout!r}")
-    seconds = float(timeout)  # type: ignore[arg-type]
-    if math.isnan(seconds) or seconds < 0:
-        raise RequestError(f"timeout: must be None, 0 or a positive number, not {timeout!r}")
-    return None if seconds >= threading.TIMEOUT_MAX else seconds
 
 
 class ReplayConnection(Generic[D]):
@@ -164,6 +157,7 @@ class ReplayConnection(Generic[D]):
             RequestError: not a DATA connection, or a bad timeout.
             TimeoutError: nothing within ``timeout`` seconds (at once for 0).
             EndOfRecording: the recording is over and nothing waits.
+            ReplayError: the file is damaged; what was read before it has been delivered.
             ConnectionClosed: this connection or the replay is closed.
         """
         if self.kind is not ConnectionKind.DATA:
@@ -180,6 +174,7 @@ class ReplayConnection(Generic[D]):
                     replay._cond.notify_all()  # the player may wait for room
                     return item  # type: ignore[return-value]  # the policy says which
                 if replay._done.is_set():
+                    replay._check_damage()
                     raise EndOfRecording(f"{replay.path}: the recording has been played to its end")
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
@@ -193,11 +188,13 @@ class ReplayConnection(Generic[D]):
 
         Raises:
             TimeoutError: not over within ``timeout`` seconds.
+            ReplayError: playing stopped at a damaged part of the file.
         """
         seconds = _seconds(timeout)
         self._check()
         if not self._replay._done.wait(seconds):
             raise TimeoutError(f"{self._replay.path}: still playing")
+        self._replay._check_damage()
 
     # -- what a replay cannot do -------------------------------------------------------------
     def _refuse(self, what: str) -> Any:
@@ -308,7 +305,7 @@ class ReplayServer:
                     if record.name == "biris":
                         self.metadata = dict(record.metadata)
                 summary = reader.get_summary()
-                raw = {_RAW_SCAN, _RAW_POINT, _RAW_STATUS}
+                raw = {RAW_SCAN_TOPIC, RAW_POINT_TOPIC, RAW_STATUS_TOPIC}
                 if summary is not None and summary.channels:
                     topics = {c.topic for c in summary.channels.values()} & raw
                 else:  # a file cut short (a full disk) has no summary: look at the messages
@@ -321,8 +318,8 @@ class ReplayServer:
             raise ReplayError(f"{self.path} is not a readable MCAP file: {exc}") from exc
         if not topics:
             raise ReplayError(
-                f"{self.path} has no lossless BIRIS channels ({_RAW_SCAN}, {_RAW_POINT}): "
-                "not a biris recording"
+                f"{self.path} has no lossless BIRIS channels ({RAW_SCAN_TOPIC}, "
+                f"{RAW_POINT_TOPIC}): not a biris recording"
             )
         return sorted(topics)
 
@@ -340,7 +337,7 @@ class ReplayServer:
 
     def _messages(self) -> Iterator[tuple[str, int, bytes]]:
         with open(self.path, "rb") as f:
-            reader = make_reader(f)
+            reader = make_reader(f, validate_crcs=True)  # a damaged chunk is an error, not data
             for _schema, channel, message in reader.iter_messages(
                 topics=self._topics, log_time_order=True
             ):
@@ -368,13 +365,13 @@ class ReplayServer:
 
     def _hand_over(self, topic: str, data: bytes) -> None:
         item: Scan | Point
-        if topic == _RAW_STATUS:
+        if topic == RAW_STATUS_TOPIC:
             status = wire.decode_status(data)
             with self._cond:
                 self._status = status
                 self.played["statuses"] += 1
             return
-        item = wire.decode_scan(data) if topic == _RAW_SCAN else wire.decode_point(data)
+        item = wire.decode_scan(data) if topic == RAW_SCAN_TOPIC else wire.decode_point(data)
         with self._cond:
             if self.speed is None:  # as fast as the queueing readers go: wait for room
                 self._cond.wait_for(lambda: self._stop.is_set() or self._room(item))
@@ -391,6 +388,15 @@ class ReplayServer:
 
     def _room(self, item: Scan | Point) -> bool:
         return all(len(c._queue) < c.depth for c in self._conns if c._lossless and c._wants(item))
+
+    def _check_damage(self) -> None:
+        """Raise ReplayError if playing stopped on an error (the file is damaged)."""
+        error = self.error
+        if error is not None:
+            raise ReplayError(
+                f"{self.path} is damaged: playing stopped after {self.played['scans']} scans "
+                f"and {self.played['points']} acquisitions ({type(error).__name__}: {error})"
+            ) from error
 
     @property
     def finished(self) -> bool:

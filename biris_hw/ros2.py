@@ -30,7 +30,10 @@ frame               parent              transform
 ``biris_sensor``: the fan is the x-z plane of that frame), ``/tf`` (``tf2_msgs/msg/TFMessage``:
 pan and tilt at each acquisition's time), ``/tf_static`` (the two static transforms),
 ``/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``, REP 107). The live view adds
-``/biris/sweep``, the current sweep's cloud growing acquisition by acquisition.
+``/biris/sweep``: the acquisitions since its previous message, so that a 3D panel that keeps
+clouds for a while (its decay time) shows the sweep build up. The lossless channels the recorder
+adds beside them, and the replay reads, are :data:`RAW_SCAN_TOPIC`, :data:`RAW_POINT_TOPIC`
+and :data:`RAW_STATUS_TOPIC` (``biris_msgs`` types, :mod:`biris_hw.wire`).
 
 Why a PointCloud2 for the profile and not a LaserScan: BIRIS measures depth along the optical
 axis, not slant range, and its rows are not a ray fan about an axis a LaserScan could name
@@ -73,6 +76,9 @@ __all__ = [
     "DIAGNOSTIC_ARRAY",
     "PAN_FRAME",
     "POINT_CLOUD2",
+    "RAW_POINT_TOPIC",
+    "RAW_SCAN_TOPIC",
+    "RAW_STATUS_TOPIC",
     "SENSOR_FRAME",
     "TF_MESSAGE",
     "TILT_FRAME",
@@ -88,6 +94,7 @@ __all__ = [
     "profile_clouds",
     "scan_cloud",
     "schema_text",
+    "sensor_time",
     "stamp_ns",
     "static_transforms",
     "sweep_cloud",
@@ -117,6 +124,12 @@ TOPICS: Mapping[str, str] = {
     "/diagnostics": DIAGNOSTIC_ARRAY,
 }
 """Every standard topic this module's messages go to, and its type."""
+
+RAW_SCAN_TOPIC = "/biris/raw/scan"
+RAW_POINT_TOPIC = "/biris/raw/point"
+RAW_STATUS_TOPIC = "/biris/raw/status"
+"""The lossless channels of a recording (:mod:`biris_hw.wire` payloads): written by
+:mod:`biris_hw.record`, read by :mod:`biris_hw.replay`, named here, below both."""
 
 _RAD_PER_COUNT = 2.0 * math.pi / 4096.0
 
@@ -251,10 +264,22 @@ def _cloud_head(frame_id: str) -> bytes:
     return out.bytes()[4:]
 
 
+def _padded(rows: NDArray[Any]) -> NDArray[Any]:
+    """``rows`` as ``_CLOUD_DTYPE``, padding zeroed: numpy's concatenate packs a structured
+    dtype's padding away (26-byte rows under a 28-byte point_step make a cloud no reader takes)."""
+    if rows.dtype == _CLOUD_DTYPE:
+        return rows
+    out = np.zeros(rows.shape[0], dtype=_CLOUD_DTYPE)
+    for name in _CLOUD_DTYPE.names or ():
+        out[name] = rows[name]
+    return out
+
+
 def _cloud_message(t: float | int, frame_id: str, rows: NDArray[Any]) -> bytes:
     """``sensor_msgs/msg/PointCloud2`` CDR for ``rows`` (``_CLOUD_DTYPE``), stamped ``t``
     (seconds, or whole nanoseconds as an int)."""
     ns = t if isinstance(t, int) else stamp_ns(t)
+    rows = _padded(rows)
     width = int(rows.shape[0])
     data = rows.tobytes()
     return b"".join(
@@ -382,16 +407,25 @@ def profile_cloud(point: Point, topic: str = "/biris/profile") -> Encoded:
     return profile_clouds([point], topic)[0]
 
 
-def sweep_cloud(
-    points: Sequence[NDArray[Any]], t0: float, t: float, topic: str = "/biris/sweep"
-) -> Encoded:
-    """The cloud of a sweep so far, from the rows :func:`sweep_rows` made per acquisition."""
-    rows = np.concatenate(points) if points else np.zeros(0, dtype=_CLOUD_DTYPE)
-    return Encoded(topic, POINT_CLOUD2, _cloud_message(t0, VEHICLE_FRAME, rows), stamp_ns(t))
+def sweep_cloud(points: Sequence[Point], topic: str = "/biris/sweep") -> Encoded:
+    """Acquisitions as one cloud in ``vehicle``: the live view's ``/biris/sweep`` message, which
+    carries those since the previous one. Stamped with the first acquisition (``time`` counts
+    from it) and logged at the last; the rows are :func:`scan_cloud`'s for the same
+    acquisitions, so the pieces of a sweep put together are its scan's cloud."""
+    if not points:
+        return Encoded(topic, POINT_CLOUD2, _cloud_message(0, VEHICLE_FRAME, _no_rows()), 0)
+    t0 = points[0].t
+    rows = _padded(np.concatenate(point_rows(points, "vehicle", t0)))
+    data = _cloud_message(t0, VEHICLE_FRAME, rows)
+    return Encoded(topic, POINT_CLOUD2, data, stamp_ns(points[-1].t))
+
+
+def _no_rows() -> NDArray[Any]:
+    return np.zeros(0, dtype=_CLOUD_DTYPE)
 
 
 def sweep_rows(point: Point, t0: float) -> NDArray[Any]:
-    """One acquisition's cloud rows in ``vehicle``, times relative to ``t0`` (for a sweep)."""
+    """One acquisition's cloud rows in ``vehicle``, times relative to ``t0``."""
     return point_rows([point], "vehicle", t0)[0]
 
 
@@ -549,6 +583,14 @@ class SensorSource(Protocol):
     def open(self, kind: ConnectionKind = ..., *, policy: Any = ..., depth: Any = ...) -> Any: ...
 
     def status(self) -> Mapping[str, Any]: ...
+
+
+def sensor_time(source: object, last_seen: float) -> float:
+    """The time to stamp a status with: the sensor's hardware clock now (a local server's
+    ``hardware.clock``), else ``last_seen``, the newest time the data carried (a network
+    client's sensor or a replay has no clock here)."""
+    clock = getattr(getattr(source, "hardware", None), "clock", None)
+    return float(clock()) if clock is not None else last_seen
 
 
 BATCH_S = 0.05
@@ -713,7 +755,8 @@ class SensorFeed:
     def _drain(self, conn: Any) -> tuple[list[Any], bool]:
         """What waits on ``conn`` (at most DRAIN_MAX), and whether the source has ended
         (closed: nothing more will come). A fault goes to ``on_fault``; the next batch tries
-        again."""
+        again. Any other error of the source (a replay's ReplayError) stops the feed: it is
+        kept in :attr:`error` and :attr:`failed` is set."""
         got: list[Any] = []
         while len(got) < DRAIN_MAX:
             try:
@@ -726,6 +769,11 @@ class SensorFeed:
                 if self._on_fault is not None:
                     self._on_fault(exc)
                 return got, False
+            except BirisError as exc:  # the source cannot go on (a damaged recording): what
+                # came before is handed over, the error kept for the owner to report
+                log.info("sensor feed stopped: %s", exc)
+                self._fail(exc)
+                return got, True
         return got, False
 
     def _status(self) -> None:

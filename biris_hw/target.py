@@ -89,13 +89,13 @@ AXES_KINDS = ("cia402",)
 """What an ``[axes]`` table may name: CiA 402 drives over CANopen (``biris-hw[can]``)."""
 
 _AXES_INTS = {
-    "pan_node": (1, 127),
-    "tilt_node": (1, 127),
-    "master_id": (0, 127),
+    "master_id": (0, 127),  # 0: no heartbeat of the host's own; else a node id
     "bitrate": (1, 8_000_000),
-    "homing_method": (35, 37),
     "params_index": (0x2000, 0x5FFF),
 }
+_AXES_RULED = ("pan_node", "tilt_node", "homing_method")
+"""Keys whose rule is the driver's own (:mod:`biris_hw.axes.cia402`: ``check_node_id``,
+``check_homing_method``), applied here so that the message names the key."""
 _AXES_SECONDS = {
     "heartbeat_period": "heartbeat_period_s",
     "heartbeat_timeout": "heartbeat_timeout_s",
@@ -103,7 +103,7 @@ _AXES_SECONDS = {
     "state_timeout": "state_timeout_s",
 }
 _AXES_STRINGS = ("interface", "channel", "context")
-_AXES_KEYS = frozenset({"kind", "can", *_AXES_INTS, *_AXES_SECONDS, *_AXES_STRINGS})
+_AXES_KEYS = frozenset({"kind", "can", *_AXES_INTS, *_AXES_RULED, *_AXES_SECONDS, *_AXES_STRINGS})
 
 _WIDTHS = (8, 16, 32)
 _SCALAR = (str, int, float, bool)
@@ -322,10 +322,31 @@ def _axes_options(spec: object) -> dict[str, Any]:
     for key in table:
         if key not in _AXES_KEYS:
             raise RequestError(f"axes.{key}: not an option of kind {kind!r}")
+    try:
+        from biris_hw.axes.cia402 import NODE_IDS, check_homing_method, check_node_id
+    except ImportError as exc:
+        raise _no_canopen(exc) from None
     options: dict[str, Any] = {}
     for key in ("pan_node", "tilt_node"):
         if key not in table:
-            raise RequestError(f"axes.{key}: missing (the drive's CANopen node id, 1..127)")
+            raise RequestError(
+                f"axes.{key}: missing (the drive's CANopen node id, "
+                f"{NODE_IDS.start}..{NODE_IDS.stop - 1})"
+            )
+    rules = {
+        "pan_node": check_node_id,
+        "tilt_node": check_node_id,
+        "homing_method": check_homing_method,
+    }
+    for key, rule in rules.items():
+        if key in table:
+            value = table[key]
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise RequestError(f"axes.{key}: must be an integer, not {_type(value)}")
+            try:
+                options[key] = rule(value, key)
+            except ValueError as exc:
+                raise RequestError(f"axes.{exc}") from None
     for key, (lo, hi) in _AXES_INTS.items():
         if key in table:
             options[key] = _int(f"axes.{key}", table[key], lo, hi)
@@ -349,15 +370,21 @@ def _axes_options(spec: object) -> dict[str, Any]:
     return options
 
 
+def _no_canopen(exc: ImportError) -> RequestError:
+    """:mod:`biris_hw.axes.cia402` is imported only when a target names CiA 402 drives: it
+    needs the ``canopen`` package (``biris-hw[can]``)."""
+    return RequestError(
+        f"axes: CiA 402 drives need the canopen package ({exc}); install biris-hw[can]"
+    )
+
+
 def _open_axes(spec: object, clock: Callable[[], float]) -> AxisSet:
     """CiA 402 drives as an ``[axes]`` table describes them (nothing is sent to them yet)."""
     options = _axes_options(spec)
     try:
         from biris_hw.axes.cia402 import Cia402Axes
     except ImportError as exc:
-        raise RequestError(
-            f"axes: CiA 402 drives need the canopen package ({exc}); install biris-hw[can]"
-        ) from None
+        raise _no_canopen(exc) from None
     try:
         return Cia402Axes(clock=clock, time_scale=1.0, **options)
     except BusError as exc:  # the CAN interface cannot be opened: the machine's problem

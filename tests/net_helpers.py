@@ -184,6 +184,7 @@ def _serve(argv: Sequence[str]) -> None:
         print("ready", flush=True)
         with contextlib.suppress(KeyboardInterrupt):  # SIGTERM: leave through the with blocks
             sys.stdin.read()  # until the test closes our stdin (or kills us)
+        _STOPPING.set()  # on the way out: a SIGTERM now must not cut the service's close short
 
 
 def _cli_serve(argv: Sequence[str]) -> None:
@@ -246,8 +247,20 @@ def _controller(argv: Sequence[str]) -> None:
     sys.stdin.read()  # until killed
 
 
+_STOPPING = threading.Event()
+
+
+def _on_term(signum: int, frame: object) -> None:
+    """SIGTERM: a KeyboardInterrupt the first time, while the role waits; ignored once it is
+    leaving (Helper.close closes stdin and then terminates: both arrive together, and an
+    interrupt in the middle of the service's close would leave its threads and session up)."""
+    if not _STOPPING.is_set():
+        _STOPPING.set()
+        raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str]) -> None:
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _on_term)
     roles = {"serve": _serve, "cli-serve": _cli_serve, "reader": _reader, "controller": _controller}
     roles[argv[0]](argv[1:])
 
@@ -271,6 +284,157 @@ class _NoSensor:
 
     def close(self) -> None:
         pass
+
+
+class FakeSensor:
+    """A sensor in memory, for the service's fast tests (no simulator, no homing).
+
+    Its connections record every call in :attr:`calls`. The service's own EVERY_BUFFER feed
+    takes what :meth:`feed` is given (a Scan, or an exception to raise); a LATEST DATA
+    connection's ``ready_for_data`` blocks (counted in :attr:`blocked`) until :meth:`free`, its
+    timeout or its close; ``reset`` takes :attr:`reset_s` seconds, then raises
+    :attr:`reset_fault` if set. Every wait is on one condition, woken by whatever ends it.
+    """
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.scans: list[Any] = []
+        self.freed = False
+        self.calls: list[str] = []
+        self.opened: list[FakeConnection] = []
+        self.reset_s = 0.0
+        self.reset_fault: BaseException | None = None
+        self.blocked = 0
+        self.status_error: BaseException | None = None
+        self._next = 1
+
+    def feed(self, item: Any) -> None:
+        with self.cond:
+            self.scans.append(item)
+            self.cond.notify_all()
+
+    def free(self) -> None:
+        """End every blocked read (and any later one at once)."""
+        with self.cond:
+            self.freed = True
+            self.cond.notify_all()
+
+    def open(self, kind: Any = None, *, policy: Any = None, depth: int | None = None) -> Any:
+        from biris_hw.data import ConnectionKind, DeliveryPolicy
+
+        with self.cond:
+            conn = FakeConnection(
+                self,
+                self._next,
+                kind or ConnectionKind.NORMAL,
+                policy or DeliveryPolicy.LATEST,
+                depth or 8,
+            )
+            self._next += 1
+            self.opened.append(conn)
+        return conn
+
+    def status(self) -> Any:
+        from biris_hw.status import ServerState, ServerStatus
+
+        if self.status_error is not None:
+            error, self.status_error = self.status_error, None
+            raise error
+        return ServerStatus(
+            state=ServerState.IDLE,
+            fault=None,
+            azimuth=0,
+            elevation=0,
+            calibration=None,
+            continuous=False,
+            acquisition="single",
+            ring="off",
+            counters={"scans": 0},
+            connections={},
+        )
+
+    def close(self) -> None:
+        pass
+
+
+class FakeConnection:
+    """One connection of a :class:`FakeSensor`."""
+
+    def __init__(self, sensor: FakeSensor, ident: int, kind: Any, policy: Any, depth: int) -> None:
+        self.sensor = sensor
+        self.ident = ident
+        self.kind = kind
+        self.policy = policy
+        self.depth = depth
+        self.dropped = 0
+        self.closed = False
+
+    def _record(self, what: str) -> None:
+        from biris_hw.errors import ConnectionClosed
+
+        with self.sensor.cond:
+            if self.closed:
+                raise ConnectionClosed(f"connection {self.ident} is closed")
+            self.sensor.calls.append(what)
+            self.sensor.cond.notify_all()
+
+    def ready_for_data(self, timeout: float | None = None) -> Any:
+        from biris_hw.data import DeliveryPolicy
+        from biris_hw.errors import ConnectionClosed
+
+        sensor = self.sensor
+        with sensor.cond:
+            if self.policy is DeliveryPolicy.EVERY_BUFFER:  # the service's scan feed
+                sensor.cond.wait_for(lambda: self.closed or bool(sensor.scans), timeout)
+                if self.closed:
+                    raise ConnectionClosed(f"connection {self.ident} is closed")
+                if not sensor.scans:
+                    raise TimeoutError("no scan")
+                item = sensor.scans.pop(0)
+                if isinstance(item, BaseException):
+                    raise item
+                return item
+            if self.policy is DeliveryPolicy.LATEST:  # a remote reader: blocks until freed
+                sensor.calls.append("ready_for_data")
+                sensor.blocked += 1
+                sensor.cond.notify_all()
+                try:
+                    sensor.cond.wait_for(lambda: self.closed or sensor.freed, timeout)
+                finally:
+                    sensor.blocked -= 1
+                raise TimeoutError("nothing")
+            sensor.cond.wait_for(lambda: self.closed, timeout)  # the point feed: nothing comes
+            if self.closed:
+                raise ConnectionClosed(f"connection {self.ident} is closed")
+            raise TimeoutError("no point")
+
+    def request_point(self) -> None:
+        self._record("request_point")
+
+    def stop_scan(self) -> None:
+        self._record("stop_scan")
+
+    def continuous_scan(self, cw: float, ccw: float) -> tuple[int, int]:
+        self._record("continuous_scan")
+        return -1, 1
+
+    def reset(self) -> None:
+        self._record("reset")
+        with self.sensor.cond:  # the time an initialisation takes (or until closed)
+            self.sensor.cond.wait_for(lambda: self.closed, self.sensor.reset_s)
+        if self.sensor.reset_fault is not None:
+            raise self.sensor.reset_fault
+
+    def close(self) -> None:
+        with self.sensor.cond:
+            self.closed = True
+            self.sensor.cond.notify_all()
+
+    def __enter__(self) -> FakeConnection:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 _warm = False

@@ -19,13 +19,17 @@ import pytest
 
 from biris_hw.axes import MotionAxis, MotionController
 from biris_hw.axes.cia402 import (
+    HOMING_METHODS,
     TOUCH_PROBE_INDEX,
+    Cia402Axes,
     Cia402Axis,
     Cia402Bus,
     Cia402Controller,
     DriveBusError,
     DriveFault,
     DriveState,
+    check_homing_method,
+    check_node_id,
     profile_for,
     stop_periodic_task,
 )
@@ -403,3 +407,22 @@ def test_a_drive_that_loses_the_masters_heartbeat_faults(rig: Rig) -> None:
     fault = rig.fault()
     assert (fault.code, fault.kind, fault.source) == (0x8130, "bus", "emcy")
     assert rig.drive.state is DriveState.FAULT
+
+
+def test_node_ids_and_homing_methods_have_one_rule(no_leaks: None) -> None:
+    """The driver's rule (what the target file's check uses too): node ids 1..127, homing on
+    the current position by 35 or 37 only; Cia402Axes applies it before it opens a bus."""
+    for node in (1, 127):
+        assert check_node_id(node) == node
+    for bad in (0, 128, True, 2.0):
+        with pytest.raises(ValueError, match=r"must be in 1\.\.127"):
+            check_node_id(bad)
+    assert [check_homing_method(m) for m in HOMING_METHODS] == [35, 37]
+    for bad in (36, 34, True):
+        with pytest.raises(ValueError, match=r"^homing_method: must be 35 or 37 \("):
+            check_homing_method(bad)
+    channel = f"t-{uuid.uuid4().hex}"
+    with pytest.raises(ValueError, match="pan_node"):
+        Cia402Axes(pan_node=0, tilt_node=3, interface="virtual", channel=channel)
+    with pytest.raises(ValueError, match="homing_method"):
+        Cia402Axes(pan_node=2, tilt_node=3, homing_method=36, interface="virtual", channel=channel)

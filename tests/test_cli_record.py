@@ -24,7 +24,7 @@ from biris_hw import ros2, wire
 from biris_hw.commands import scan as scan_command
 from biris_hw.commands.scan import scan_to_json
 from tests.conftest import Run
-from tests.test_record_support import cloud_xyz, read_decoded
+from tests.test_record_support import cloud_xyz, damaged_recording, read_decoded, synthetic_scans
 
 SIM = ["--sim", "--time-scale", "10", "--scene", "circle:2", "--seed", "3"]
 """As tests/test_cli.py (a round wall at 2 m, seeded), at x10: a scan to 90 degrees at x30 can
@@ -66,6 +66,39 @@ def test_record_one_scan_reads_back_with_mcap_ros2(biris: Run, tmp_path: Path) -
     assert len(profiles) == len(points) >= scan.n_acq
     valid = scan.range_mm[scan.range_mm > 0]
     assert np.all(np.abs(valid.astype(int) - 2000) < 250)  # the circle's wall
+
+
+def test_record_prints_its_summary_before_a_fault(
+    biris: Run, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fault that ends the run (here raised where the command drives the head) still gets the
+    summary of what was recorded and dropped, then the error's line and its exit status."""
+    from biris_hw.commands import record as command
+    from biris_hw.errors import HardwareFault
+
+    def faulty(*_args: object) -> None:
+        raise HardwareFault("motor_stall", "no end of scan while the head stands still")
+
+    monkeypatch.setattr(command, "_scan", faulty)
+    out = tmp_path / "x.mcap"
+    code, stdout, err = biris("record", *SIM, "--out", str(out), "--duration", "5")
+    assert code == 1
+    assert stdout.startswith(f"recorded {out}: ") and "dropped 0 acquisitions" in stdout
+    assert err.splitlines()[-1].startswith("biris record: hardware fault (motor_stall): ")
+    read_decoded(out)  # complete and readable
+
+
+def test_view_of_a_damaged_recording_stops_with_one_line(
+    foxglove_runtime: None, biris: Run, tmp_path: Path
+) -> None:
+    """``biris view --replay`` shows a damaged file up to the damage, then says so (exit 1)
+    instead of serving on as if the recording had ended."""
+    path = damaged_recording(tmp_path / "bad.mcap", synthetic_scans(4))
+    code, stdout, err = biris("view", "--replay", str(path), "--speed", "1000", "--port", "0")
+    assert code == 1, err
+    assert stdout.startswith("live view on ws://127.0.0.1:")
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"biris view: {path} is damaged"), err
 
 
 def test_replay_prints_and_plots_a_recording(fonts_open: None, biris: Run, tmp_path: Path) -> None:
@@ -142,16 +175,29 @@ def test_view_serves_a_websocket_and_stops_on_ctrl_c(
         except BaseException as exc:
             failure.append(exc)
         finally:
-            signal.raise_signal(signal.SIGINT)  # Ctrl-C, in the main thread (the command's)
+            if listening.is_set():  # the command runs (it serves for 60 s): Ctrl-C it
+                signal.raise_signal(signal.SIGINT)  # in the main thread, the command's
 
+    running = threading.Event()
+
+    def ctrl_c(signum: int, frame: object) -> None:
+        """Ctrl-C reaches the command as KeyboardInterrupt while it runs; a signal that comes
+        after it has ended must not interrupt the test session."""
+        if running.is_set():
+            raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, ctrl_c)
     thread = threading.Thread(target=client, name="test-ws-client")
     thread.start()
     try:
+        running.set()
         code, stdout, err = biris(
             "view", *SIM, "--port", str(port), "--cw", "-20", "--ccw", "20", "--duration", "60"
         )
     finally:
+        running.clear()
         thread.join()
+        signal.signal(signal.SIGINT, previous)
     assert not failure, failure
     assert code == 130, err
     assert f"live view on ws://127.0.0.1:{port}" in stdout and "stopped" in err

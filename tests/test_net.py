@@ -178,10 +178,12 @@ def test_bad_network_input_gets_clear_errors(
         body = ask("request_point", json.dumps({**client, "conn": "one"}).encode())
         assert body["error"] == "BadRequest" and "conn" in body["message"]
         body = ask("request_point", json.dumps({**client, "conn": 999}).encode())
+        assert body["error"] == "BadRequest"  # a connection is named by its token, not a number
+        body = ask("request_point", json.dumps({**client, "conn": "x" * 22}).encode())
         assert body["error"] == "ConnectionClosed"
         body = ask("open", json.dumps({**client, "kind": "SECRET"}).encode())
         assert body["error"] == "RequestError"
-        body = ask("single_scan", json.dumps({**client, "conn": 1, "to_deg": 1e9}).encode())
+        body = ask("single_scan", json.dumps({**client, "conn": "x" * 22, "to_deg": 1}).encode())
         assert body["error"] == "AccessDenied"
 
         # a flood from one client: the excess is answered Busy at once; others are served

@@ -56,3 +56,48 @@ def test_link_credentials_are_required(server: BirisServer, tmp_path: Path) -> N
                 connect(
                     "auth", [where], multicast=False, options=options, timeout=REFUSED_WAIT_S
                 ).close()
+
+
+def test_cli_reaches_a_service_behind_link_authentication(
+    server: BirisServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``biris watch --connect ... --link-user robot`` with the password in the environment
+    (never on the command line); and what the CLI refuses to take from argv."""
+    import argparse
+    import io
+
+    from biris_hw.commands import watch
+    from biris_hw.commands.common import LINK_PASSWORD_ENV, UsageError
+
+    dictionary = tmp_path / "zenoh-users.txt"
+    dictionary.write_text("robot:link-pw\n")
+    where = endpoint(free_port())
+    parser = argparse.ArgumentParser()
+    watch.add_arguments(parser)
+    base = ["--connect", "auth", "--endpoint", where, "--duration", "0.2", "--interval", "0.1"]
+
+    def run(*extra: str) -> tuple[int, str]:
+        args = parser.parse_args([*base, *extra])
+        args.command = "watch"
+        out = io.StringIO()
+        return watch.run(args, out), out.getvalue()
+
+    with serve(
+        server,
+        name="auth",
+        listen=[where],
+        multicast=False,
+        options={"transport/auth/usrpwd/dictionary_file": str(dictionary)},
+    ):
+        monkeypatch.setenv(LINK_PASSWORD_ENV, "link-pw")
+        code, out = run("--link-user", "robot", "--zenoh-option", "scouting/delay=0")
+        assert code == 0 and "idle" in out
+        password_file = tmp_path / "link.txt"
+        password_file.write_text("link-pw\n")
+        monkeypatch.delenv(LINK_PASSWORD_ENV)
+        code, out = run("--link-user", "robot", "--link-password-file", str(password_file))
+        assert code == 0 and "idle" in out
+        with pytest.raises(UsageError, match="no passwords on the command line"):
+            run("--zenoh-option", "transport/auth/usrpwd/password=link-pw")
+        with pytest.raises(UsageError, match=LINK_PASSWORD_ENV):
+            run("--link-user", "robot")

@@ -6,7 +6,12 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import os
+import shlex
 import shutil
+import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -19,6 +24,7 @@ from biris_hw.errors import ConnectionClosed
 from biris_hw.net import connect, tls_options
 from tests.conftest import until
 from tests.net_helpers import (
+    ROOT,
     Helper,
     endpoint,
     free_port,
@@ -178,3 +184,75 @@ def test_cli_serve_and_watch_connect(tmp_path: Path, no_leaks: None) -> None:
         assert "idle" in out.getvalue()
     finally:
         assert serve.close() == 0
+
+
+def _readme_two_terminals() -> list[str]:
+    """The command lines of README.md's "Two terminals" example, as written."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text.split("### Two terminals", 1)[1]
+    block = section.split("```sh", 1)[1].split("```", 1)[0]
+    return [
+        line.strip()
+        for line in block.splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+
+
+def test_readme_two_terminal_example_runs_as_written(tmp_path: Path, no_leaks: None) -> None:
+    """README.md, "The sensor as a network service", "Two terminals": each command as written
+    (the port substituted, `biris` the installed command), in a folder of its own."""
+    lines = _readme_two_terminals()
+    assert len(lines) == 4, lines
+    setup, serve_line, watch_line, scan_line = lines
+    port = str(free_port())
+    bindir = str(Path(sys.executable).parent)
+    env = {**os.environ, "PATH": bindir + os.pathsep + os.environ.get("PATH", "")}
+    env.pop("BIRIS_PASSWORD", None)
+
+    def words(line: str) -> tuple[dict[str, str], list[str]]:
+        """A line's leading NAME=value assignments and its words, the port substituted."""
+        found = shlex.split(line.replace("7447", port))
+        assignments = {}
+        while found and "=" in found[0] and not found[0].startswith("-"):
+            name, _, value = found.pop(0).partition("=")
+            assignments[name] = value
+        assert found[0] == "biris", line
+        return assignments, [str(Path(bindir) / "biris"), *found[1:]]
+
+    subprocess.run(["bash", "-c", setup], cwd=tmp_path, env=env, check=True, timeout=30)
+    assert "--no-multicast" in serve_line and "7447" in serve_line
+    _, serve_argv = words(serve_line)
+    service = subprocess.Popen(
+        serve_argv, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert service.stdout is not None
+        first = service.stdout.readline()  # "serving biris0 on ..." once it serves
+        assert first.startswith("serving biris0"), (first, service.stderr and service.stderr.read())
+        extra, watch_argv = words(watch_line)
+        watched = subprocess.run(
+            watch_argv, cwd=tmp_path, env={**env, **extra}, capture_output=True, text=True,
+            timeout=60,
+        )  # fmt: skip
+        assert watched.returncode == 0, watched.stderr
+        assert "idle" in watched.stdout, watched.stdout
+        extra, scan_argv = words(scan_line)
+        assert extra == {"BIRIS_PASSWORD": "change-me"}
+        scanned = subprocess.run(
+            scan_argv, cwd=tmp_path, env={**env, **extra}, capture_output=True, text=True,
+            timeout=120,
+        )  # fmt: skip
+        assert scanned.returncode == 0, scanned.stderr
+        assert "CCW" in scanned.stdout or "ccw" in scanned.stdout.lower(), scanned.stdout
+    finally:
+        if service.poll() is None:
+            service.send_signal(signal.SIGTERM)
+        try:
+            code = service.wait(timeout=60)
+        finally:
+            if service.poll() is None:
+                service.kill()
+            for stream in (service.stdout, service.stderr):
+                if stream is not None:
+                    stream.close()
+    assert code == 0

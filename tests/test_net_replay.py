@@ -26,6 +26,8 @@ from tests.test_wire import assert_scans_equal
 
 CONTROLLERS = {"op": "s3cret"}
 WAIT = 10.0
+SPEED = 100.0
+"""Fast, but paced: a served recording must have a speed (speed=None is refused, see below)."""
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -44,7 +46,7 @@ def served(recording: tuple[Path, list[Scan]]) -> Iterator[tuple[ReplayServer, s
     path, _ = recording
     where = endpoint(free_port())
     with (
-        ReplayServer(path, speed=None, autostart=False) as replay,
+        ReplayServer(path, speed=SPEED, autostart=False) as replay,
         serve(
             replay,
             name="rec",
@@ -61,8 +63,8 @@ def test_clients_get_the_recorded_scans_equal(recording: tuple[Path, list[Scan]]
     path, scans = recording
     where = endpoint(free_port())
     with (
-        ReplayServer(path, speed=None, autostart=False) as replay,
-        serve(replay, name="rec", listen=[where], multicast=False, playback=True) as service,
+        ReplayServer(path, speed=SPEED, autostart=False) as replay,
+        serve(replay, name="rec", listen=[where], multicast=False) as service,
         connect("rec", [where], multicast=False) as remote,
     ):
         assert not service.data_opened.is_set()  # the service's own feeds do not count
@@ -96,6 +98,19 @@ def test_motion_is_refused_with_the_replays_error(served: tuple[ReplayServer, st
             with pytest.raises(RequestError, match="cannot move or configure"):
                 conn.home()
         assert not replay.finished and replay.played["scans"] == 0  # nothing happened
+
+
+def test_a_replay_without_a_pace_is_refused(recording: tuple[Path, list[Scan]]) -> None:
+    """speed=None plays as fast as the slowest reader: one stalled remote EVERY_BUFFER reader
+    would stall every client. Refused when served; and the replay is known as one without being
+    told (playback is the sensor's property, not the caller's say-so)."""
+    path, _ = recording
+    with (
+        ReplayServer(path, speed=None, autostart=False) as replay,
+        pytest.raises(RequestError, match="speed=None"),
+        serve(replay, multicast=False),
+    ):
+        pass
 
 
 def test_replay_errors_name_their_class_on_the_wire() -> None:

@@ -97,6 +97,23 @@ def write_raw(path: Path, scans: list[Scan], chunk_size: int = 1 << 20) -> Path:
     return path
 
 
+def damaged_recording(path: Path, scans: list[Scan]) -> Path:
+    """A recording of ``scans`` in small chunks whose last chunk is overwritten in its middle
+    (a bad sector, a bad copy): the summary still reads, the damage shows while playing."""
+    from mcap.reader import make_reader
+
+    write_raw(path, scans, chunk_size=4096)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 2
+    last = max(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    data = bytearray(path.read_bytes())
+    middle = last.chunk_start_offset + last.chunk_length // 2
+    data[middle : middle + 64] = b"\xff" * 64
+    path.write_bytes(bytes(data))
+    return path
+
+
 def read_decoded(path: Path, topics: list[str] | None = None) -> list[tuple[str, str, Any, bytes]]:
     """(topic, schema name, message decoded by mcap-ros2-support, raw CDR) for every message."""
     from mcap.reader import make_reader

@@ -11,12 +11,20 @@ import pytest
 
 from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy, Direction
 from biris_hw.data import Point, Scan
-from biris_hw.errors import ConnectionClosed, RequestError
+from biris_hw.errors import BirisError, ConnectionClosed, RequestError
+from biris_hw.net.protocol import CONTROL_OPS
 from biris_hw.record import Recorder
 from biris_hw.records import MotorParams
 from biris_hw.replay import EndOfRecording, ReplayError, ReplayRefused, ReplayServer
 from sim import Scene, SimulatedBiris
-from tests.test_record_support import assert_same_scan, points_of, synthetic_scans, write_raw
+from tests.conftest import Run
+from tests.test_record_support import (
+    assert_same_scan,
+    damaged_recording,
+    points_of,
+    synthetic_scans,
+    write_raw,
+)
 
 WAIT = 10.0
 
@@ -71,24 +79,19 @@ def test_every_policy_gets_the_recorded_data(tmp_path: Path) -> None:
 
 
 def test_motion_and_configuration_are_refused(tmp_path: Path) -> None:
+    """Every control operation (the service's list of them: one list, checked here against the
+    replay's methods) is refused, and changes nothing."""
     path = write_raw(tmp_path / "run.mcap", synthetic_scans(1))
+    arguments: dict[str, tuple[object, ...]] = {
+        "single_scan": (10.0,),
+        "continuous_scan": (-10.0, 10.0),
+        "set_elevation": (5.0,),
+        "set_motor_params": (MotorParams(),),
+    }
     with ReplayServer(path) as replay, replay.open() as conn:
-        refused = [
-            lambda: conn.single_scan(10.0),
-            lambda: conn.continuous_scan(-10.0, 10.0),
-            lambda: conn.set_elevation(5.0),
-            conn.stop_scan,
-            conn.home,
-            conn.start_continuous,
-            conn.stop_continuous,
-            lambda: conn.set_motor_params(MotorParams()),
-            conn.timeout_enable,
-            conn.timeout_disable,
-            conn.reset,
-        ]
-        for request in refused:
-            with pytest.raises(ReplayRefused, match="cannot move or configure"):
-                request()
+        for op in sorted(CONTROL_OPS):
+            with pytest.raises(ReplayRefused, match=f"^{op}: .*cannot move or configure"):
+                getattr(conn, op)(*arguments.get(op, ()))
         assert issubclass(ReplayRefused, RequestError)
     with pytest.raises(ConnectionClosed):
         conn.request_point()
@@ -116,6 +119,37 @@ def test_not_a_recording_is_a_replay_error(tmp_path: Path) -> None:
             ReplayServer(path)
     with pytest.raises(ValueError):
         ReplayServer(junk, speed=0.0)
+
+
+def test_a_damaged_recording_is_played_to_the_damage_then_a_replay_error(tmp_path: Path) -> None:
+    scans = synthetic_scans(4)
+    path = damaged_recording(tmp_path / "bad.mcap", scans)
+    with ReplayServer(path, speed=None, autostart=False) as replay:
+        data = replay.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_BUFFER, depth=8)
+        normal = replay.open()
+        replay.start()
+        got: list[Scan] = []
+        with pytest.raises(ReplayError, match="is damaged: playing stopped after") as caught:
+            while True:  # never EndOfRecording: a damaged file does not pass for a whole one
+                got.append(data.ready_for_data(timeout=WAIT))
+        assert caught.value.__cause__ is replay.error is not None
+        assert isinstance(caught.value, BirisError)
+        assert 0 < len(got) < len(scans)  # what came before the damage, equal
+        for a, b in zip(got, scans, strict=False):
+            assert_same_scan(a, b)
+        with pytest.raises(ReplayError):
+            data.ready_for_data(timeout=0)  # and again, for as long as it is asked
+        with pytest.raises(ReplayError):
+            normal.wait_idle(timeout=WAIT)
+
+
+def test_replay_command_reports_a_damaged_file_on_one_line(biris: Run, tmp_path: Path) -> None:
+    path = damaged_recording(tmp_path / "bad.mcap", synthetic_scans(4))
+    code, out, err = biris("replay", str(path))
+    assert code == 1
+    assert out.count(" acquisitions") >= 1 and "replayed" not in out  # the scans before it
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"biris replay: {path} is damaged"), err
 
 
 @pytest.mark.slow

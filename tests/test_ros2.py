@@ -123,3 +123,33 @@ def test_batched_profiles_equal_one_at_a_time() -> None:
     for p, got, t0 in zip(points, rows, starts, strict=True):
         assert got.tobytes() == ros2.sweep_rows(p, t0).tobytes()
         assert len(got) == int((p.profile > 0).sum())
+
+
+def test_sweep_pieces_put_together_are_the_scan_cloud() -> None:
+    """/biris/sweep carries the acquisitions since its previous message: one message of a whole
+    scan's acquisitions is the scan's cloud byte for byte, and pieces of it (each a well-formed
+    cloud: numpy's concatenate must not pack the rows' padding away) hold the same points."""
+    for scan in synthetic_scans(2):
+        points = points_of(scan)
+        assert ros2.sweep_cloud(points).data == ros2.scan_cloud(scan).data
+        pieces = [ros2.sweep_cloud(points[i : i + 5]) for i in range(0, len(points), 5)]
+        decoded = [STANDARD.deserialize_cdr(m.data, m.msgtype) for m in pieces]
+        assert all(len(m.data) == m.width * m.point_step for m in decoded)
+        xyz = np.concatenate([cloud_xyz(m) for m in decoded])
+        np.testing.assert_allclose(xyz, scan.points(), rtol=1e-6, atol=1e-6)
+        first = decoded[1].header.stamp
+        assert first.sec + first.nanosec / 1e9 == pytest.approx(points[5].t)
+        assert pieces[1].log_time_ns == ros2.stamp_ns(points[9].t)
+
+
+def test_sensor_time_is_the_hardware_clock_else_the_last_seen() -> None:
+    class Hardware:
+        @staticmethod
+        def clock() -> float:
+            return 42.5
+
+    class Local:
+        hardware = Hardware()
+
+    assert ros2.sensor_time(Local(), 3.0) == 42.5
+    assert ros2.sensor_time(object(), 3.0) == 3.0

@@ -72,7 +72,12 @@ def test_an_axes_table_opens_cia402_drives_on_the_named_bus(tmp_path: Path, no_l
     ("axes", "message"),
     [
         ('kind = "cia402"\npan_node = 2', r"axes\.tilt_node: missing"),
-        ('kind = "cia402"\npan_node = 128\ntilt_node = 3', r"axes\.pan_node: must be in"),
+        ('kind = "cia402"\npan_node = 128\ntilt_node = 3', r"axes\.pan_node: must be in 1\.\.127"),
+        ('kind = "cia402"\npan_node = 2\ntilt_node = 3.0', r"axes\.tilt_node: must be an integer"),
+        (
+            'kind = "cia402"\npan_node = 2\ntilt_node = 3\nhoming_method = 36',
+            r"axes\.homing_method: must be 35 or 37 \(homing on the current position\), not 36$",
+        ),
         ('kind = "hctl"\npan_node = 2\ntilt_node = 3', r"axes\.kind: must be one of cia402"),
         ('kind = "cia402"\npan_node = 2\ntilt_node = 3\nbitrat = 1', r"axes\.bitrat: not an"),
         ('kind = "cia402"\npan_node = 2\ntilt_node = 2\ninterface = "virtual"', r"axes: pan and"),

@@ -117,6 +117,8 @@ from regs.tech80 import Axis, AxisBit
 __all__ = [
     "CIA402_PROFILE",
     "DEFAULT_MASTER_ID",
+    "HOMING_METHODS",
+    "NODE_IDS",
     "PARAM_KEYS",
     "TOUCH_PROBE_INDEX",
     "Cia402Axes",
@@ -129,6 +131,8 @@ __all__ = [
     "DriveState",
     "Obj",
     "Sw",
+    "check_homing_method",
+    "check_node_id",
     "fault_kind",
     "profile_for",
     "state_of",
@@ -145,6 +149,31 @@ DEFAULT_MASTER_ID = 0x7F
 
 NOTIFIER_CYCLE_S = 0.02
 """How long the network's receive thread blocks in one read: how long closing waits for it."""
+
+NODE_IDS = range(1, 128)
+"""The node ids a CANopen drive may have (0 addresses every node in NMT)."""
+
+HOMING_METHODS = (35, 37)
+"""The CiA 402 homing methods on the current position (0x6098): 35 in CiA 402-2016, 37 in
+earlier editions and many drives. The driver homes by no other: none of them moves."""
+
+
+def check_node_id(node: object, what: str = "CANopen node id") -> int:
+    """``node`` if it is a node id (:data:`NODE_IDS`); ValueError otherwise."""
+    if isinstance(node, bool) or not isinstance(node, int) or node not in NODE_IDS:
+        raise ValueError(f"{what}: must be in {NODE_IDS.start}..{NODE_IDS.stop - 1}, not {node!r}")
+    return node
+
+
+def check_homing_method(method: object, what: str = "homing_method") -> int:
+    """``method`` if the driver homes by it (:data:`HOMING_METHODS`); ValueError otherwise."""
+    if isinstance(method, bool) or not isinstance(method, int) or method not in HOMING_METHODS:
+        accepted = " or ".join(str(m) for m in HOMING_METHODS)
+        raise ValueError(
+            f"{what}: must be {accepted} (homing on the current position), not {method!r}"
+        )
+    return method
+
 
 PARAM_KEYS = ("sample", "zero", "pole", "gain", "max_vel", "max_accel")
 """BIRIS_MOTOR_PARAMS in :meth:`MotorParams.to_dict` order: sub-indices 1-6 of the record."""
@@ -514,10 +543,8 @@ class Cia402Axis:
         position_window_time_ms: int = 0,
         state_timeout_s: float = 0.5,
     ) -> None:
-        if not 1 <= node_id <= 127:
-            raise ValueError(f"CANopen node id {node_id} out of range 1..127")
-        if homing_method not in (35, 37):
-            raise ValueError("homing_method must be 35 or 37 (homing on the current position)")
+        check_node_id(node_id)
+        check_homing_method(homing_method)
         self.bus = bus
         self.node_id = node_id
         self.axis = axis
@@ -1175,7 +1202,7 @@ class Cia402Axes:
     Owns the :class:`Cia402Bus` it makes from ``can_config`` (python-can's ``can.Bus`` keywords;
     none at all: python-can's own configuration, its config file or ``CAN_*`` environment) and
     closes it. Nothing is sent before the first use: the drives are set up by the server's
-    initialisation (or :meth:`start`).
+    initialisation (or :meth:`Cia402Controller.start` on :attr:`controller`).
 
     Raises:
         DriveBusError: the CAN interface cannot be opened.
@@ -1198,11 +1225,11 @@ class Cia402Axes:
         params_index: int = Obj.MOTOR_PARAMS,
         **can_config: Any,
     ) -> None:
+        check_node_id(pan_node, "pan_node")  # before the bus is opened
+        check_node_id(tilt_node, "tilt_node")
+        check_homing_method(homing_method)
         if pan_node == tilt_node:
             raise ValueError(f"pan and tilt cannot both be node {pan_node}")
-        for node in (pan_node, tilt_node):
-            if not 1 <= node <= 127:
-                raise ValueError(f"CANopen node id {node} out of range 1..127")
         self.bus = Cia402Bus(
             heartbeat_period_s=heartbeat_period_s,
             heartbeat_timeout_s=heartbeat_timeout_s,
@@ -1248,10 +1275,6 @@ class Cia402Axes:
 
     def use_pan_reference(self, reference: PanReference) -> None:
         self.pan.reference = reference
-
-    def start(self) -> None:
-        """Set both drives up now (the server does it on first use otherwise)."""
-        self._controller.start()
 
     def close(self) -> None:
         if self._closed:

@@ -34,9 +34,10 @@ import traceback
 from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol, TextIO, overload
+from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 from biris_hw.angles import counts_to_deg, deg_to_counts
+from biris_hw.client import Sensor
 from biris_hw.commands.argtypes import (
     DEFAULT_TIME_SCALE,
     SIM_DEFAULTS,
@@ -45,7 +46,6 @@ from biris_hw.commands.argtypes import (
     seconds,
     time_scale_warning,
 )
-from biris_hw.data import ConnectionKind, DeliveryPolicy
 from biris_hw.errors import (
     AccessDenied,
     BirisError,
@@ -58,7 +58,6 @@ from biris_hw.errors import (
 from biris_hw.hardware import BirisHardware
 from biris_hw.records import BirisInitRecord
 from biris_hw.server import BirisServer
-from biris_hw.status import ServerStatus
 from regs.biexec import BiCommand
 from regs.hctl1000 import COUNTS_PER_REV
 
@@ -72,6 +71,7 @@ __all__ = [
     "EXIT_USAGE",
     "HALF_TURN_COUNTS",
     "LAG_CHECK_S",
+    "LINK_PASSWORD_ENV",
     "PASSWORD_ENV",
     "PROGRESS_LOGGER",
     "TARGET_ENV",
@@ -100,11 +100,13 @@ __all__ = [
     "make_scene",
     "note_clamped",
     "open_session",
+    "parse_zenoh_options",
     "prog_of",
     "progress_to_stderr",
     "read_toml",
     "report_error",
     "stderr_is_terminal",
+    "sweep_chosen",
     "wants_progress",
 ]
 
@@ -114,6 +116,9 @@ EXIT_INTERRUPTED = 130
 
 PASSWORD_ENV = "BIRIS_PASSWORD"
 """With ``--user``: the controller's password (never on the command line, where ``ps`` shows it)."""
+
+LINK_PASSWORD_ENV = "BIRIS_LINK_PASSWORD"
+"""With ``--link-user``: the password of Zenoh's link authentication (never on the command line)."""
 
 TARGET_ENV = "BIRIS_TARGET"
 """A target file to use when neither --sim nor --target is given: set once on the robot."""
@@ -233,6 +238,85 @@ def add_service_client_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="root CA certificate (PEM) for a tls/ endpoint",
     )
+    net.add_argument(
+        "--read-credentials",
+        action="store_true",
+        help="send the credentials with reads too, for a service that requires reader "
+        "credentials (default: only with motion and configuration)",
+    )
+    net.add_argument(
+        "--link-user",
+        metavar="USER",
+        help="user of Zenoh's link authentication (a hardened service's "
+        f"transport/auth/usrpwd); the password is read from ${LINK_PASSWORD_ENV} or "
+        "--link-password-file",
+    )
+    net.add_argument(
+        "--link-password-file",
+        type=path,
+        metavar="FILE",
+        help="file holding the link password (its first line), for --link-user",
+    )
+    net.add_argument(
+        "--zenoh-option",
+        action="append",
+        default=[],
+        metavar="KEY=JSON",
+        help="any Zenoh setting of the client, e.g. transport/link/tls/enable_mtls=true "
+        "(repeatable; no passwords: see --link-user)",
+    )
+
+
+_SECRET_OPTION = re.compile(r"password", re.IGNORECASE)
+
+
+def parse_zenoh_options(items: Sequence[str]) -> dict[str, Any]:
+    """``KEY=JSON`` items (``--zenoh-option``) as Zenoh options; a bare word is a string.
+
+    Raises:
+        UsageError: an item without ``=``, or one that would put a password on the command
+            line (where ``ps`` shows it to every user).
+    """
+    import json
+
+    options: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise UsageError(f"--zenoh-option {item!r}: expected KEY=JSON")
+        if _SECRET_OPTION.search(key):
+            raise UsageError(
+                f"--zenoh-option {key}: no passwords on the command line (every user's `ps` "
+                f"shows them); use --link-user with ${LINK_PASSWORD_ENV} or "
+                "--link-password-file, or a dictionary file on the service"
+            )
+        try:
+            options[key] = json.loads(value)
+        except ValueError:
+            options[key] = value
+    return options
+
+
+def _link_options(args: argparse.Namespace) -> dict[str, str]:
+    """Zenoh's link user and password (``--link-user``), the password from a file or env."""
+    user = getattr(args, "link_user", None)
+    file = getattr(args, "link_password_file", None)
+    if user is None:
+        if file is not None:
+            raise UsageError("--link-password-file goes with --link-user")
+        return {}
+    if file is not None:
+        try:
+            lines = Path(file).read_text(encoding="utf-8").splitlines()
+        except OSError as exc:
+            raise SetupError(f"cannot read {file}: {exc.strerror or exc}") from exc
+        password = lines[0].strip() if lines else ""
+    else:
+        password = os.environ.get(LINK_PASSWORD_ENV, "")
+    if not password:
+        where = str(file) if file is not None else f"${LINK_PASSWORD_ENV}"
+        raise UsageError(f"--link-user {user} needs the link password in {where}")
+    return {"transport/auth/usrpwd/user": user, "transport/auth/usrpwd/password": password}
 
 
 def add_quiet_argument(parser: argparse.ArgumentParser) -> None:
@@ -252,6 +336,24 @@ def add_continuous_argument(parser: argparse.ArgumentParser) -> None:
         help="Appendix D's continuous acquisition: BIRIS started once and acquiring until "
         "stopped (default: the report's BI_ACQUIRE per scan)",
     )
+
+
+def sweep_chosen(args: argparse.Namespace) -> bool:
+    """Whether the command was asked to sweep (``--cw``/``--ccw``) rather than scan once
+    (``--to``), checked the same way for every command that moves the head.
+
+    Raises:
+        UsageError: ``--to`` with ``--cw``/``--ccw``, one limit without the other, or ``--cw``
+            not clockwise of (below) ``--ccw``.
+    """
+    sweep = args.cw is not None or args.ccw is not None
+    if getattr(args, "to", None) is not None and sweep:
+        raise UsageError("give either --to, or --cw and --ccw, not both")
+    if sweep and (args.cw is None or args.ccw is None):
+        raise UsageError("sweeping needs both --cw and --ccw")
+    if sweep and args.cw >= args.ccw:
+        raise UsageError(f"--cw ({args.cw:g}) must lie clockwise of (below) --ccw ({args.ccw:g})")
+    return sweep
 
 
 def add_yes_argument(parser: argparse.ArgumentParser) -> None:
@@ -288,6 +390,9 @@ def check_target_arguments(args: argparse.Namespace) -> None:
         return
     if getattr(args, "endpoint", None) or getattr(args, "user", None):
         raise UsageError("--endpoint and --user go with --connect NAME")
+    for flag in ("link_user", "link_password_file", "zenoh_option", "read_credentials"):
+        if getattr(args, flag, None):
+            raise UsageError(f"--{flag.replace('_', '-')} goes with --connect NAME")
     if not args.sim and args.target is None and attach is None:
         args.target = os.environ.get(TARGET_ENV) or None
         if args.target is None:
@@ -308,43 +413,6 @@ def check_target_arguments(args: argparse.Namespace) -> None:
 
 
 # -- sessions --------------------------------------------------------------------------------------
-
-
-class Sensor(Protocol):
-    """What a command needs of the sensor: a local :class:`~biris_hw.BirisServer`, a service
-    reached with ``--connect`` (:class:`biris_hw.net.RemoteSensor`), or anything else with
-    these three methods (a replayed recording). Connections are duck-typed alike."""
-
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: Literal[DeliveryPolicy.EVERY_ACQUISITION],
-        depth: int | None = ...,
-    ) -> Any: ...
-
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: Literal[DeliveryPolicy.LATEST, DeliveryPolicy.EVERY_BUFFER] = ...,
-        depth: int | None = ...,
-    ) -> Any: ...
-
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: DeliveryPolicy,
-        depth: int | None = ...,
-    ) -> Any: ...
-
-    def status(self) -> ServerStatus: ...
-
-    def close(self) -> None: ...
 
 
 @dataclass
@@ -518,13 +586,17 @@ def _connect(args: argparse.Namespace) -> Iterator[Session]:
         ) from exc
     user, password = _credentials(args)
     ca = getattr(args, "tls_ca", None)
+    options: dict[str, Any] = tls_options(root_ca=str(ca)) if ca is not None else {}
+    options.update(parse_zenoh_options(getattr(args, "zenoh_option", None) or []))
+    options.update(_link_options(args))
     try:
         remote = RemoteSensor(
             args.connect,
             getattr(args, "endpoint", None),
             user,
             password,
-            options=tls_options(root_ca=str(ca)) if ca is not None else None,
+            options=options or None,
+            reader_credentials=bool(getattr(args, "read_credentials", False)),
         )
     except ConnectionClosed as exc:
         raise SetupError(str(exc)) from exc

@@ -5,8 +5,9 @@ the sensor named by the session flags), opens a :class:`~biris_hw.record.Recorde
 between the limits (``--to DEG``: one scan; neither: nothing is commanded, whatever the sensor
 does is recorded) and stops after ``--duration`` seconds or at Ctrl-C. The file is checked
 before the sensor is touched; it is closed with its summary however the run ends, and the
-command prints what it holds and what was dropped (exit 130 after Ctrl-C, with the file
-complete). A full disk during the run stops it with exit status 2 and a valid, shorter file.
+command prints what it holds and what was dropped however the run ends too: after Ctrl-C (exit
+130, the file complete), and before the error's line when a fault, a timeout or a full disk
+stops the run (exit 1, or 2 for a full disk, with a valid, shorter file).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from biris_hw.commands.common import (
     note_clamped,
     open_session,
     prog_of,
+    sweep_chosen,
 )
 
 if TYPE_CHECKING:
@@ -71,13 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _check(args: argparse.Namespace) -> None:
-    sweep = args.cw is not None or args.ccw is not None
-    if args.to is not None and sweep:
-        raise UsageError("give either --to, or --cw and --ccw, not both")
-    if sweep and (args.cw is None or args.ccw is None):
-        raise UsageError("sweeping needs both --cw and --ccw")
-    if sweep and args.cw >= args.ccw:
-        raise UsageError(f"--cw ({args.cw:g}) must lie clockwise of (below) --ccw ({args.ccw:g})")
+    sweep_chosen(args)
     if args.to is None and args.duration is None:
         raise UsageError("say how long to record: --duration S (or --to DEG for one scan)")
     check_output_file("--out", Path(args.out), suffixes={".mcap"})
@@ -112,22 +108,25 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     stream = out or sys.stdout
     _check(args)
     interrupted = False
-    with open_session(args) as session:
-        recorder = Recorder(
-            session.server,
-            args.out,
-            frame=args.frame,
-            profiles=not args.no_profiles,
-            metadata=recording_metadata(session, args),
-        )
-        try:
-            with recorder:
-                _scan(session, args, recorder)
-        except KeyboardInterrupt:
-            interrupted = True
-    summary = recorder.summary
-    assert summary is not None
-    print(f"recorded {summary}", file=stream, flush=True)
+    recorder: Recorder | None = None
+    try:
+        with open_session(args) as session:
+            recorder = Recorder(
+                session.server,
+                args.out,
+                frame=args.frame,
+                profiles=not args.no_profiles,
+                metadata=recording_metadata(session, args),
+            )
+            try:
+                with recorder:
+                    _scan(session, args, recorder)
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:  # however the run ended (a fault, a full disk): what the file holds, then the error
+        summary = None if recorder is None else recorder.summary
+        if summary is not None:
+            print(f"recorded {summary}", file=stream, flush=True)
     if interrupted:
         print(f"{prog_of(args)}: interrupted: {args.out} is complete up to then", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -4,7 +4,9 @@ The recording is served by :class:`~biris_hw.replay.ReplayServer` through the sa
 live server offers, read here through a DATA connection that takes every completed scan
 (EVERY_BUFFER), so every recorded scan is printed (``--json``: one object per scan, as ``biris
 scan --json``) and ``--plot PATH`` draws them all, as ``biris scan --plot`` does for a live run.
-``--speed X`` plays at X times the recorded pace (default: as fast as possible).
+``--speed X`` plays at X times the recorded pace (default: as fast as possible). A file damaged
+part way is printed up to the damage, then reported on one line with exit status 1 (a file
+that is not a recording at all is a usage error, 2).
 """
 
 from __future__ import annotations
@@ -16,7 +18,14 @@ from pathlib import Path
 from typing import TextIO
 
 from biris_hw.commands.argtypes import path, positive_float
-from biris_hw.commands.common import UsageError, add_debug_argument, check_output_file
+from biris_hw.commands.common import (
+    EXIT_FAULT,
+    UsageError,
+    add_debug_argument,
+    check_output_file,
+    prog_of,
+    report_error,
+)
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Scan
 
 __all__ = ["add_arguments", "run"]
@@ -42,9 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
-    """Play the file; 0 when every scan was read (and drawn, if asked)."""
+    """Play the file; 0 when every scan was read (and drawn, if asked), 1 when the file is
+    damaged part way (what came before is printed)."""
     from biris_hw.commands.scan import picture_suffixes, scan_summary, scan_to_json
-    from biris_hw.replay import EndOfRecording, ReplayServer
+    from biris_hw.replay import EndOfRecording, ReplayError, ReplayServer
 
     stream = out or sys.stdout
     if not Path(args.file).is_file():
@@ -59,11 +69,13 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 scan = data.ready_for_data(timeout=None)
             except EndOfRecording:
                 break
+            except ReplayError as exc:  # damaged part way: what came before is printed
+                stream.flush()
+                report_error(prog_of(args), exc, debug=getattr(args, "debug", False))
+                return EXIT_FAULT
             scans.append(scan)
             text = json.dumps(scan_to_json(scan)) if args.json else scan_summary(scan)
             print(text, file=stream, flush=True)
-        if replay.error is not None:
-            raise replay.error
         played = dict(replay.played)
     if not args.json:
         print(

@@ -47,6 +47,7 @@ from biris_hw.commands.common import (
     note_clamped,
     open_session,
     prog_of,
+    sweep_chosen,
 )
 from biris_hw.data import Direction, Scan
 from biris_hw.plots import closest_points_xy
@@ -103,15 +104,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _check(args: argparse.Namespace) -> None:
-    continuous = args.cw is not None or args.ccw is not None
-    if args.to is not None and continuous:
-        raise UsageError("give either --to, or --cw and --ccw, not both")
+    continuous = sweep_chosen(args)
     if args.to is None and not continuous:
         raise UsageError("say what to scan: --to DEG, or --cw DEG --ccw DEG")
-    if continuous and (args.cw is None or args.ccw is None):
-        raise UsageError("continuous scanning needs both --cw and --ccw")
-    if continuous and args.cw >= args.ccw:
-        raise UsageError(f"--cw ({args.cw:g}) must lie clockwise of (below) --ccw ({args.ccw:g})")
     if args.sweeps is not None and not continuous:
         raise UsageError("--sweeps goes with --cw/--ccw")
     if args.save is not None:

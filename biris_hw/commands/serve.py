@@ -9,8 +9,12 @@ do, serves it as ``--name`` on the ``--listen`` endpoints until Ctrl-C or SIGTER
 Credentials never go on the command line (``ps`` shows it to every user): ``--credentials FILE``
 is TOML with a ``[controllers]`` table (user = "password": those who may move and configure) and
 optionally ``[readers]`` (then reading needs credentials too). Without it the service is
-read-only. TLS: ``--listen tls/host:port --tls-cert FILE --tls-key FILE``; anything else Zenoh
-offers (user/password on the link, access control) through ``--zenoh-option KEY=JSON``.
+read-only. A service with credentials does no multicast scouting unless ``--multicast`` asks
+(clients give ``--endpoint``): it is not announced to whoever listens on the network. TLS:
+``--listen tls/host:port --tls-cert FILE --tls-key FILE``; anything else Zenoh offers
+(user/password on the link, access control) through ``--zenoh-option KEY=JSON``.
+``--dead-man`` stops the head (stop_scan) when the last controller's client has gone, so that a
+continuous scan nobody controls any more does not sweep for ever.
 
 ``--foxglove PORT`` also shows the served sensor live in Foxglove or Lichtblick
 (:class:`~biris_hw.liveview.LiveView`) for as long as the service runs: one process, one server,
@@ -26,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import signal
 import sys
 import threading
@@ -41,6 +44,7 @@ from biris_hw.commands.common import (
     UsageError,
     add_target_arguments,
     open_session,
+    parse_zenoh_options,
     read_toml,
 )
 from biris_hw.errors import BirisError
@@ -81,10 +85,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=JSON",
         help="any Zenoh setting, e.g. access_control/enabled=true (repeatable)",
     )
-    service.add_argument(
+    scouting = service.add_mutually_exclusive_group()
+    scouting.add_argument(
         "--no-multicast",
         action="store_true",
-        help="no multicast scouting: clients must give --endpoint",
+        help="no multicast scouting: clients must give --endpoint (the default with --credentials)",
+    )
+    scouting.add_argument(
+        "--multicast",
+        action="store_true",
+        help="multicast scouting even with --credentials (the default without)",
+    )
+    service.add_argument(
+        "--dead-man",
+        action="store_true",
+        help="when the last controller has gone (its client closed, crashed or lost the "
+        "link), stop the scan rather than let the head sweep on",
     )
     service.add_argument(
         "--duration",
@@ -231,21 +247,22 @@ def _tables(file: Any) -> tuple[dict[str, str] | None, dict[str, str] | None]:
 
 
 def _zenoh_options(args: argparse.Namespace) -> dict[str, Any]:
-    options: dict[str, Any] = {}
+    from biris_hw.net.zconfig import tls_options
+
     if (args.tls_cert is None) != (args.tls_key is None):
         raise UsageError("--tls-cert and --tls-key go together")
+    options: dict[str, Any] = {}
     if args.tls_cert is not None:
-        options["transport/link/tls/listen_certificate"] = str(args.tls_cert)
-        options["transport/link/tls/listen_private_key"] = str(args.tls_key)
-    for item in args.zenoh_option:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise UsageError(f"--zenoh-option {item!r}: expected KEY=JSON")
-        try:
-            options[key] = json.loads(value)
-        except ValueError:
-            options[key] = value  # a bare word is a string
+        options.update(tls_options(certificate=str(args.tls_cert), private_key=str(args.tls_key)))
+    options.update(parse_zenoh_options(args.zenoh_option))
     return options
+
+
+def _multicast(args: argparse.Namespace, controllers: Mapping[str, str] | None) -> bool:
+    """Scouting on unless refused; with credentials, off unless asked for."""
+    if args.no_multicast:
+        return False
+    return bool(args.multicast or not (controllers or args.credentials is not None))
 
 
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
@@ -275,9 +292,9 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 listen=listen,
                 controllers=controllers,
                 readers=readers,
-                multicast=not args.no_multicast,
+                multicast=_multicast(args, controllers),
                 options=options,
-                playback=args.replay is not None,
+                stop_when_controllers_leave=args.dead_man,
             ) as service,
             _live_view(args, sensor, stream),
         ):

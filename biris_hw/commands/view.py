@@ -3,8 +3,9 @@
 ``biris view --sim --cw -45 --ccw 45`` starts a simulator and a server, sweeps between the
 limits and serves the live view (:class:`~biris_hw.liveview.LiveView`) on ``--port`` (8765)
 until ``--duration`` is over or Ctrl-C; without limits nothing is commanded and whatever the
-sensor does is shown. ``biris view --replay run.mcap`` shows a recording instead. The command
-prints the WebSocket URL to open in the viewer (README: "Live view").
+sensor does is shown. ``biris view --replay run.mcap`` shows a recording instead (a file damaged
+part way is shown up to the damage, then the command stops with a one-line error, exit status
+1). The command prints the WebSocket URL to open in the viewer (README: "Live view").
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any, TextIO
 
 from biris_hw.commands.argtypes import degrees, path, positive_float
 from biris_hw.commands.common import (
+    EXIT_FAULT,
     EXIT_INTERRUPTED,
     UsageError,
     add_continuous_argument,
@@ -27,6 +29,8 @@ from biris_hw.commands.common import (
     confirm_moves,
     open_session,
     prog_of,
+    report_error,
+    sweep_chosen,
 )
 
 __all__ = ["add_arguments", "run"]
@@ -72,13 +76,11 @@ def run(args: argparse.Namespace, out: TextIO | None = None, ready: Any = None) 
     from biris_hw.liveview import LiveView
 
     stream = out or sys.stdout
-    sweep = args.cw is not None or args.ccw is not None
-    if sweep and (args.cw is None or args.ccw is None or args.cw >= args.ccw):
-        raise UsageError("sweeping needs --cw below --ccw")
+    sweep = sweep_chosen(args)
     stop = threading.Event()
     try:
         if args.replay is not None:
-            from biris_hw.replay import ReplayServer
+            from biris_hw.replay import ReplayError, ReplayServer
 
             if sweep:
                 raise UsageError("a replay cannot be commanded: --cw/--ccw go with a sensor")
@@ -88,7 +90,12 @@ def run(args: argparse.Namespace, out: TextIO | None = None, ready: Any = None) 
             with replay, LiveView(replay, host=args.host, port=args.port, frame=args.frame) as view:
                 replay.start()
                 _announce(view, stream, ready)
-                _wait(args.duration, stop)
+                _wait(args.duration, view.failed)  # a damaged file ends the view
+            if isinstance(view.error, ReplayError):  # shown up to the damage
+                report_error(prog_of(args), view.error, debug=getattr(args, "debug", False))
+                return EXIT_FAULT
+            if view.error is not None:
+                raise view.error
             return 0
         with (
             open_session(args) as session,

@@ -22,12 +22,15 @@ from biris_hw.errors import (
 )
 
 __all__ = [
+    "BLOCKING_OPS",
     "CONTROL_OPS",
     "MAX_REQUEST",
     "MAX_WAIT_S",
     "OPS",
     "READ_OPS",
+    "RESET_WAIT_S",
     "Keys",
+    "check_token",
     "error_payload",
     "raise_error",
 ]
@@ -40,6 +43,13 @@ MAX_WAIT_S = 5.0
 """Longest a blocking request (ready_for_data, wait_idle) is held by the service; a client that
 wants to wait longer asks again. Keeps a worker from being held for ever by a client that left,
 and bounds how long a client waits before it learns that the service has gone."""
+
+RESET_WAIT_S = 120.0
+"""Longest a ``reset`` is waited for. A reset is answered when the server's initialisation ends
+(a real head homes in about 12 s; the initialiser's own watchdogs fault it long before this), so
+the client waits this long, not :data:`MAX_WAIT_S`: giving up earlier would leave the caller
+believing the reset failed while it carries on, and lose the HardwareFault of one that fails.
+A service that goes away is still noticed at once (its liveliness token)."""
 
 READ_OPS = frozenset(
     {"open", "close", "status", "request_point", "request_scan_data", "ready_for_data", "wait_idle"}
@@ -63,9 +73,26 @@ CONTROL_OPS = frozenset(
 )
 """Operations that move the head or change the configuration: controllers only."""
 
+BLOCKING_OPS = frozenset({"ready_for_data", "wait_idle"})
+"""Reads that may hold a worker for up to :data:`MAX_WAIT_S` (unless their ``timeout`` is 0):
+capped across all clients by the service, and never run where control operations run."""
+
 OPS = READ_OPS | CONTROL_OPS
 
 _NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+_TOKEN = re.compile(r"^[A-Za-z0-9_-]{16,64}$")
+
+
+def check_token(token: object) -> str:
+    """A connection token as ``open`` returns it (url-safe base64, 16 to 64 characters).
+
+    Raises:
+        BadRequest: anything else (a connection is named by its token, never by a number).
+    """
+    if not isinstance(token, str) or not _TOKEN.match(token):
+        raise BadRequest(f"conn: expected the connection token that open returned, not {token!r}")
+    return token
 
 
 def check_name(name: str, what: str) -> str:
@@ -138,6 +165,7 @@ _ERRORS: dict[str, type[BirisError]] = {
     "RequestError": RequestError,
     "ConnectionClosed": ConnectionClosed,
     "AccessDenied": AccessDenied,
+    "BirisError": BirisError,
 }
 
 
@@ -146,9 +174,10 @@ def error_payload(exc: BaseException) -> bytes:
 
     ``error`` is one of RequestError, HardwareFault (with ``kind``), ConnectionClosed,
     AccessDenied, TimeoutError, BadRequest (malformed, unknown or oversized: a RequestError to a
-    client) and Busy (too many requests from this client; nothing was done). ``class`` names
-    the exception's own class when it is a subclass of those (``EndOfRecording``, a
-    ConnectionClosed; ``ReplayRefused``, a RequestError).
+    client), Busy (too many requests from this client; nothing was done) and BirisError (any
+    other failure of the sensor: a served recording found damaged raises ReplayError).
+    ``class`` names the exception's own class when it is a subclass of those
+    (``EndOfRecording``, a ConnectionClosed; ``ReplayRefused``, a RequestError).
     """
     body: dict[str, Any]
     if isinstance(exc, HardwareFault):
@@ -165,6 +194,8 @@ def error_payload(exc: BaseException) -> bytes:
         body = {"error": "ConnectionClosed", "message": str(exc)}
     elif isinstance(exc, TimeoutError):
         body = {"error": "TimeoutError", "message": str(exc) or "timed out"}
+    elif isinstance(exc, BirisError):  # the sensor's own failure, not a bug (ReplayError)
+        body = {"error": "BirisError", "message": str(exc)}
     else:
         body = {"error": "InternalError", "message": f"{type(exc).__name__}: {exc}"}
     if type(exc).__name__ != body["error"]:
@@ -179,7 +210,8 @@ class BadRequest(RequestError):
 
 
 class Busy(RequestError):
-    """Too many requests from one client at once: refused unread, nothing was done."""
+    """Too many requests at once (from one client, of one kind, or in all): refused unread,
+    nothing was done; asking again later may succeed."""
 
 
 def raise_error(payload: bytes, op: str) -> None:

@@ -31,10 +31,17 @@ import zenoh
 
 from biris_hw import wire
 from biris_hw.angles import RealLike, counts_to_deg, destination_counts
-from biris_hw.client import POLL, D, _timeout
+from biris_hw.client import POLL, D, checked_timeout
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
-from biris_hw.net.protocol import MAX_WAIT_S, Keys, check_name, raise_error
+from biris_hw.net.protocol import (
+    CONTROL_OPS,
+    MAX_WAIT_S,
+    RESET_WAIT_S,
+    Keys,
+    check_name,
+    raise_error,
+)
 from biris_hw.net.warm import warm
 from biris_hw.net.zconfig import make_config
 from biris_hw.records import MotorParams
@@ -101,11 +108,15 @@ class RemoteSensor:
         multicast: bool | None = None,
         options: dict[str, Any] | None = None,
         timeout: float = CONNECT_TIMEOUT_S,
+        reader_credentials: bool = False,
     ) -> None:
         self.name = check_name(name, "name")
         self.keys = Keys(self.name)
         self.client = uuid.uuid4().hex
         """This client's id: its liveliness token and the ``client`` of each request."""
+        self.reader_credentials = bool(reader_credentials)
+        """Send the credentials with reads too (for a service that requires reader credentials);
+        otherwise they go only with control operations, never with status, open or reads."""
         self._credentials: dict[str, str] = {}
         if user is not None or password is not None:
             if not isinstance(user, str) or not isinstance(password, str):
@@ -168,7 +179,9 @@ class RemoteSensor:
             raise ConnectionClosed(f"the connection to service {self.name!r} is closed")
         if self._gone.is_set():
             raise ConnectionClosed(f"service {self.name!r} has gone")
-        request = {**body, "client": self.client, **self._credentials}
+        request: dict[str, Any] = {**body, "client": self.client}
+        if op in CONTROL_OPS or self.reader_credentials:
+            request.update(self._credentials)
         waiter = _Waiter()
         with self._lock:
             self._waiters.add(waiter)
@@ -257,9 +270,15 @@ class RemoteSensor:
         answer = self._json("open", {"kind": kind.name, "policy": policy.value, "depth": depth})
         if kind is ConnectionKind.DATA:  # the codec's first use here, not on the first item
             warm("point" if policy is DeliveryPolicy.EVERY_ACQUISITION else "scan")
-        conn: RemoteConnection[Any] = RemoteConnection(
-            self, int(answer["conn"]), kind, policy, int(answer["depth"])
-        )
+        try:
+            token, ident, depth_used = (
+                str(answer["conn"]),
+                int(answer["ident"]),
+                int(answer["depth"]),
+            )
+        except (KeyError, TypeError, ValueError):
+            raise RequestError("open: unreadable reply from the service") from None
+        conn: RemoteConnection[Any] = RemoteConnection(self, ident, kind, policy, depth_used, token)
         with self._lock:
             self._connections.append(conn)
         return conn
@@ -379,9 +398,13 @@ class RemoteConnection(Generic[D]):
         kind: ConnectionKind,
         policy: DeliveryPolicy,
         depth: int,
+        token: str,
     ) -> None:
         self._sensor = sensor
         self.ident = ident
+        """The server's number for this connection (as in ``status().connections``)."""
+        self._token = token
+        """What names it to the service: only its holder may use or close it."""
         self.kind = kind
         self.policy = policy
         self.depth = depth
@@ -400,13 +423,13 @@ class RemoteConnection(Generic[D]):
     def _call(self, op: str, body: dict[str, Any] | None = None, wait_s: float = 0.0) -> Any:
         if self._closed:
             raise ConnectionClosed(f"connection {self.ident} is closed")
-        return self._sensor._json(op, {"conn": self.ident, **(body or {})}, wait_s)
+        return self._sensor._json(op, {"conn": self._token, **(body or {})}, wait_s)
 
     def _data(self, op: str, body: dict[str, Any], wait_s: float = 0.0) -> Any:
         if self._closed:
             raise ConnectionClosed(f"connection {self.ident} is closed")
         payload, encoding, attachment = self._sensor._query(
-            op, {"conn": self.ident, **body}, wait_s
+            op, {"conn": self._token, **body}, wait_s
         )
         if attachment is not None:
             with contextlib.suppress(ValueError, KeyError, TypeError):
@@ -445,7 +468,7 @@ class RemoteConnection(Generic[D]):
         return cast(D, self._blocking("ready_for_data", timeout))
 
     def _blocking(self, op: str, timeout: RealLike | None) -> Any:
-        seconds = _timeout(timeout)
+        seconds = checked_timeout(timeout)
         if seconds == POLL:
             return self._data(op, {"timeout": 0})
         deadline = None if seconds is None else time.monotonic() + seconds
@@ -512,7 +535,14 @@ class RemoteConnection(Generic[D]):
         self._blocking("wait_idle", timeout)
 
     def reset(self) -> None:
-        self._call("reset")
+        """Re-run the server's initialisation (see :meth:`biris_hw.client.Connection.reset`).
+
+        Waits as long as an initialisation may take (:data:`~biris_hw.net.protocol.
+        RESET_WAIT_S`), not a blocking read's slice: the reset carries on in the server
+        whatever the caller does, and one that fails raises its HardwareFault here. A service
+        that goes away meanwhile still raises ConnectionClosed at once.
+        """
+        self._call("reset", wait_s=RESET_WAIT_S)
 
     # -- lifecycle -------------------------------------------------------------------------------
     @property
@@ -555,11 +585,15 @@ def connect(
         name: the service's name (``biris serve --name``).
         endpoints: Zenoh endpoints to connect to (``tcp/robot:7447``); none means multicast
             scouting finds it on the local network.
-        user, password: a controller's credentials, needed for motion and configuration.
+        user, password: a controller's credentials, needed for motion and configuration; sent
+            with control operations only (unless ``reader_credentials``).
         multicast: (keyword) scouting on or off (default: on only without endpoints).
         options: (keyword) further Zenoh settings ``{"key/path": value}``: for TLS the root CA,
             ``{"transport/link/tls/root_ca_certificate": "ca.pem"}``.
         timeout: (keyword) seconds to wait for the service (default 10).
+        reader_credentials: (keyword) send the credentials with every request, reads included:
+            for a service that requires reader credentials (default False: a password goes to
+            the service only when it is needed, with a control operation).
 
     Raises:
         ConnectionClosed: no such service answered in time.

@@ -9,10 +9,18 @@ loses the oldest buffers and counts them -- holds for a remote one by constructi
 Threads and why:
 
 * Zenoh delivers queries on its own thread; that thread only reads and admits them (size,
-  JSON, rate and in-flight limits per client), so a flood from one client is answered "Busy"
-  cheaply and never queues behind the sensor. Admitted requests run on a bounded worker pool,
-  because some block (READY_FOR_DATA, wait_idle: at most :data:`~biris_hw.net.protocol.
-  MAX_WAIT_S` each).
+  JSON, the connection token, credentials, rate and in-flight limits per client, a cap on new
+  clients and on blocking reads in all), so a flood is answered "Busy" cheaply and never queues
+  behind the sensor. Admitted requests run on one of two bounded pools (a full queue is "Busy"
+  too): control operations on a small pool of their own, which blocking reads never reach, so
+  that no number of readers waiting in READY_FOR_DATA or wait_idle (each held at most
+  :data:`~biris_hw.net.protocol.MAX_WAIT_S`) can delay a controller's ``stop_scan``; everything
+  else on the shared pool, where blocking reads are capped (:data:`MAX_BLOCKING`) below its
+  size so that quick reads always find a worker.
+* A janitor thread releases the connections of clients whose liveliness token went (after
+  checking that no token of that client is left: anyone may withdraw a token of the same key),
+  forgets idle clients, and, with ``stop_when_controllers_leave``, stops the head when the last
+  controller has gone.
 * Two feed threads read the service's own DATA connections (every acquisition, every buffer)
   and publish with ``CongestionControl.DROP``: a subscriber that cannot keep up loses samples
   (each carries a publication counter, so it can count them), it never slows the feed, and the
@@ -28,17 +36,20 @@ import contextlib
 import hmac
 import json
 import logging
+import queue
+import secrets
 import struct
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol, overload
+from typing import Any
 
 import zenoh
 
 from biris_hw import wire
-from biris_hw.client import Connection
+from biris_hw.client import Connection, Sensor, checked_timeout
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import (
     AccessDenied,
@@ -48,6 +59,7 @@ from biris_hw.errors import (
     RequestError,
 )
 from biris_hw.net.protocol import (
+    BLOCKING_OPS,
     CONTROL_OPS,
     MAX_REQUEST,
     MAX_WAIT_S,
@@ -56,6 +68,7 @@ from biris_hw.net.protocol import (
     Busy,
     Keys,
     check_name,
+    check_token,
     error_payload,
 )
 from biris_hw.net.warm import warm_all
@@ -81,47 +94,44 @@ BURST = 2000.0
 MAX_CONNECTIONS_PER_CLIENT = 32
 """Open connections one client may hold: each costs the server a queue."""
 
-WORKERS = 64
-"""Worker threads of the service (requests being worked on, all clients together)."""
+MAX_CONNECTIONS = 256
+"""Open connections all remote clients together may hold (a fresh client id per ``open`` does
+not get round :data:`MAX_CONNECTIONS_PER_CLIENT`)."""
+
+MAX_CLIENTS = 256
+"""Clients the service keeps account of; idle ones are forgotten to make room, and a new one is
+answered Busy while every entry is in use."""
+
+NEW_CLIENT_RATE = 20.0
+"""New client ids accepted per second, all peers together (a bucket of :data:`NEW_CLIENT_BURST`):
+a flood that takes a fresh id per request, to dodge the per-client limits, runs dry at once."""
+
+NEW_CLIENT_BURST = 64.0
+
+CLIENT_IDLE_S = 60.0
+"""A client that holds no connection and has asked nothing for this long is forgotten."""
+
+MAX_BLOCKING = 32
+"""Blocking reads (ready_for_data, wait_idle with a timeout) held at once, all clients together;
+beyond, Busy. Below :data:`READ_WORKERS`, so that quick reads always find a worker."""
+
+READ_WORKERS = MAX_BLOCKING + 16
+"""Worker threads for everything but control operations."""
+
+READ_QUEUE = 256
+"""Admitted requests waiting for a read worker; beyond, Busy."""
+
+CONTROL_WORKERS = 4
+"""Worker threads for control operations only (a reset holds one while the head homes)."""
+
+CONTROL_QUEUE = 32
+"""Control requests waiting for a control worker; beyond, Busy."""
+
+RELEASE_CHECK_S = 1.0
+"""How long the janitor asks Zenoh whether a client's token is still declared somewhere."""
 
 FEED_DEPTH = 1024
 """Queue of the service's own every-acquisition feed in the server (34 s at 30 Hz)."""
-
-
-class Sensor(Protocol):
-    """What the service (and every ``biris`` command) needs of a sensor: a BirisServer, a
-    remote one, or a replayed recording."""
-
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: Literal[DeliveryPolicy.EVERY_ACQUISITION],
-        depth: int | None = ...,
-    ) -> Any: ...
-
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: Literal[DeliveryPolicy.LATEST, DeliveryPolicy.EVERY_BUFFER] = ...,
-        depth: int | None = ...,
-    ) -> Any: ...
-
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: DeliveryPolicy,
-        depth: int | None = ...,
-    ) -> Any: ...
-
-    def status(self) -> ServerStatus: ...
-
-    def close(self) -> None: ...
 
 
 @dataclass
@@ -129,12 +139,28 @@ class _Client:
     """What the service knows of one remote client."""
 
     ident: str
-    connections: dict[int, Connection[Any]] = field(default_factory=dict)
+    connections: dict[str, Connection[Any]] = field(default_factory=dict)
+    """By connection token (what ``open`` returned)."""
     inflight: int = 0
     tokens: float = BURST
     refilled: float = field(default_factory=time.monotonic)
     refused: int = 0
     """Requests answered Busy (a flood)."""
+    seen: float = field(default_factory=time.monotonic)
+    """When it last asked anything."""
+    released: bool = False
+    """Its token went (or the service closed): it may hold nothing any more."""
+    controller: bool = False
+    """It has been granted a control operation (counts for ``stop_when_controllers_leave``)."""
+
+    def idle(self, now: float, older_than: float) -> bool:
+        """Holds nothing, asks nothing, and has not asked for ``older_than`` seconds."""
+        return (
+            not self.connections
+            and self.inflight == 0
+            and not self.controller
+            and now - self.seen >= older_than
+        )
 
     def admit(self, now: float) -> bool:
         """Take one request token and an in-flight slot, or say no (and count it)."""
@@ -159,6 +185,55 @@ def _credentials(table: Mapping[str, str] | None, what: str) -> dict[str, str] |
     return checked
 
 
+class _Pool:
+    """A thread pool with a bounded queue: :meth:`submit` says False rather than queue more."""
+
+    def __init__(self, workers: int, waiting: int, name: str) -> None:
+        self._executor = concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix=name)
+        self._slots = threading.BoundedSemaphore(workers + waiting)
+
+    def submit(self, fn: Callable[..., None], *args: Any) -> bool:
+        """Run ``fn(*args)`` on a worker; False (nothing done) when the queue is full.
+
+        Raises:
+            RuntimeError: the pool is shut down.
+        """
+        if not self._slots.acquire(blocking=False):
+            return False
+
+        def run() -> None:
+            try:
+                fn(*args)
+            finally:
+                self._slots.release()
+
+        try:
+            self._executor.submit(run)
+        except RuntimeError:
+            self._slots.release()
+            raise
+        return True
+
+    def shutdown(self) -> None:
+        self._executor.shutdown(wait=True, cancel_futures=True)
+
+
+def _is_playback(sensor: object) -> bool:
+    """Whether ``sensor`` is a recording that refuses motion and configuration itself.
+
+    Asked of the sensor, never of the caller: a sensor says so with a ``playback`` attribute
+    (True), and a :class:`~biris_hw.replay.ReplayServer` is one. That class is looked up among
+    the modules already loaded, not imported (biris_hw.net and biris_hw.replay are siblings in
+    the layers): an object of that class exists only if the module has been loaded.
+    """
+    flag = getattr(sensor, "playback", None)
+    if isinstance(flag, bool):
+        return flag
+    replay = sys.modules.get("biris_hw.replay")
+    kind = getattr(replay, "ReplayServer", None)
+    return isinstance(kind, type) and isinstance(sensor, kind)
+
+
 class Service:
     """A running service; made and closed by :func:`serve` (use that)."""
 
@@ -175,13 +250,29 @@ class Service:
         options: Mapping[str, Any] | None = None,
         status_period: float = 1.0,
         status_poll: float = 0.05,
-        playback: bool = False,
+        playback: bool | None = None,
+        stop_when_controllers_leave: bool = False,
     ) -> None:
         self.server = server
-        self.playback = bool(playback)
+        recording = _is_playback(server)
+        if playback and not recording:
+            raise RequestError(
+                f"playback=True, but {type(server).__name__} is not a recording (it can move the "
+                "head): its control operations stay for controllers only"
+            )
+        if recording and getattr(server, "speed", 1.0) is None:
+            raise RequestError(
+                "a recording served with speed=None plays as fast as its slowest reader, so one "
+                "stalled remote reader would stall every client: give it a speed"
+            )
+        self.playback = recording if playback is None else bool(playback)
         """The sensor is a recording that refuses motion and configuration itself (a
         :class:`~biris_hw.replay.ReplayServer`): control operations are handed to it whoever asks,
-        so that a client hears the replay's own refusal, not a misleading AccessDenied."""
+        so that a client hears the replay's own refusal, not a misleading AccessDenied. Decided
+        from the sensor: ``playback=True`` for one that can move is refused."""
+        self.stop_when_controllers_leave = bool(stop_when_controllers_leave)
+        """Dead-man: when the last controller's liveliness token goes, issue stop_scan."""
+        self.dead_man_stops = 0
         self.data_opened = threading.Event()
         """Set when a remote client first opens a DATA connection (``biris serve --replay``
         starts playing then, so that the first client sees the recording from its start)."""
@@ -191,13 +282,29 @@ class Service:
         self.readers = _credentials(readers, "readers")
         self.status_period = float(status_period)
         self.status_poll = float(status_poll)
-        self.published: dict[str, int] = {"point": 0, "scan": 0, "status": 0, "fault": 0}
-        """Publications made, per kind (the counter each publication carries)."""
+        self.published: dict[str, int] = {
+            "point": 0,
+            "scan/cw": 0,
+            "scan/ccw": 0,
+            "status": 0,
+            "fault": 0,
+        }
+        """Publications made, per key expression (the counter each publication carries): one
+        per direction for scans, since a subscriber counts gaps per key."""
         self.requests = 0
         self.refused_busy = 0
         self.refused_bad = 0
         self.released_clients = 0
+        self.token_checks = 0
+        """Withdrawn client tokens the janitor has looked into."""
         self._clients: dict[str, _Client] = {}
+        self._conns: dict[str, tuple[_Client, Connection[Any]]] = {}
+        """Every remote client's connection by its token (what requests name)."""
+        self._blocking = 0
+        self._new_tokens = NEW_CLIENT_BURST
+        self._new_refilled = time.monotonic()
+        self._chores: queue.Queue[str | None] = queue.Queue()
+        """Client ids whose token went, for the janitor (None: stop)."""
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._last_fault: HardwareFault | None = None
@@ -206,12 +313,14 @@ class Service:
         # before anything is served: the codec's first use costs ~0.1 s of interpreter time, which
         # on the feed thread would have stalled the server's threads at the first acquisition
         warm_all()
-        self._pool = concurrent.futures.ThreadPoolExecutor(WORKERS, thread_name_prefix="biris-net")
+        self._pool = _Pool(READ_WORKERS, READ_QUEUE, "biris-net")
+        self._control = _Pool(CONTROL_WORKERS, CONTROL_QUEUE, "biris-net-control")
         config = make_config(listen=listen, connect=connect, multicast=multicast, options=options)
         try:
             self._session = zenoh.open(config)
         except Exception as exc:  # zenoh.ZError: an endpoint in use, a TLS file missing...
             self._pool.shutdown()
+            self._control.shutdown()
             raise RequestError(f"cannot start the Zenoh session: {exc}") from exc
         try:
             self._declare()
@@ -240,6 +349,7 @@ class Service:
             (self._feed_points, "points"),
             (self._feed_scans, "scans"),
             (self._watch_status, "status"),
+            (self._janitor, "janitor"),
         ):
             thread = threading.Thread(target=target, name=f"biris-net-{what}", daemon=True)
             thread.start()
@@ -258,17 +368,22 @@ class Service:
             if thing is not None:
                 with contextlib.suppress(Exception):
                     thing.undeclare()
+        self._chores.put(None)
         with self._lock:
             clients = list(self._clients.values())
             self._clients.clear()
+            for client in clients:
+                client.released = True
+            self._conns.clear()
         for client in clients:
             self._close_all(client)
-        for feed in self._feeds:
+        for feed in list(self._feeds):
             with contextlib.suppress(BirisError):
                 feed.close()
         for thread in self._threads:
             thread.join()
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pool.shutdown()
+        self._control.shutdown()
         session.close()  # type: ignore[no-untyped-call]
         log.info("BIRIS service %r down", self.name)
 
@@ -288,25 +403,29 @@ class Service:
             log.warning("service feed %s not opened: %s", policy.value, exc)
             return
         self._feeds.append(feed)
-        while not self._stop.is_set():
-            try:
-                item = feed.ready_for_data(timeout=0.25)
-            except TimeoutError:
-                continue
-            except HardwareFault as exc:
-                self._last_fault = exc
-                self._stop.wait(0.05)  # the fault stays until a reset: look again shortly
-                continue
-            except (ConnectionClosed, RequestError):
-                return  # the server or the service is closing
-            except Exception:  # a sensor that is not a BirisServer may fail otherwise: say so
-                log.exception("service feed %s failed", policy.value)
-                self._stop.wait(0.1)
-                continue
-            try:
-                publish(item)
-            except Exception:  # a publication that fails must not stop the feed
-                log.exception("publishing %s failed", policy.value)
+        try:
+            while not self._stop.is_set():
+                try:
+                    item = feed.ready_for_data(timeout=0.25)
+                except TimeoutError:
+                    continue
+                except HardwareFault as exc:
+                    self._last_fault = exc
+                    self._stop.wait(0.05)  # the fault stays until a reset: look again shortly
+                    continue
+                except (ConnectionClosed, RequestError):
+                    return  # the server or the service is closing
+                except Exception:  # a sensor that is not a BirisServer may fail otherwise
+                    log.exception("service feed %s failed", policy.value)
+                    self._stop.wait(0.1)
+                    continue
+                try:
+                    publish(item)
+                except Exception:  # a publication that fails must not stop the feed
+                    log.exception("publishing %s failed", policy.value)
+        finally:  # whatever ended the loop, the server's queue for this feed goes with it
+            with contextlib.suppress(BirisError):
+                feed.close()
 
     def _feed_points(self) -> None:
         def publish(point: Point) -> None:
@@ -316,7 +435,8 @@ class Service:
 
     def _feed_scans(self) -> None:
         def publish(scan: Scan) -> None:
-            self._publish(self._pub_scan[scan.direction], "scan", wire.encode_scan(scan), wire.SCAN)
+            kind = f"scan/{scan.direction.name.lower()}"
+            self._publish(self._pub_scan[scan.direction], kind, wire.encode_scan(scan), wire.SCAN)
 
         self._feed(DeliveryPolicy.EVERY_BUFFER, 8, publish)
 
@@ -347,18 +467,26 @@ class Service:
             except BirisError as exc:
                 log.warning("status not read: %s", exc)
                 continue
-            signature = self._signature(status)
-            now = time.monotonic()
-            if signature != last or now - sent >= self.status_period:
-                self._publish(self._pub_status, "status", wire.encode_status(status), wire.STATUS)
-                last, sent = signature, now
-            faulted = status.state is ServerState.FAULT
-            if faulted and not in_fault:
-                fault = self._last_fault
-                if fault is None or fault.kind != status.fault:
-                    fault = HardwareFault(status.fault or "internal", "the server is in a fault")
-                self._publish(self._pub_fault, "fault", wire.encode_fault(fault), wire.FAULT)
-            in_fault = faulted
+            except Exception:  # a bug, or a sensor failing its own way: said, and tried again
+                log.exception("status not read")
+                continue
+            try:
+                signature = self._signature(status)
+                now = time.monotonic()
+                if signature != last or now - sent >= self.status_period:
+                    payload = wire.encode_status(status)
+                    self._publish(self._pub_status, "status", payload, wire.STATUS)
+                    last, sent = signature, now
+                faulted = status.state is ServerState.FAULT
+                if faulted and not in_fault:
+                    fault = self._last_fault
+                    if fault is None or fault.kind != status.fault:
+                        kind = status.fault or "internal"
+                        fault = HardwareFault(kind, "the server is in a fault")
+                    self._publish(self._pub_fault, "fault", wire.encode_fault(fault), wire.FAULT)
+                in_fault = faulted
+            except Exception:  # the status thread must outlive any one bad status
+                log.exception("status not published")
 
     # -- clients ---------------------------------------------------------------------------------
     def _on_client_token(self, sample: zenoh.Sample) -> None:
@@ -366,14 +494,75 @@ class Service:
             return
         ident = str(sample.key_expr).rsplit("/", 1)[-1]
         with self._lock:
-            client = self._clients.pop(ident, None)
-        if client is not None and not self._stop.is_set():
-            self.released_clients += 1
-            log.info(
-                "client %s vanished: releasing %d connection(s)", ident, len(client.connections)
+            known = ident in self._clients
+        if known and not self._stop.is_set():
+            self._chores.put(ident)  # the janitor checks and releases: not on Zenoh's thread
+
+    def _janitor(self) -> None:
+        """Release vanished clients, forget idle ones, and keep the dead-man's watch."""
+        while not self._stop.is_set():
+            try:
+                ident = self._chores.get(timeout=CLIENT_IDLE_S / 4)
+            except queue.Empty:
+                self._forget_idle(CLIENT_IDLE_S)
+                continue
+            if ident is None:
+                return
+            try:
+                self._release(ident)
+            except Exception:  # the janitor must outlive any one client
+                log.exception("releasing client %s failed", ident)
+
+    def _token_alive(self, ident: str) -> bool:
+        """Whether some peer still declares client ``ident``'s token. Anyone may declare and
+        withdraw a token of the same key; the withdrawal must not release the real client."""
+        try:
+            replies = self._session.liveliness().get(
+                self.keys.client_token(ident), timeout=RELEASE_CHECK_S
             )
-            with contextlib.suppress(RuntimeError):  # the pool is shutting down: close() does it
-                self._pool.submit(self._close_all, client)
+            return any(reply.ok is not None for reply in replies)
+        except Exception as exc:  # the session is closing: nothing to keep
+            log.debug("client token of %s not checked: %s", ident, exc)
+            return False
+
+    def _release(self, ident: str) -> None:
+        alive = self._token_alive(ident)
+        self.token_checks += 1
+        if alive:
+            log.warning("a token of client %s was withdrawn, but the client remains", ident)
+            return
+        with self._lock:
+            client = self._clients.pop(ident, None)
+            if client is None or self._stop.is_set():
+                return
+            client.released = True
+            for token in client.connections:
+                self._conns.pop(token, None)
+            controllers_left = any(c.controller for c in self._clients.values())
+        self.released_clients += 1
+        log.info("client %s vanished: releasing %d connection(s)", ident, len(client.connections))
+        self._close_all(client)
+        if client.controller and not controllers_left and self.stop_when_controllers_leave:
+            self._dead_man(ident)
+
+    def _dead_man(self, ident: str) -> None:
+        """The last controller has gone: stop the head rather than let it sweep for ever."""
+        log.warning("the last controller (%s) has gone: stopping the scan", ident)
+        self.dead_man_stops += 1
+        try:
+            with self.server.open() as conn:
+                conn.stop_scan()
+        except BirisError as exc:  # nothing to stop, a fault, the server closing: said
+            log.warning("dead-man stop_scan: %s", exc)
+
+    def _forget_idle(self, older_than: float) -> int:
+        """Forget clients that hold nothing and have been quiet for ``older_than`` s."""
+        now = time.monotonic()
+        with self._lock:
+            idle = [k for k, c in self._clients.items() if c.idle(now, older_than)]
+            for ident in idle:
+                del self._clients[ident]
+        return len(idle)
 
     @staticmethod
     def _close_all(client: _Client) -> None:
@@ -387,6 +576,30 @@ class Service:
         with self._lock:
             return {c.ident: len(c.connections) for c in self._clients.values()}
 
+    def _client(self, ident: str, now: float) -> _Client:
+        """The account of client ``ident``, opened if new and there is room (under the lock).
+
+        Raises:
+            Busy: too many new clients lately, or every account is in use.
+        """
+        client = self._clients.get(ident)
+        if client is not None:
+            return client
+        self._new_tokens = min(
+            NEW_CLIENT_BURST, self._new_tokens + (now - self._new_refilled) * NEW_CLIENT_RATE
+        )
+        self._new_refilled = now
+        if self._new_tokens < 1.0:
+            raise Busy(f"too many new clients (at most {NEW_CLIENT_RATE:g}/s): not done")
+        if len(self._clients) >= MAX_CLIENTS:
+            for key in [k for k, c in self._clients.items() if c.idle(now, 0.0)]:
+                del self._clients[key]
+            if len(self._clients) >= MAX_CLIENTS:
+                raise Busy(f"the service serves {MAX_CLIENTS} clients already: not done")
+        self._new_tokens -= 1.0
+        client = self._clients[ident] = _Client(ident)
+        return client
+
     # -- requests --------------------------------------------------------------------------------
     def _on_query(self, query: zenoh.Query) -> None:
         """Admit a query on Zenoh's thread (cheap checks only), or answer it at once."""
@@ -397,30 +610,61 @@ class Service:
                 ident = check_name(str(request.get("client")), "client")
             except RequestError as exc:
                 raise BadRequest(str(exc)) from None
+            token = None if op in ("open", "status") else check_token(request.get("conn"))
+            blocking = op in BLOCKING_OPS and request.get("timeout", MAX_WAIT_S) != 0
+            control = op in CONTROL_OPS
+            self._authorise(op, request)
+            now = time.monotonic()
             with self._lock:
-                client = self._clients.get(ident)
-                if client is None:
-                    if self._stop.is_set():
-                        raise ConnectionClosed("the service is closing")
-                    client = self._clients[ident] = _Client(ident)
-                admitted = client.admit(time.monotonic())
-            if not admitted:
+                if self._stop.is_set():
+                    raise ConnectionClosed("the service is closing")
+                conn: Connection[Any] | None = None
+                if token is None:
+                    client = self._client(ident, now)
+                else:  # the token names the connection, and so its owner, whoever asks
+                    found = self._conns.get(token)
+                    if found is None:
+                        raise ConnectionClosed("that connection is closed (or was never opened)")
+                    client, conn = found
+                client.seen = now
+                if not client.admit(now):
+                    raise Busy(
+                        f"too many requests from client {client.ident} (at most "
+                        f"{MAX_INFLIGHT_PER_CLIENT} at once, {RATE_PER_CLIENT:g}/s): not done"
+                    )
+                if blocking and self._blocking >= MAX_BLOCKING:
+                    client.inflight -= 1
+                    raise Busy(f"{MAX_BLOCKING} blocking reads are held already: not done")
+                if blocking:
+                    self._blocking += 1
+                if control and not self.playback:
+                    client.controller = True
+        except BirisError as exc:
+            if isinstance(exc, Busy):
                 self.refused_busy += 1
-                raise Busy(
-                    f"too many requests from client {ident} (at most {MAX_INFLIGHT_PER_CLIENT} "
-                    f"at once, {RATE_PER_CLIENT:g}/s): not done"
-                )
-        except RequestError as exc:
-            if not isinstance(exc, Busy):
+            elif isinstance(exc, BadRequest):
                 self.refused_bad += 1
             self._reply_err(query, exc)
             return
+        pool = self._control if control else self._pool
         try:
-            self._pool.submit(self._work, query, op, request, client)
+            queued = pool.submit(self._work, query, op, request, client, conn, blocking)
         except RuntimeError:  # shut down meanwhile
-            with self._lock:
-                client.inflight -= 1
+            self._done(client, blocking)
             self._reply_err(query, ConnectionClosed("the service is closing"))
+            return
+        if not queued:
+            self._done(client, blocking)
+            self.refused_busy += 1
+            what = "control" if control else "read"
+            self._reply_err(query, Busy(f"the service's {what} queue is full: not done"))
+
+    def _done(self, client: _Client, blocking: bool) -> None:
+        with self._lock:
+            client.inflight -= 1
+            client.seen = time.monotonic()
+            if blocking:
+                self._blocking -= 1
 
     def _read(self, query: zenoh.Query) -> tuple[str, dict[str, Any]]:
         op = str(query.key_expr).rsplit("/", 1)[-1]
@@ -447,10 +691,17 @@ class Service:
         finally:
             query.drop()  # type: ignore[no-untyped-call]
 
-    def _work(self, query: zenoh.Query, op: str, request: dict[str, Any], client: _Client) -> None:
+    def _work(
+        self,
+        query: zenoh.Query,
+        op: str,
+        request: dict[str, Any],
+        client: _Client,
+        conn: Connection[Any] | None,
+        blocking: bool,
+    ) -> None:
         try:
-            self._authorise(op, request)
-            payload, encoding, attachment = self._dispatch(op, request, client)
+            payload, encoding, attachment = self._dispatch(op, request, client, conn)
             query.reply(self.keys.rpc(op), payload, encoding=encoding, attachment=attachment)
         except (BirisError, TimeoutError) as exc:
             self._reply_err(query, exc)
@@ -460,8 +711,7 @@ class Service:
             self._reply_err(query, exc)
             return
         finally:
-            with self._lock:
-                client.inflight -= 1
+            self._done(client, blocking)
         query.drop()  # type: ignore[no-untyped-call]
 
     def _authorise(self, op: str, request: Mapping[str, Any]) -> None:
@@ -488,17 +738,23 @@ class Service:
         )
 
     def _dispatch(
-        self, op: str, request: Mapping[str, Any], client: _Client
+        self,
+        op: str,
+        request: Mapping[str, Any],
+        client: _Client,
+        conn: Connection[Any] | None,
     ) -> tuple[bytes, zenoh.Encoding, bytes | None]:
         if op == "status":
             return wire.encode_status(self.server.status()), _cdr(wire.STATUS), None
         if op == "open":
             return self._open(request, client)
-        conn = self._connection(request, client)
+        assert conn is not None  # every other operation names its connection (admitted so)
         if op == "close":
             conn.close()
             with self._lock:
-                client.connections.pop(conn.ident, None)
+                for token in [t for t, c in client.connections.items() if c is conn]:
+                    del client.connections[token]
+                    self._conns.pop(token, None)
             return _json(None)
         if op == "request_point":
             point = conn.request_point()
@@ -534,16 +790,12 @@ class Service:
                 raise RequestError(f"params: {exc}") from None
             conn.set_motor_params(motor)
             return _json(None)
-        simple: dict[str, Callable[[], None]] = {
-            "stop_scan": conn.stop_scan,
-            "start_continuous": conn.start_continuous,
-            "stop_continuous": conn.stop_continuous,
-            "home": conn.home,
-            "timeout_enable": conn.timeout_enable,
-            "timeout_disable": conn.timeout_disable,
-            "reset": conn.reset,
-        }
-        simple[op]()
+        # the rest take no argument: stop_scan, start_continuous, stop_continuous, home,
+        # timeout_enable, timeout_disable, reset (answered when the initialisation ends)
+        if op not in _SIMPLE:
+            raise BadRequest(f"unknown operation {op!r}")
+        action: Callable[[], None] = getattr(conn, op)
+        action()
         return _json(None)
 
     def _open(
@@ -561,26 +813,60 @@ class Service:
         if depth is not None and (isinstance(depth, bool) or not isinstance(depth, int)):
             raise RequestError(f"open: depth must be a whole number or null, not {depth!r}")
         with self._lock:
-            if len(client.connections) >= MAX_CONNECTIONS_PER_CLIENT:
-                raise RequestError(
-                    f"open: client holds {MAX_CONNECTIONS_PER_CLIENT} connections already"
-                )
+            self._check_room(client)
         conn = self.server.open(kind, policy=policy, depth=depth)
+        token = secrets.token_urlsafe(16)
+        problem: BirisError | None = None
         with self._lock:
-            client.connections[conn.ident] = conn
+            # released meanwhile (its token went, or the service is closing), or the room taken
+            # by others' opens while this one ran: the connection must not outlive the check
+            if client.released or self._stop.is_set():
+                problem = ConnectionClosed("the client has gone (or the service is closing)")
+            else:
+                try:
+                    self._check_room(client)
+                except BirisError as exc:
+                    problem = exc
+            if problem is None:
+                client.connections[token] = conn
+                self._conns[token] = (client, conn)
+        if problem is not None:
+            with contextlib.suppress(BirisError):
+                conn.close()
+            raise problem
         if kind is ConnectionKind.DATA:
             self.data_opened.set()
         return _json(
-            {"conn": conn.ident, "kind": kind.name, "policy": policy.value, "depth": conn.depth}
+            {
+                "conn": token,
+                "ident": conn.ident,
+                "kind": kind.name,
+                "policy": policy.value,
+                "depth": conn.depth,
+            }
         )
 
-    def _connection(self, request: Mapping[str, Any], client: _Client) -> Connection[Any]:
-        ident = _field(request, "conn", int)
-        with self._lock:
-            conn = client.connections.get(ident)
-        if conn is None:
-            raise ConnectionClosed(f"connection {ident} is closed (or not this client's)")
-        return conn
+    def _check_room(self, client: _Client) -> None:
+        """Room for one more connection of ``client`` (under the lock), or RequestError."""
+        if len(client.connections) >= MAX_CONNECTIONS_PER_CLIENT:
+            raise RequestError(
+                f"open: client holds {MAX_CONNECTIONS_PER_CLIENT} connections already"
+            )
+        if len(self._conns) >= MAX_CONNECTIONS:
+            raise Busy(f"open: the service's clients hold {MAX_CONNECTIONS} connections already")
+
+
+_SIMPLE = frozenset(
+    {
+        "stop_scan",
+        "start_continuous",
+        "stop_continuous",
+        "home",
+        "timeout_enable",
+        "timeout_disable",
+        "reset",
+    }
+)
 
 
 def _json(value: object) -> tuple[bytes, zenoh.Encoding, None]:
@@ -610,11 +896,11 @@ def _angle(request: Mapping[str, Any], name: str) -> float:
 
 
 def _wait(request: Mapping[str, Any]) -> float:
-    """A blocking request's timeout: 0 polls; at most :data:`MAX_WAIT_S` (the client repeats)."""
-    value = request.get("timeout", MAX_WAIT_S)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-        raise RequestError(f"timeout: expected seconds >= 0, not {value!r}")
-    return min(float(value), MAX_WAIT_S)
+    """A blocking request's timeout, by the local API's rule
+    (:func:`biris_hw.client.checked_timeout`: 0 polls, null waits as long as it takes, negative
+    or not a number is refused), held here at most :data:`MAX_WAIT_S` (the client asks again)."""
+    seconds = checked_timeout(request.get("timeout", MAX_WAIT_S))
+    return MAX_WAIT_S if seconds is None else min(seconds, MAX_WAIT_S)
 
 
 @contextlib.contextmanager
@@ -642,9 +928,15 @@ def serve(
         options: (keyword) further Zenoh settings, ``{"key/path": value}`` (TLS files, user and
             password authentication, access control: see docs/wire-format.md, "Security").
         status_period: (keyword) seconds between status publications when nothing changes.
-        playback: (keyword) ``server`` is a recording (:class:`~biris_hw.replay.ReplayServer`)
-            that refuses motion and configuration itself: control requests reach it whatever the
-            credentials, and are answered with its refusal (a RequestError). Default False.
+        playback: (keyword) whether ``server`` is a recording that refuses motion and
+            configuration itself (then control requests reach it whatever the credentials, and
+            are answered with its refusal, a RequestError). Default: decided from the sensor (a
+            :class:`~biris_hw.replay.ReplayServer`, or any sensor with ``playback = True``);
+            True for a sensor that can move raises RequestError. A recording served with
+            ``speed=None`` is refused: one stalled reader would stall every client.
+        stop_when_controllers_leave: (keyword) dead-man: when the last client that was granted
+            a control operation has gone (its liveliness token withdrawn), issue ``stop_scan``,
+            so that a continuous scan does not go on for ever. Default False.
 
     The server is not closed on the way out: it belongs to the caller.
     """

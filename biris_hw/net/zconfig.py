@@ -40,6 +40,11 @@ def make_config(
         # gains little from them (payloads of kilobytes, most readers on other machines)
         "transport/shared_memory/enabled": False,
     }
+    if not multicast:
+        # a peer's open waits this long for scouting to find others (500 ms by default, paid
+        # on some opens and not others); without multicast there is nothing to scout, and
+        # whoever opens waits for what it needs anyway (a client: the service's token)
+        settings["scouting/delay"] = 0
     listen, connect = list(listen), list(connect)
     if listen:
         settings["listen/endpoints"] = listen

@@ -201,8 +201,3 @@ class McapFile:
                     self._salvage(exc)
             self._closed = True
             return self.complete
-
-    @property
-    def bytes_written(self) -> int:
-        """Size of the file as far as known to be on disk."""
-        return self._good

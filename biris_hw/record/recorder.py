@@ -23,7 +23,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -47,9 +47,9 @@ __all__ = [
     "write_scans",
 ]
 
-RAW_SCAN_TOPIC = "/biris/raw/scan"
-RAW_POINT_TOPIC = "/biris/raw/point"
-RAW_STATUS_TOPIC = "/biris/raw/status"
+RAW_SCAN_TOPIC = ros2.RAW_SCAN_TOPIC
+RAW_POINT_TOPIC = ros2.RAW_POINT_TOPIC
+RAW_STATUS_TOPIC = ros2.RAW_STATUS_TOPIC
 
 FLUSH_S = 2.0
 """Real seconds between chunk flushes, so a crash (not Ctrl-C: that closes properly) loses at
@@ -189,8 +189,6 @@ class Recorder:
             point_depth=point_depth,
             scan_depth=scan_depth,
         )
-        hardware = getattr(source, "hardware", None)
-        self._clock: Callable[[], float] | None = getattr(hardware, "clock", None)
         self._now = 0.0
         self._static_written = False
         self._last_flush = time.monotonic()
@@ -320,7 +318,7 @@ class Recorder:
             self.scans += 1
 
     def _status(self, status: Mapping[str, Any] | None, error: str | None) -> None:
-        t = self._clock() if self._clock is not None else self._now
+        t = ros2.sensor_time(self.source, self._now)
         extra = {"recorder": self._counts()}
         _write(self._file, ros2.diagnostics(status, t, extra=extra, error=error))
         if isinstance(status, ServerStatus):
