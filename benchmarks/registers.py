@@ -32,7 +32,7 @@ from benchmarks.harness import (
 )
 from biris_hw.bus import BusWindow, open_window
 
-__all__ = ["registers"]
+__all__ = ["call_loop", "registers"]
 
 SIZE = 0x10000
 """Bytes mapped: a few pages, like a board's register span plus one frame area."""
@@ -114,9 +114,9 @@ def registers(ctx: BenchContext) -> list[Figure]:
 def _frame_figure(ours: BusWindow, theirs: Any, rounds: int, batch_ns: int, common: str) -> Figure:
     """The frame read, three ways; the target is the one that says what the bulk read buys."""
     contenders = {
-        "ours": _loop0(_our_frame(ours)),
-        "theirs_read16": _loop0(_their_frame_by_registers(theirs)),
-        "theirs_bulk": _loop0(_their_frame_bulk(theirs)),
+        "ours": call_loop(_our_frame(ours)),
+        "theirs_read16": call_loop(_their_frame_by_registers(theirs)),
+        "theirs_bulk": call_loop(_their_frame_bulk(theirs)),
     }
     ns = _measure(contenders, rounds, batch_ns)
     values = _compare(ns, "ours", "theirs_read16", rounds)
@@ -201,7 +201,7 @@ def _check_same_memory(ours: BusWindow, theirs: Any) -> None:
 # figure) is the same for ours and theirs.
 
 
-def _loop0(fn: Callable[[], object]) -> Loop:
+def call_loop(fn: Callable[[], object]) -> Loop:
     def run(n: int) -> int:
         f = fn
         it = repeat(None, n)

@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from itertools import pairwise, repeat
+from itertools import pairwise
 from time import perf_counter_ns
 from typing import Any
 
@@ -45,6 +45,7 @@ from benchmarks.harness import (
     interleaved_rounds,
     percentile,
 )
+from benchmarks.registers import call_loop
 from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy
 from biris_hw.bus.memory import MemoryWindow
 from biris_hw.bus.vmusb import VmUsbWindow
@@ -603,7 +604,7 @@ def _register_figure(
     batch_ms: int,
 ) -> Figure:
     batch_ns = batch_ms * 1_000_000
-    loops = {"vmusb": _loop(usb_op), "memory": _loop(mem_op)}
+    loops = {"vmusb": call_loop(usb_op), "memory": call_loop(mem_op)}
     sizes = {k: _batch_size(run, batch_ns) for k, run in loops.items()}
     c = host.counters
     out0, in0 = c.out_transfers, c.in_transfers
@@ -656,18 +657,6 @@ def _register_figure(
         "real_us_at_x1 = their median real time (the model's waits plus the host's own "
         "cost and timer overshoot).",
     )
-
-
-def _loop(fn: Callable[[], object]) -> Callable[[int], int]:
-    def run(n: int) -> int:
-        f = fn
-        it = repeat(None, n)
-        t0 = perf_counter_ns()
-        for _ in it:
-            f()
-        return perf_counter_ns() - t0
-
-    return run
 
 
 def _per_call(run: Callable[[int], int], n: int) -> Callable[[], float]:
