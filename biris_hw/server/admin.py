@@ -66,7 +66,7 @@ from biris_hw.server.initialiser import InitResult
 from biris_hw.server.motion import ARRIVAL_TOLERANCE_COUNTS, AxisState, Motion, MotionPurpose
 from biris_hw.server.motor_control import MotorRequests
 from biris_hw.server.scan_assembly import ActiveScan
-from biris_hw.server.scan_timing import data_rate_mismatch
+from biris_hw.server.scan_timing import ScanTiming, data_rate_mismatch
 from biris_hw.server.scanning import AcquisitionFate, ScanSequencer
 from biris_hw.status import ServerState, ServerStatus
 from regs.biexec import BiCommand, BiStatus
@@ -89,6 +89,7 @@ class Administrator:
         motor_watchdog: Timer,
         start_initialiser: Callable[[], None],
         elevation_watchdog: Timer | None = None,
+        time_scale: float = 1.0,
     ) -> None:
         self.record = record
         self.inbox = inbox
@@ -101,7 +102,7 @@ class Administrator:
         self.az = AxisState(Axis.AZIMUTH, motor_watchdog, record.motor)
         self.el = AxisState(Axis.ELEVATION, elevation_watchdog or motor_watchdog, record.tilt_motor)
         self.requests = MotorRequests()
-        self.scans = ScanSequencer(self.counters, record.mount)
+        self.scans = ScanSequencer(self.counters, record.mount, ScanTiming(time_scale=time_scale))
         self.tilt = TiltControl(record.elevation_limits_counts)
         self.ring = Ring(record.continuous_acquisition)
         self.clients = Connections(clock, self.counters)

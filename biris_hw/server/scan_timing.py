@@ -32,6 +32,7 @@ from regs.layout import SAMPLES_CHOICES, acquisition_period_s
 
 __all__ = [
     "DATA_RATE_TOLERANCE",
+    "HOST_LATENCY_S",
     "ScanTiming",
     "data_rate_mismatch",
     "trapezoid_s",
@@ -47,6 +48,13 @@ START_DELAYS_KEPT = 8
 MAX_START_DELAY_S = 0.5
 """A start delay beyond this (hardware seconds) is taken as this: a server that slow has other
 problems, and a scan must not ask for seconds of acquisitions standing at its end."""
+
+HOST_LATENCY_S = 0.003
+"""Host seconds a loaded host may take between BIRIS's first data interrupt and the trapezoid's
+hand-over (a notifier's wake-up, the administrator's inbox, the worker's). On the real head it is
+a tenth of a period; a simulator run at ``time_scale`` 30 turns it into 90 ms of hardware time,
+nearly three periods, which the first scan (before any delay is learned) must allow for or end
+short of its destination."""
 
 SETTLE_PERIODS = 0.25
 """Periods allowed after the trapezoid's last setpoint for the head to be within a count or
@@ -92,20 +100,26 @@ class ScanTiming:
     the administrator handed the trapezoid to the azimuth worker. The largest of the recent
     ones counts, so a server that was slow once asks for a spare acquisition rather than ends
     a scan short of its destination.
+
+    ``time_scale`` is the hardware's (hardware seconds per host second): before any delay is
+    learned the estimate allows :data:`HOST_LATENCY_S` of host time in hardware seconds.
     """
 
-    def __init__(self, period_s: float = 0.0) -> None:
+    def __init__(self, period_s: float = 0.0, time_scale: float = 1.0) -> None:
         self.period_s = period_s
+        self.host_latency_s = HOST_LATENCY_S * max(time_scale, 0.0)
+        """:data:`HOST_LATENCY_S` in hardware seconds."""
         self._delays: deque[float] = deque(maxlen=START_DELAYS_KEPT)
 
     @property
     def start_delay_s(self) -> float:
         """The motor-start delay the next scan is counted with (hardware seconds): the largest
-        of the recent ones; one acquisition period before any has been seen (a driver in
-        another process than its simulator, or a loaded host, starts a period or two late, and
-        a scan that ends short of its destination is worse than one more standing at it)."""
+        of the recent ones; before any has been seen, one acquisition period plus the host's
+        latency in hardware time (a driver in another process than its simulator, or a loaded
+        host, starts a period or two late, and a scan that ends short of its destination is
+        worse than a few more standing at it, which are dropped and counted)."""
         if not self._delays:
-            return self.period_s
+            return min(self.period_s + self.host_latency_s, MAX_START_DELAY_S)
         return max(self._delays)
 
     def note_start_delay(self, delay_s: float) -> None:

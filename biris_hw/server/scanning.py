@@ -71,7 +71,9 @@ class AcquisitionFate(enum.Enum):
 class ScanSequencer:
     """Scans under way, asked for, and done: every field of scanning, owned here."""
 
-    def __init__(self, counters: Counters, mount: Mount | None) -> None:
+    def __init__(
+        self, counters: Counters, mount: Mount | None, timing: ScanTiming | None = None
+    ) -> None:
         self._counters = counters
         self._mount = mount
         self._seq_ids = 0
@@ -87,7 +89,7 @@ class ScanSequencer:
         self._seq: dict[Direction, int] = {Direction.CW: 0, Direction.CCW: 0}
         self.latest_point: Point | None = None
         self.samples = 0
-        self.timing = ScanTiming()
+        self.timing = timing if timing is not None else ScanTiming()
         """The acquisition period and motor-start delay report-mode scans are counted with."""
 
     # -- where scanning stands ---------------------------------------------------------------

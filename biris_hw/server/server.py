@@ -100,6 +100,7 @@ class BirisServer:
             self.motor_watchdog,
             self._start_initialiser,
             self.elevation_watchdog,
+            hw.time_scale,
         )
         try:
             with pinned(self.record.cpus) if self.record.cpus else contextlib.nullcontext():
