@@ -6,12 +6,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from os import PathLike
+from typing import TYPE_CHECKING
 
 from biris_hw.axes.base import AxisSet
 from biris_hw.bus.base import BusWindow
 from biris_hw.devices import Devices
 from biris_hw.irq.base import InterruptLine
 from biris_hw.pan_reference import PanReference
+
+if TYPE_CHECKING:  # python-can is imported only when a crate monitor is made
+    from biris_hw.crate import CrateMonitor
 
 __all__ = ["BirisHardware"]
 
@@ -57,6 +61,12 @@ class BirisHardware:
     """Axes not on the Model 7600 (CiA 402 drives over CAN: :class:`biris_hw.axes.cia402.
     Cia402Axes`), or None for the board's HCTL-1000s. ``level3`` is then the set's
     ``end_of_motion`` line. The bundle closes it with itself."""
+    crate: CrateMonitor | None = None
+    """The VME crate's own monitor over CAN (a Wiener crate's power, fans and temperatures:
+    :mod:`biris_hw.crate`), or None. Read by the server every :attr:`crate_poll_s` and shown in
+    ``status()``; the bundle closes it with itself."""
+    crate_poll_s: float = 1.0
+    """Real seconds between two readings of :attr:`crate`."""
     pan_reference: PanReference = field(init=False, repr=False, compare=False)
     """The pan counter's relation to true zero, built here once (reads the journal if any)."""
     devices: Devices = field(init=False, repr=False, compare=False)
@@ -86,7 +96,8 @@ class BirisHardware:
         return offset
 
     def close(self) -> None:
-        """Close the lines first (waking notifiers), then the windows, then the axis set."""
+        """Close the lines first (waking notifiers), then the windows, then the axis set and
+        the crate monitor."""
         for line in (self.level2, self.level3):
             line.close()
         for window in (self.biris, self.motion, self.coupler):
@@ -94,3 +105,5 @@ class BirisHardware:
                 window.close()
         if self.axes is not None:
             self.axes.close()
+        if self.crate is not None:
+            self.crate.close()

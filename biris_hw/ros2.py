@@ -69,6 +69,7 @@ from numpy.typing import NDArray
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
 from biris_hw.geometry import DEFAULT_MOUNT, Frame, Mount, project_profiles
+from regs.wiener_crate import CrateReading
 
 __all__ = [
     "BASE_FRAME",
@@ -558,6 +559,10 @@ def diagnostics(
                 values=[],
             )
         )
+    if status is not None:
+        crate = _crate_status(status, hardware_id)
+        if crate is not None:
+            items.append(crate)
     for name, fields in (extra or {}).items():
         values = [key_value(key=k, value=_value(v)) for k, v in fields.items()]
         warn = any("dropped" in k and _value(v) != "0" for k, v in fields.items())
@@ -572,6 +577,44 @@ def diagnostics(
         )
     msg = types[DIAGNOSTIC_ARRAY](header=_header(t, ""), status=items)
     return Encoded(topic, DIAGNOSTIC_ARRAY, _serialize(msg, DIAGNOSTIC_ARRAY), stamp_ns(t))
+
+
+def _crate_status(status: Mapping[str, Any], hardware_id: str) -> Any:
+    """The VME crate's DiagnosticStatus (``biris: VME crate``), or None without a monitor:
+    ERROR while the crate reports an alarm, WARN when its last poll failed (the values are
+    then the last reading's), OK otherwise. The values: power, fans, temperatures and each
+    fitted supply channel's voltage and current."""
+    reading = status.get("crate")
+    error = status.get("crate_error")
+    if not isinstance(reading, CrateReading) and not error:
+        return None
+    types = typestore().types
+    key_value = types["diagnostic_msgs/msg/KeyValue"]
+    values = []
+    level, message = (_WARN, str(error)) if error else (_OK, "ok")
+    if isinstance(reading, CrateReading):
+        alarms = reading.alarms()
+        if alarms:
+            level, message = _ERROR, "; ".join(alarms)
+        values.append(key_value(key="crate_id", value=str(reading.crate_id)))
+        values.append(key_value(key="power", value="on" if reading.power_on else "off"))
+        for channel, (volts, amps) in enumerate(
+            zip(reading.voltages_v, reading.currents_a, strict=True)
+        ):
+            if volts or amps:  # a channel not fitted reads 0 V, 0 A
+                values.append(key_value(key=f"channel{channel}.volts", value=f"{volts:.2f}"))
+                values.append(key_value(key=f"channel{channel}.amps", value=f"{amps:.2f}"))
+        for fan, rps in enumerate(reading.fans_rps, start=1):
+            values.append(key_value(key=f"fan{fan}.rpm", value=str(rps * 60)))
+        for sensor, celsius in enumerate(reading.temperatures_c, start=1):
+            values.append(key_value(key=f"temperature{sensor}.celsius", value=str(celsius)))
+    return types["diagnostic_msgs/msg/DiagnosticStatus"](
+        level=level,
+        name="biris: VME crate",
+        message=message,
+        hardware_id=hardware_id,
+        values=values,
+    )
 
 
 # -- reading a sensor ------------------------------------------------------------------------------

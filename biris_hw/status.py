@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from biris_hw.errors import FaultKind
+from regs.wiener_crate import CrateReading
 
 __all__ = ["Accounts", "ConnectionStatus", "ServerState", "ServerStatus"]
 
@@ -160,6 +161,13 @@ class ServerStatus(_ReadsAsMapping):
     START_CONTINUOUS waits for the scan under way (or continuous scanning) to end, as BIRIS_HOME
     does. ``acquisition`` keeps saying the mode the data are taken in until then. Only a start
     ever waits: STOP_CONTINUOUS takes effect at once (and withdraws a start that waits)."""
+    crate: CrateReading | None = None
+    """The VME crate's last reading over CAN (power, voltages, fans, temperatures and the
+    crate's own alarms: ``crate.alarms()``), when the hardware has a crate monitor
+    (``BirisHardware.crate``); None without one, or before its first answer. Kept when a later
+    poll fails: :attr:`crate_error` then says so, and ``crate.read_at`` how old it is."""
+    crate_error: str | None = None
+    """Why the last poll of the crate failed (it did not answer, a malformed frame), else None."""
 
     def accounts(self) -> Accounts:
         """The acquisition counters reconciled (:class:`Accounts`): ``accounts().adds_up``

@@ -7,7 +7,8 @@ the bundle's own fields (``biris``, ``motion``, ``coupler``, ``level2``, ``level
 ``biexec_offset``, ``biris_base``, ``clock``), each window and line named by its registry kind
 with that kind's options. ``docs/target-example.toml`` documents every key. A target whose axes
 are CiA 402 drives over CAN has an ``[axes]`` table instead of ``motion`` and ``level3``
-(``docs/target-can-example.toml``).
+(``docs/target-can-example.toml``). A ``[crate]`` table adds the VME crate's own monitor over
+CAN (a Wiener crate's power, fans and temperatures in ``status()``).
 
 Everything is checked before the server sees it, and every message names the key at fault: a
 server must not start on half a description, and a person reading ``biris: ...`` must be able to
@@ -28,7 +29,7 @@ import time
 from collections.abc import Callable, Mapping
 from os import PathLike
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from biris_hw.axes.base import AxisSet
 from biris_hw.bus.base import BusWindow
@@ -43,6 +44,10 @@ from biris_hw.pan_reference import default_journal_path
 from regs.biexec import BIEXEC_COM_SIZE
 from regs.bit3 import BIT3_SPACE
 from regs.tech80 import DEFAULT_IRQ_VECTOR, MOTION_WINDOW_SIZE
+from regs.wiener_crate import CRATE_IDS
+
+if TYPE_CHECKING:
+    from biris_hw.crate import CrateMonitor
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -52,6 +57,7 @@ else:  # tomli is a declared dependency below 3.11
 __all__ = [
     "AXES_KINDS",
     "CLOCKS",
+    "CRATE_KINDS",
     "TARGET_KEYS",
     "WINDOW_MINIMUM",
     "load_target",
@@ -83,6 +89,7 @@ TARGET_KEYS = (
     "clock",
     "pan_journal",
     "axes",
+    "crate",
 )
 
 AXES_KINDS = ("cia402",)
@@ -104,6 +111,10 @@ _AXES_SECONDS = {
 }
 _AXES_STRINGS = ("interface", "channel", "context")
 _AXES_KEYS = frozenset({"kind", "can", *_AXES_INTS, *_AXES_RULED, *_AXES_SECONDS, *_AXES_STRINGS})
+
+CRATE_KINDS = ("wiener-can",)
+"""What a ``[crate]`` table may name: a Wiener VME crate's monitor over CAN (python-can)."""
+_CRATE_KEYS = frozenset({"kind", "interface", "channel", "bitrate", "crate_id", "poll", "timeout"})
 
 _WIDTHS = (8, 16, 32)
 _SCALAR = (str, int, float, bool)
@@ -393,6 +404,60 @@ def _open_axes(spec: object, clock: Callable[[], float]) -> AxisSet:
         raise RequestError(f"axes: {exc}") from exc
 
 
+def _open_crate(spec: object) -> tuple[CrateMonitor, float]:
+    """The crate monitor a ``[crate]`` table describes, and its poll period (real seconds).
+
+    ``interface``, ``channel`` and ``bitrate`` are python-can's (without them, its own
+    configuration); ``crate_id`` is the crate's CAN id (1..126, set on its front panel),
+    ``poll`` the seconds between readings (default 1), ``timeout`` how long one answer may take
+    (default 0.25 s)."""
+    table = _table("crate", spec)
+    kind = table.get("kind")
+    if kind not in CRATE_KINDS:
+        raise RequestError(f"crate.kind: must be one of {', '.join(CRATE_KINDS)}, not {kind!r}")
+    for key in table:
+        if key not in _CRATE_KEYS:
+            raise RequestError(f"crate.{key}: not an option of kind {kind!r}")
+    if "crate_id" not in table:
+        raise RequestError(
+            f"crate.crate_id: missing (the crate's CAN id, {CRATE_IDS.start}..{CRATE_IDS.stop - 1})"
+        )
+    crate_id = _int("crate.crate_id", table["crate_id"], CRATE_IDS.start, CRATE_IDS.stop - 1)
+    options: dict[str, Any] = {}
+    for key in ("interface", "channel"):
+        if key in table:
+            if not isinstance(table[key], str):
+                raise RequestError(f"crate.{key}: must be a string, not {_type(table[key])}")
+            options[key] = table[key]
+    if "bitrate" in table:
+        options["bitrate"] = _int("crate.bitrate", table["bitrate"], 1, 8_000_000)
+    poll = _seconds("crate.poll", table.get("poll", 1.0))
+    timeout = _seconds("crate.timeout", table.get("timeout", 0.25))
+    from biris_hw.crate import CrateMonitor  # python-can, only for a target with a crate
+
+    try:
+        return CrateMonitor.open(crate_id=crate_id, timeout_s=timeout, **options), poll
+    except BusError as exc:  # the CAN interface cannot be opened: the machine's problem
+        raise BusError(f"crate: {exc}", exc.errno or errno.EIO) from exc
+    except (TypeError, ValueError) as exc:
+        raise RequestError(f"crate: {exc}") from exc
+
+
+def _check_crate_beside_axes(crate: object, axes: object) -> None:
+    """A crate on the drives' bus must not share a node id with them: crate n's function 1
+    frame is node n's EMCY id and its function 3 node n's TPDO1, so the drivers would read
+    each other's frames."""
+    if not isinstance(crate, Mapping) or not isinstance(axes, Mapping):
+        return  # the tables' own checks say what is wrong
+    same_bus = all(crate.get(key) == axes.get(key) for key in ("interface", "channel"))
+    crate_id = crate.get("crate_id")
+    if same_bus and crate_id in (axes.get("pan_node"), axes.get("tilt_node")):
+        raise RequestError(
+            f"crate.crate_id: {crate_id} is a drive's node id on the same CAN bus (the crate's "
+            f"frames would be that drive's EMCY and PDOs); give the crate another id"
+        )
+
+
 def _pan_journal(value: object, base: Path | None) -> Path | None:
     """The journal's path: the key's (relative to the target file's directory), the default
     when absent, None for "" (memory only, with a warning: a restart then forgets the pan)."""
@@ -468,6 +533,12 @@ def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> Biris
             axes = _open_axes(data["axes"], CLOCKS[clock_name])
             opened.callback(axes.close)
             lines["level3"] = axes.end_of_motion
+        crate: CrateMonitor | None = None
+        poll = 1.0
+        if "crate" in data:
+            _check_crate_beside_axes(data["crate"], data.get("axes"))
+            crate, poll = _open_crate(data["crate"])
+            opened.callback(crate.close)
         hardware = BirisHardware(
             biris=windows["biris"],
             motion=windows.get("motion"),
@@ -480,6 +551,8 @@ def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> Biris
             clock=CLOCKS[clock_name],
             time_scale=1.0,
             pan_journal=pan_journal,
+            crate=crate,
+            crate_poll_s=poll,
         )
         opened.pop_all()
     return hardware

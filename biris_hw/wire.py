@@ -40,6 +40,7 @@ from biris_hw.data import Direction, Point, Scan
 from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.geometry import Mount
 from biris_hw.status import ConnectionStatus, ServerState, ServerStatus
+from regs.wiener_crate import CrateReading
 
 __all__ = [
     "FAULT",
@@ -82,6 +83,7 @@ POINT = "biris_msgs/msg/Point"
 LATENCY = "biris_msgs/msg/Latency"
 COUNTER = "biris_msgs/msg/Counter"
 CONNECTION = "biris_msgs/msg/ConnectionStatus"
+CRATE = "biris_msgs/msg/CrateStatus"
 STATUS = "biris_msgs/msg/Status"
 FAULT = "biris_msgs/msg/Fault"
 
@@ -164,6 +166,36 @@ uint64 delivered
 uint64 dropped
 biris_msgs/Latency latency
 """,
+    CRATE: """\
+# A Wiener VME crate's reading over CAN (regs.wiener_crate.CrateReading).
+uint8 crate_id
+bool power_on
+# external power inhibit active
+bool inhibit
+bool supply_ok
+bool power_supply_error
+bool fans_ok
+# VME SYSFAIL asserted
+bool sysfail
+# the crate's 8 raw status bytes
+uint8[8] status_bytes
+# channel masks, bit n = supply channel n
+uint8 under_voltage
+uint8 over_voltage
+uint8 external_temperature
+uint8 over_current
+uint8 over_voltage_protection
+uint8 supply_temperature
+float64[8] voltages_v
+float64[8] currents_a
+# revolutions per second
+uint8 fan_average_rps
+uint8 fan_nominal_rps
+uint8[6] fans_rps
+uint8[8] temperatures_c
+# the reading's time on the host that polled the crate (seconds)
+float64 read_at
+""",
     STATUS: """\
 # What the server is doing and has done (biris_hw.status.ServerStatus).
 std_msgs/Header header
@@ -188,6 +220,11 @@ int32 elevation_live
 uint64 acquisitions_in_progress
 # the acquisition mode asked for and not yet in force, else empty
 string acquisition_pending
+# the VME crate's last reading, when the sensor has a crate monitor
+bool has_crate
+biris_msgs/CrateStatus crate
+# why the crate's last poll failed, else empty
+string crate_error
 """,
     FAULT: """\
 # A hardware fault the server reported (biris_hw.errors.HardwareFault).
@@ -484,8 +521,71 @@ def encode_status(status: ServerStatus, t: float = 0.0) -> bytes:
         elevation_live=status.elevation_live or 0,
         acquisitions_in_progress=status.acquisitions_in_progress,
         acquisition_pending=status.acquisition_pending or "",
+        has_crate=status.crate is not None,
+        crate=_crate(status.crate),
+        crate_error=status.crate_error or "",
     )
     return _serialize(msg, STATUS)
+
+
+_CRATE_BOOLS = ("power_on", "inhibit", "supply_ok", "power_supply_error", "fans_ok", "sysfail")
+_CRATE_MASKS = (
+    "under_voltage",
+    "over_voltage",
+    "external_temperature",
+    "over_current",
+    "over_voltage_protection",
+    "supply_temperature",
+)
+"""The crate reading's channel masks (bit n = supply channel n), carried as they are."""
+
+
+def _crate(reading: CrateReading | None) -> Any:
+    """A reading as ``biris_msgs/msg/CrateStatus`` (zeros for none: ``has_crate`` says)."""
+    if reading is None:
+        return _cls(CRATE)(
+            crate_id=0,
+            **dict.fromkeys(_CRATE_BOOLS, False),
+            **dict.fromkeys(_CRATE_MASKS, 0),
+            status_bytes=np.zeros(8, np.uint8),
+            voltages_v=np.zeros(8),
+            currents_a=np.zeros(8),
+            fan_average_rps=0,
+            fan_nominal_rps=0,
+            fans_rps=np.zeros(6, np.uint8),
+            temperatures_c=np.zeros(8, np.uint8),
+            read_at=0.0,
+        )
+    return _cls(CRATE)(
+        crate_id=reading.crate_id,
+        **{key: getattr(reading, key) for key in (*_CRATE_BOOLS, *_CRATE_MASKS)},
+        status_bytes=np.frombuffer(bytes(reading.status_bytes), np.uint8).copy(),
+        voltages_v=_array(reading.voltages_v, np.float64),
+        currents_a=_array(reading.currents_a, np.float64),
+        fan_average_rps=reading.fan_average_rps,
+        fan_nominal_rps=reading.fan_nominal_rps,
+        fans_rps=_array(reading.fans_rps, np.uint8),
+        temperatures_c=_array(reading.temperatures_c, np.uint8),
+        read_at=reading.read_at,
+    )
+
+
+def _uncrate(msg: Any) -> CrateReading:
+    """The reading :func:`_crate` encoded."""
+    flags: dict[str, Any] = {key: bool(getattr(msg, key)) for key in _CRATE_BOOLS}
+    flags.update({key: int(getattr(msg, key)) for key in _CRATE_MASKS})
+    return CrateReading(
+        crate_id=int(msg.crate_id),
+        **flags,
+        status_bytes=bytes(np.asarray(msg.status_bytes, np.uint8)),
+        voltages_v=tuple(float(v) for v in msg.voltages_v),
+        currents_a=tuple(float(v) for v in msg.currents_a),
+        fan_average_rps=int(msg.fan_average_rps),
+        fan_nominal_rps=int(msg.fan_nominal_rps),
+        fans_rps=tuple(int(v) for v in msg.fans_rps),
+        temperatures_c=tuple(int(v) for v in msg.temperatures_c),
+        read_at=float(msg.read_at),
+    )
 
 
 def decode_status(data: bytes | bytearray | memoryview) -> ServerStatus:
@@ -522,6 +622,8 @@ def decode_status(data: bytes | bytearray | memoryview) -> ServerStatus:
             elevation_live=int(msg.elevation_live) if msg.has_elevation_live else None,
             acquisitions_in_progress=int(msg.acquisitions_in_progress),
             acquisition_pending=str(msg.acquisition_pending) or None,
+            crate=_uncrate(msg.crate) if msg.has_crate else None,
+            crate_error=str(msg.crate_error) or None,
         )
     except (ValueError, TypeError) as exc:
         raise WireError(f"{STATUS}: not a valid status: {exc}") from exc

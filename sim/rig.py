@@ -44,11 +44,13 @@ if TYPE_CHECKING:
     from biris_hw.axes.cia402 import Cia402Axes
     from sim.cia402 import SimulatedDrive
     from sim.vmusb import SimulatedVmUsb, VmUsbBackend
+    from sim.wiener_crate import SimulatedCrate
 
 __all__ = [
     "AXES",
     "CAN_BUS_OPTIONS",
     "CAN_NODES",
+    "CRATE_ID",
     "TRANSPORTS",
     "USB_ROUND_TRIP_S",
     "VME_MAP",
@@ -61,6 +63,8 @@ AXES = ("hctl1000", "canopen")
 CAN bus (``axes="canopen"``)."""
 
 CAN_NODES = {Axis.AZIMUTH: 2, Axis.ELEVATION: 3}
+CRATE_ID = 1
+"""The simulated crate's CAN id (``crate=True``)."""
 """The simulated drives' CANopen node ids."""
 
 CAN_BUS_OPTIONS: dict[str, float] = {
@@ -183,6 +187,12 @@ class SimulatedBiris:
     counters, its audit of protocol misuse, ``unplug()``). ``usb_round_trip_s`` sets the
     modelled cost of an OUT and IN pair in hardware seconds (default: the device's, two
     high-speed microframes).
+
+    ``crate=True`` adds the VME crate's own monitor: a simulated Wiener crate on a python-can
+    ``virtual`` channel of the rig's own (:attr:`crate`, its fault panel; crate id
+    :data:`CRATE_ID`), and the driver's :class:`~biris_hw.crate.CrateMonitor` as
+    ``hardware.crate``, which a server polls every ``crate_poll_s`` real seconds into
+    ``status().crate``.
     """
 
     def __init__(
@@ -200,6 +210,8 @@ class SimulatedBiris:
         transport: str = "memory",
         usb_round_trip_s: float | None = None,
         axes: str = "hctl1000",
+        crate: bool = False,
+        crate_poll_s: float = 0.05,
     ) -> None:
         if transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, not {transport!r}")
@@ -223,6 +235,11 @@ class SimulatedBiris:
         """The simulated VM-USB (``transport="vmusb"``): its counters and audit of the USB side."""
         self.usb_backend: VmUsbBackend | None = None
         """The pyusb backend the driver finds the VM-USB through (``transport="vmusb"``)."""
+        self.crate: SimulatedCrate | None = None
+        """The VME crate's simulated Wiener monitor on CAN (``crate=True``): its state and
+        fault panel (``fail_fan``, ``overheat``, ``power_off``, ``go_silent``)."""
+        self.crate_channel: str | None = None
+        """The python-can ``virtual`` channel the crate answers on (``crate=True``)."""
         self.scene = scene if scene is not None else Scene.room()
         self._initial_elevation = float(initial_elevation_counts)
         self.samples = samples
@@ -247,6 +264,12 @@ class SimulatedBiris:
             self._level2.close()
             self._level3.close()
             raise
+        if crate:
+            try:
+                self._add_crate(crate_poll_s)
+            except BaseException:
+                self.close()
+                raise
 
     def _build(
         self,
@@ -336,6 +359,21 @@ class SimulatedBiris:
             clock=self.clock.now,
             time_scale=time_scale,
         )
+
+    # -- the crate's monitor on CAN ------------------------------------------------------------
+    def _add_crate(self, poll_s: float) -> None:
+        """A Wiener crate monitor on a virtual channel of this rig's own, and the driver's
+        :class:`~biris_hw.crate.CrateMonitor` on it in :attr:`hardware` (polled every
+        ``poll_s`` real seconds by a server)."""
+        from biris_hw.crate import CrateMonitor
+        from sim.wiener_crate import SimulatedCrate
+
+        self.crate_channel = f"biris-crate-{uuid.uuid4().hex}"
+        self.crate = SimulatedCrate(self.crate_channel, CRATE_ID)
+        self.hardware.crate = CrateMonitor.open(
+            interface="virtual", channel=self.crate_channel, crate_id=CRATE_ID
+        )
+        self.hardware.crate_poll_s = poll_s
 
     # -- CiA 402 axes on a virtual CAN bus -------------------------------------------------------
     def _make_drives(self, az_plant: MotorPlant, el_plant: MotorPlant) -> None:
@@ -603,6 +641,8 @@ class SimulatedBiris:
         self.level3_gate.close()
         self.hardware.close()  # the driver's CAN bus first: the drives outlive its last frame
         self._close_drives()
+        if self.crate is not None:
+            self.crate.close()
         self._supervisor_window.close()
         if self.usb_device is not None:
             self.usb_device.close()

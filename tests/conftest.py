@@ -138,6 +138,11 @@ class _Watch:
                         "a simulated CiA 402 drive recorded driver rule violations:\n  "
                         + "\n  ".join(rig.drive_violations)
                     )
+                if rig.crate is not None and rig.crate.violations:
+                    found.append(
+                        "the simulated VME crate recorded misuse of its CAN protocol:\n  "
+                        + "\n  ".join(map(str, rig.crate.violations))
+                    )
                 if rig.usb_device is not None and rig.usb_device.violations:
                     found.append(
                         "the simulated VM-USB recorded protocol misuse:\n  "

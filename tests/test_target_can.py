@@ -111,6 +111,8 @@ def test_the_can_example_parses_and_names_real_interfaces() -> None:
     assert data["axes"]["kind"] == "cia402"
     assert (data["axes"]["interface"], data["axes"]["channel"]) == ("socketcan", "can0")
     assert data["axes"]["pan_node"] != data["axes"]["tilt_node"]
+    assert "\n[crate]\n" in text and data["crate"]["kind"] == "wiener-can"
+    assert data["crate"]["channel"] == data["axes"]["channel"]  # one bus, different ids
 
 
 def test_regdump_reads_a_can_target_without_a_board(tmp_path: Path, biris: Run) -> None:

@@ -39,8 +39,9 @@ from biris_hw.commands.common import (
 from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.status import ServerState, ServerStatus
 from biris_hw.sweeps import sweeping
+from regs.wiener_crate import CrateReading
 
-__all__ = ["add_arguments", "run", "status_line", "status_table"]
+__all__ = ["add_arguments", "crate_summary", "run", "status_line", "status_table"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -149,7 +150,45 @@ def status_line(status: Mapping[str, Any], elapsed: float) -> str:
         *(f"irq.{k}={v}" for k, v in irq.items()),
         f"connections={len(status.get('connections', {}))}",
     ]
+    crate = crate_summary(status)
+    if crate is not None:
+        parts.append(f"crate={crate.replace(' ', '_')}")
     return " ".join(parts)
+
+
+def crate_summary(status: Mapping[str, Any]) -> str | None:
+    """The VME crate in a few words (None without a crate monitor): ``ok``, its alarms, or
+    ``unreachable`` when its last poll failed."""
+    reading, error = status.get("crate"), status.get("crate_error")
+    if error:
+        return "unreachable"
+    if not isinstance(reading, CrateReading):
+        return None
+    alarms = reading.alarms()
+    return "; ".join(alarms) if alarms else "ok"
+
+
+def _crate_rows(status: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """The crate's section of the table: its state, fitted channels, fans, temperatures."""
+    summary = crate_summary(status)
+    if summary is None:
+        return []
+    colour = "green" if summary == "ok" else "red"
+    rows = [("VME crate", f"[{colour}]{summary}[/]")]
+    error = status.get("crate_error")
+    if error:
+        rows.append(("crate error", str(error)))
+    reading = status.get("crate")
+    if isinstance(reading, CrateReading):
+        supplies = ", ".join(
+            f"{volts:+.2f} V {amps:.2f} A"
+            for volts, amps in zip(reading.voltages_v, reading.currents_a, strict=True)
+            if volts or amps  # a channel not fitted reads 0 V, 0 A
+        )
+        rows.append(("crate supplies", supplies or "-"))
+        rows.append(("crate fans", " ".join(f"{rps * 60}" for rps in reading.fans_rps) + " rpm"))
+        rows.append(("crate temperatures", " ".join(f"{c}" for c in reading.temperatures_c) + " C"))
+    return rows
 
 
 def status_table(status: Mapping[str, Any], elapsed: float) -> Any:
@@ -172,6 +211,11 @@ def status_table(status: Mapping[str, Any], elapsed: float) -> Any:
         table.add_row(label, text)
     table.add_row("continuous", "yes" if status.get("continuous") else "no")
     table.add_row("acquisition", str(status.get("acquisition", "-")))
+    crate = _crate_rows(status)
+    if crate:
+        table.add_section()
+        for label, text in crate:
+            table.add_row(label, text)
     table.add_section()
     for key, value in status.get("counters", {}).items():
         table.add_row(key.replace("_", " "), str(value))

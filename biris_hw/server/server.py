@@ -19,7 +19,7 @@ import logging
 import threading
 from collections.abc import Callable
 from types import TracebackType
-from typing import Literal, overload
+from typing import Any, Literal, overload
 
 from biris_hw.affinity import check_cpus, pinned
 from biris_hw.axes.base import MotionAxis
@@ -33,6 +33,7 @@ from biris_hw.records import BirisInitRecord
 from biris_hw.server import tasks
 from biris_hw.server.acquisition import AcquisitionReader
 from biris_hw.server.admin import Administrator
+from biris_hw.server.crate_watch import CrateWatch
 from biris_hw.server.initialiser import Initialiser, InitResult, run_initialiser
 from biris_hw.server.isr import Level2Demux, Level3Demux, Logical
 from biris_hw.server.messages import BirisTimeoutErr, InitDone, MotorWatchdogErr
@@ -102,9 +103,13 @@ class BirisServer:
             self.elevation_watchdog,
             hw.time_scale,
         )
+        self.crate_watch: CrateWatch | None = None
+        """The crate monitor's poller (``hardware.crate``), or None without one."""
         try:
             with pinned(self.record.cpus) if self.record.cpus else contextlib.nullcontext():
                 self._create_tasks()  # every task inherits the CPUs (biris_hw.affinity)
+                if hw.crate is not None:
+                    self.crate_watch = CrateWatch(hw.crate, hw.crate_poll_s).start()
             self._initialise()
         except BaseException:
             self.close()
@@ -317,7 +322,15 @@ class BirisServer:
             },
             azimuth_live=self._encoder(self.azimuth) if homed else None,
             elevation_live=self._encoder(self.elevation) if homed else None,
+            **self._crate(),
         )
+
+    def _crate(self) -> dict[str, Any]:
+        """``crate`` and ``crate_error`` for status(), from what the poller holds (no wait)."""
+        if self.crate_watch is None:
+            return {}
+        reading, error = self.crate_watch.latest()
+        return {"crate": reading, "crate_error": error}
 
     @staticmethod
     def _encoder(axis: MotionAxis) -> int | None:
@@ -366,6 +379,8 @@ class BirisServer:
         self.biris_timeout.stop()
         self.motor_watchdog.stop()
         self.elevation_watchdog.stop()
+        if self.crate_watch is not None:
+            self.crate_watch.close()
         for thread in self._threads:
             if thread is not threading.current_thread():
                 thread.join()
