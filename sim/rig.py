@@ -370,8 +370,8 @@ class SimulatedBiris:
 
         self.crate_channel = f"biris-crate-{uuid.uuid4().hex}"
         self.crate = SimulatedCrate(self.crate_channel, CRATE_ID)
-        self.hardware.crate = CrateMonitor.open(
-            interface="virtual", channel=self.crate_channel, crate_id=CRATE_ID
+        self.hardware.crate = CrateMonitor.open(  # answers take about 1 ms on a virtual bus
+            interface="virtual", channel=self.crate_channel, crate_id=CRATE_ID, timeout_s=0.05
         )
         self.hardware.crate_poll_s = poll_s
 
