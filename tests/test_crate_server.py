@@ -8,6 +8,7 @@ part of the sensor's hardware time, so nothing here depends on ``time_scale``.
 
 from __future__ import annotations
 
+import json
 import logging
 import uuid
 from pathlib import Path
@@ -25,7 +26,7 @@ from biris_hw.target import load_target
 from biris_hw.wire import decode_status, encode_status
 from regs.wiener_crate import CrateReading
 from sim import SimulatedBiris
-from tests.conftest import RigFactory
+from tests.conftest import RigFactory, Run
 
 WAIT = 10.0
 
@@ -246,3 +247,31 @@ def test_a_crate_on_the_drives_bus_may_not_take_a_drives_node_id(tmp_path: Path)
     crate = f'kind = "wiener-can"\ninterface = "virtual"\nchannel = "{channel}"\ncrate_id = 3\n'
     with pytest.raises(RequestError, match=r"crate\.crate_id: 3 is a drive's node id"):
         load_target(_target(tmp_path, crate, axes))
+
+
+def test_regdump_shows_a_targets_crate_and_a_silent_one(tmp_path: Path, biris: Run) -> None:
+    from sim.wiener_crate import SimulatedCrate
+
+    channel = f"crate-{uuid.uuid4().hex}"
+    path = _target(
+        tmp_path,
+        f'kind = "wiener-can"\ninterface = "virtual"\nchannel = "{channel}"\ncrate_id = 4\n'
+        "timeout = 0.05\n",
+    )
+    with SimulatedCrate(channel, 4) as crate:
+        crate.fail_fan(0)
+        code, out, err = biris("regdump", "--target", str(path), "--json")
+        assert code == 0, err
+        section = json.loads(out)["crate"]
+        assert section["title"] == "Wiener VME crate 4" and section["power"] is True
+        assert section["fans"][0] == 0 and any("fan" in a for a in section["alarms"])
+        assert section["channel 0"][0] == pytest.approx(crate.voltages_v[0], abs=0.01)
+        code, out, err = biris("regdump", "--target", str(path))
+        assert code == 0, err
+        assert "Wiener VME crate 4" in out and "fan failure" in out
+    # the crate gone: the boards are still dumped, and the crate's row says why it is empty
+    code, out, err = biris("regdump", "--target", str(path), "--json")
+    assert code == 0, err
+    dump = json.loads(out)
+    assert "no answer" in dump["crate"]["answer"] and "crate 4" in dump["crate"]["answer"]
+    assert "biexec" in dump and "coupler" in dump

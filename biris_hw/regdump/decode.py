@@ -1,4 +1,5 @@
-"""Whole dumps: BIEXEC_COM, the frames, both HCTL-1000s, the Model 7600 board and the coupler.
+"""Whole dumps: BIEXEC_COM, the frames, both HCTL-1000s, the Model 7600 board and the coupler
+(and a target's VME crate, read over CAN, when it has a ``[crate]``).
 
 Each section is read with the hardware's rules (see :mod:`biris_hw.regdump.registers`) and gets,
 besides its registers, the derived values a person would otherwise work out by hand: the flags
@@ -9,7 +10,9 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
+from biris_hw.errors import BirisError
 from biris_hw.hardware import BirisHardware
 from biris_hw.regdump.frames import frames_section
 from biris_hw.regdump.model import Dump, DumpError, Row, Section, hex_offset
@@ -22,7 +25,10 @@ from regs.hctl1000 import Status, counts_to_deg, sample_period
 from regs.layout import FRAME_DTYPE, BirisMemoryMap, TargetImage
 from regs.tech80 import BOARD_REGISTERS, Axis, hctl_registers_for
 
-__all__ = ["snapshot", "snapshot_hardware", "snapshot_regions"]
+if TYPE_CHECKING:
+    from biris_hw.crate import CrateMonitor
+
+__all__ = ["crate_section", "snapshot", "snapshot_hardware", "snapshot_regions"]
 
 
 def _biexec_section(biris: Region, mm: BirisMemoryMap) -> tuple[Section, dict[str, int]]:
@@ -210,7 +216,7 @@ def snapshot_hardware(
     """Dump a hardware bundle's three windows (the range base is the map's: a dump asks BIRIS
     nothing, so pass the map the server learned when it differs from the default)."""
     mm = memory_map or BirisMemoryMap(biris_base=hw.biris_base, biexec_offset=hw.biexec_offset)
-    return snapshot_regions(
+    dump = snapshot_regions(
         Region(hw.biris, 0, hw.biris.size),
         Region(hw.motion, 0, hw.motion.size) if hw.motion is not None else None,
         Region(hw.coupler, 0, hw.coupler.size),
@@ -218,3 +224,41 @@ def snapshot_hardware(
         frame_size=frame_size,
         source="hardware bundle",
     )
+    if hw.crate is None:
+        return dump
+    return Dump(dump.source, dump.layout, (*dump.sections, crate_section(hw.crate)))
+
+
+def crate_section(monitor: CrateMonitor) -> Section:
+    """The VME crate's reading over CAN (a target's ``[crate]``), decoded; a crate that does
+    not answer is a row saying so, not a failed dump (the boards may still be readable)."""
+    title = f"Wiener VME crate {monitor.crate_id}"
+    try:
+        reading = monitor.read()
+    except BirisError as exc:
+        answer = Row("answer", str(exc), value=str(exc))
+        return Section("crate", title, monitor.channel_info, 0, (answer,))
+    alarms = reading.alarms()
+    rows = [
+        Row("status", reading.status_bytes.hex(" ").upper(), value=reading.status_bytes.hex()),
+        Row("power", "on" if reading.power_on else "off", value=reading.power_on),
+        Row("alarms", "; ".join(alarms) or "none", value=list(alarms)),
+    ]
+    for n, (volts, amps) in enumerate(zip(reading.voltages_v, reading.currents_a, strict=True)):
+        rows.append(Row(f"channel {n}", f"{volts:+.2f} V  {amps:.2f} A", value=[volts, amps]))
+    rows.append(
+        Row(
+            "fans",
+            " ".join(str(rps * 60) for rps in reading.fans_rps)
+            + f" rpm (nominal {reading.fan_nominal_rps * 60})",
+            value=list(reading.fans_rps),
+        )
+    )
+    rows.append(
+        Row(
+            "temperatures",
+            " ".join(str(c) for c in reading.temperatures_c) + " C",
+            value=list(reading.temperatures_c),
+        )
+    )
+    return Section("crate", title, monitor.channel_info, 0, tuple(rows))
