@@ -251,7 +251,9 @@ def make_rig(time_scale: float) -> Iterator[RigFactory]:
     def make(**options: object) -> SimulatedBiris:
         options.setdefault("scene", Scene.circle(2.0))
         options.setdefault("time_scale", time_scale)
-        options.setdefault("seed", 7)
+        # seed 3 wakes the pan 170 counts from its index (seed 7: 1220, 0.33 s more homing at
+        # x30 for every server); homing from afar and from either side has tests of its own
+        options.setdefault("seed", 3)
         rig = SimulatedBiris(**options)  # type: ignore[arg-type]
         rigs.append(rig)
         return rig.start()

@@ -39,6 +39,7 @@ from biris_hw.server.acquisition import (
 )
 from biris_hw.server.counters import Counters
 from biris_hw.server.scan_assembly import ActiveScan
+from biris_hw.server.scan_timing import HOST_LATENCY_S
 from biris_hw.server.scanning import AcquisitionFate, ScanSequencer
 from biris_hw.status import Accounts
 from regs.biexec import ACQ_LINE_END, ACQ_LINE_STARTUP, OFF_CURRENT_FRAME, BiCommand, BiexecCom
@@ -609,7 +610,10 @@ def test_report_mode_scans_and_a_stop_account_for_every_acquisition(
     accounts = _check_drained(server, rig.supervisor.acquisitions_made, ring=False)
     # every acquisition is in a scan, but for the few made standing at a scan's ends
     assert accounts.in_scans + accounts.constant_azimuth == accounts.read > 0
-    assert accounts.constant_azimuth <= 4 * server.status().counters["scans"]
+    # a couple at either end, and the host's latency in hardware time at the end (learned
+    # scan after scan: a loaded host at x30 adds up to a few periods; scan_timing)
+    allowance = 4 + math.ceil(rig.time_scale * HOST_LATENCY_S / PERIOD)
+    assert accounts.constant_azimuth <= allowance * server.status().counters["scans"]
 
 
 def test_report_mode_a_fault_mid_scan_then_reset_accounts_for_every_acquisition(
