@@ -320,19 +320,27 @@ def _open_line(
         raise _opening_error(key, kind, exc) from exc
 
 
+def _kind_table(
+    name: str, spec: object, kinds: tuple[str, ...], keys: frozenset[str]
+) -> Mapping[str, Any]:
+    """A table naming its ``kind`` (one of ``kinds``) with no key but ``keys``."""
+    table = _table(name, spec)
+    kind = table.get("kind")
+    if kind not in kinds:
+        raise RequestError(f"{name}.kind: must be one of {', '.join(kinds)}, not {kind!r}")
+    for key in table:
+        if key not in keys:
+            raise RequestError(f"{name}.{key}: not an option of kind {kind!r}")
+    return table
+
+
 def _axes_options(spec: object) -> dict[str, Any]:
     """The ``[axes]`` table as :class:`~biris_hw.axes.cia402.Cia402Axes` keywords: our keys
     checked and renamed, python-can's (``interface``, ``channel``, ``bitrate``, ``context``
     and the ``can`` sub-table's) passed to ``can.Bus`` as they are. Without ``interface`` and
     ``channel`` python-can takes them from its own configuration (``~/.canrc``, ``can.ini``,
     ``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_BITRATE``; ``context`` picks a section)."""
-    table = _table("axes", spec)
-    kind = table.get("kind")
-    if kind not in AXES_KINDS:
-        raise RequestError(f"axes.kind: must be one of {', '.join(AXES_KINDS)}, not {kind!r}")
-    for key in table:
-        if key not in _AXES_KEYS:
-            raise RequestError(f"axes.{key}: not an option of kind {kind!r}")
+    table = _kind_table("axes", spec, AXES_KINDS, _AXES_KEYS)
     try:
         from biris_hw.axes.cia402 import NODE_IDS, check_homing_method, check_node_id
     except ImportError as exc:
@@ -411,13 +419,7 @@ def _open_crate(spec: object) -> tuple[CrateMonitor, float]:
     configuration); ``crate_id`` is the crate's CAN id (1..126, set on its front panel),
     ``poll`` the seconds between readings (default 1), ``timeout`` how long one answer may take
     (default 0.25 s)."""
-    table = _table("crate", spec)
-    kind = table.get("kind")
-    if kind not in CRATE_KINDS:
-        raise RequestError(f"crate.kind: must be one of {', '.join(CRATE_KINDS)}, not {kind!r}")
-    for key in table:
-        if key not in _CRATE_KEYS:
-            raise RequestError(f"crate.{key}: not an option of kind {kind!r}")
+    table = _kind_table("crate", spec, CRATE_KINDS, _CRATE_KEYS)
     if "crate_id" not in table:
         raise RequestError(
             f"crate.crate_id: missing (the crate's CAN id, {CRATE_IDS.start}..{CRATE_IDS.stop - 1})"
