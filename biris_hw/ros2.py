@@ -539,6 +539,9 @@ def diagnostics(
                 values.append(key_value(key=key, value=_value(status[key])))
         for key, count in dict(status.get("counters", {})).items():
             values.append(key_value(key=f"counters.{key}", value=_value(count)))
+        down = status.get("tasks_down") or ()
+        if down:
+            values.append(key_value(key="tasks_down", value=",".join(down)))
         message = state if error is None else f"{state}: {error}"
         items.append(
             status_type(

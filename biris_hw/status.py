@@ -161,6 +161,13 @@ class ServerStatus(_ReadsAsMapping):
     START_CONTINUOUS waits for the scan under way (or continuous scanning) to end, as BIRIS_HOME
     does. ``acquisition`` keeps saying the mode the data are taken in until then. Only a start
     ever waits: STOP_CONTINUOUS takes effect at once (and withdraws a start that waits)."""
+    tasks_down: tuple[str, ...] = ()
+    """The server's tasks (:mod:`biris_hw.server.task_table` names) that failed and wait for
+    the next reset, sorted; empty while every task runs. A failure is a fault too (``internal``,
+    or the kind of the hardware fault the task met), so this says which part of the server the
+    reset will bring back."""
+    task_failures: Mapping[str, int] = field(default_factory=dict)
+    """How many times each task has failed since the server started (only those that have)."""
     crate: CrateReading | None = None
     """The VME crate's last reading over CAN (power, voltages, fans, temperatures and the
     crate's own alarms: ``crate.alarms()``), when the hardware has a crate monitor

@@ -220,6 +220,9 @@ int32 elevation_live
 uint64 acquisitions_in_progress
 # the acquisition mode asked for and not yet in force, else empty
 string acquisition_pending
+# the server's tasks that failed and wait for the next reset; failures per task so far
+string[] tasks_down
+biris_msgs/Counter[] task_failures
 # the VME crate's last reading, when the sensor has a crate monitor
 bool has_crate
 biris_msgs/CrateStatus crate
@@ -521,6 +524,8 @@ def encode_status(status: ServerStatus, t: float = 0.0) -> bytes:
         elevation_live=status.elevation_live or 0,
         acquisitions_in_progress=status.acquisitions_in_progress,
         acquisition_pending=status.acquisition_pending or "",
+        tasks_down=list(status.tasks_down),
+        task_failures=_counters(status.task_failures),
         has_crate=status.crate is not None,
         crate=_crate(status.crate),
         crate_error=status.crate_error or "",
@@ -622,6 +627,8 @@ def decode_status(data: bytes | bytearray | memoryview) -> ServerStatus:
             elevation_live=int(msg.elevation_live) if msg.has_elevation_live else None,
             acquisitions_in_progress=int(msg.acquisitions_in_progress),
             acquisition_pending=str(msg.acquisition_pending) or None,
+            tasks_down=tuple(str(name) for name in msg.tasks_down),
+            task_failures={str(c.name): int(c.value) for c in msg.task_failures},
             crate=_uncrate(msg.crate) if msg.has_crate else None,
             crate_error=str(msg.crate_error) or None,
         )

@@ -20,6 +20,7 @@ import pytest
 
 from biris_hw import ConnectionKind, Direction
 from biris_hw import protocol as p
+from biris_hw.commands.watch import status_line
 from biris_hw.errors import BusError, HardwareFault
 from biris_hw.ipc import Mailbox, TaskStopped
 from biris_hw.irq import EventFdLine
@@ -457,6 +458,9 @@ def test_an_exception_in_a_task_is_an_internal_fault_and_reset_brings_it_back(
     assert len(logged) == 1 and name in logged[0].getMessage()
     assert logged[0].exc_info is not None and logged[0].exc_info[2] is not None  # traceback
     assert server.supervisor.down == {name}
+    status = server.status()  # said where a client can see it, not only in the log
+    assert status.tasks_down == (name,) and dict(status.task_failures) == {name: 1}
+    assert f"tasks_down={name}" in status_line(status, 0.0)
     alive = {t.name for t in threading.enumerate()}
     assert set(threads(Starts.WITH_SERVER)) <= alive  # it waits, alive: the table still holds
 
@@ -470,6 +474,8 @@ def test_an_exception_in_a_task_is_an_internal_fault_and_reset_brings_it_back(
     conn.reset()
     assert server.supervisor.down == frozenset()
     assert server.status()["state"] == "idle"
+    assert server.status().tasks_down == ()  # back; the count remembers
+    assert dict(server.status().task_failures) == {name: 1}
     conn.single_scan(-20.0)
     conn.wait_idle(timeout=WAIT)
     scan = conn.request_scan_data(Direction.CW)

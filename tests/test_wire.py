@@ -156,8 +156,12 @@ def test_status_round_trip() -> None:
         elevation_live=7,
         acquisitions_in_progress=5,
         acquisition_pending="continuous",
+        tasks_down=("az_scan_start", "biris_cmd_notifier"),
+        task_failures={"az_scan_start": 2, "biris_cmd_notifier": 1},
     )
     back = wire.decode_status(wire.encode_status(status, t=3.25))
+    assert back.tasks_down == status.tasks_down
+    assert dict(back.task_failures) == dict(status.task_failures)
     assert back.state_name == "fault:bus" and back["state"] == "fault:bus"
     for name in ("azimuth", "elevation", "calibration", "continuous", "acquisition", "ring"):
         assert back[name] == status[name], name

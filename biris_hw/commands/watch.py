@@ -150,6 +150,9 @@ def status_line(status: Mapping[str, Any], elapsed: float) -> str:
         *(f"irq.{k}={v}" for k, v in irq.items()),
         f"connections={len(status.get('connections', {}))}",
     ]
+    down = status.get("tasks_down") or ()
+    if down:
+        parts.append(f"tasks_down={','.join(down)}")
     crate = crate_summary(status)
     if crate is not None:
         parts.append(f"crate={crate.replace(' ', '_')}")
@@ -211,6 +214,9 @@ def status_table(status: Mapping[str, Any], elapsed: float) -> Any:
         table.add_row(label, text)
     table.add_row("continuous", "yes" if status.get("continuous") else "no")
     table.add_row("acquisition", str(status.get("acquisition", "-")))
+    down = status.get("tasks_down") or ()
+    if down:  # a failed task waits for a reset: the fault says what, this says where
+        table.add_row("tasks down", f"[red]{', '.join(down)}[/] (until reset)")
     crate = _crate_rows(status)
     if crate:
         table.add_section()

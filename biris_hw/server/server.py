@@ -303,8 +303,10 @@ class BirisServer:
         ``azimuth`` and ``elevation`` (counts: where the axes were last sent),
         ``azimuth_live`` and ``elevation_live`` (counts: the encoders now, None while
         initialising or if the board cannot be read), ``counters``, ``interrupts`` by logical
-        kind, and per connection its policy, queue, deliveries, drops and delivery-latency
-        histogram with p50 and p99 (see the README).
+        kind, the tasks that failed and wait for a reset (``tasks_down``, ``task_failures``),
+        the VME crate's last reading when the hardware has a crate monitor (``crate``,
+        ``crate_error``), and per connection its policy, queue, deliveries, drops and
+        delivery-latency histogram with p50 and p99 (see the README).
 
         Raises:
             ConnectionClosed: the server has stopped.
@@ -322,6 +324,8 @@ class BirisServer:
             },
             azimuth_live=self._encoder(self.azimuth) if homed else None,
             elevation_live=self._encoder(self.elevation) if homed else None,
+            tasks_down=tuple(sorted(self.supervisor.down)),
+            task_failures=self.supervisor.failure_counts(),
             **self._crate(),
         )
 

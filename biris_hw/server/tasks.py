@@ -196,6 +196,12 @@ class Supervisor:
         with self._cond:
             return frozenset(self._down)
 
+    def failure_counts(self) -> dict[str, int]:
+        """:attr:`failures` as of now, copied under the lock (for ``status()``, from any
+        thread)."""
+        with self._cond:
+            return dict(self.failures)
+
     def wait_down(self, name: str, timeout: float | None = None) -> bool:
         """Block until task ``name`` is waiting for a reset (True) or ``timeout`` passes; for
         tests, which must not sleep to find that out."""
