@@ -111,6 +111,18 @@ class FaultPanel:
         for gate in self._gates:
             gate.coalesce(enabled, burst)
 
+    def lose_motor_interrupt(self) -> None:
+        """The Model 7600's next end-of-motion interrupt is lost on the way (level 3): the
+        board latches the end as usual, but no interrupt reaches the host. A driver that waits
+        only for the edge never hears the move end.
+
+        Raises:
+            RuntimeError: the axes are CiA 402 drives (their end of motion is a CAN frame).
+        """
+        if self._pan_drive is not None:
+            raise RuntimeError("the axes are CiA 402 drives: there is no level-3 interrupt")
+        self._gates[1].drop_next("motor")
+
     def spurious_interrupt(self) -> None:
         """A level-2 interrupt with no cause behind it."""
         self._level2.spurious()

@@ -78,6 +78,8 @@ class Core:
             self.clock, lambda generation: m.MotorWatchdogErr(generation, Axis.ELEVATION)
         )
         self.initialiser_starts = 0
+        self.rechecks = 0
+        """How many times the administrator asked the level-3 routine to look again."""
         self.admin = Administrator(
             self.record,
             self.inbox,
@@ -86,6 +88,7 @@ class Core:
             self.az_watchdog,
             self._start_initialiser,
             self.el_watchdog,
+            recheck_motion=self._recheck,
         )
         self.transfer = self.send(m.CmdTransferRdy())
         self.notifier: Ticket | None = None
@@ -96,6 +99,9 @@ class Core:
 
     def _start_initialiser(self) -> None:
         self.initialiser_starts += 1
+
+    def _recheck(self) -> None:
+        self.rechecks += 1
 
     # -- the inbox ---------------------------------------------------------------------------
     def send(self, message: object) -> Ticket:

@@ -15,6 +15,7 @@ from biris_hw.errors import HardwareFault, RequestError
 from biris_hw.records import BirisInitRecord, MotorParams
 from biris_hw.server import messages as m
 from biris_hw.server.continuous_mode import TRANSITIONS, Ring, RingState
+from biris_hw.server.motion import RECHECK_GRACE_S
 from biris_hw.server.scan_timing import ScanTiming
 from biris_hw.status import ServerState
 from regs.biexec import BiCommand, BiStatus
@@ -188,13 +189,40 @@ def test_a_stale_timer_expiry_is_not_a_fault(core: Core) -> None:
     assert core.admin.life.fault is None
 
 
-def test_a_move_that_never_ends_is_a_motor_stall(core: Core) -> None:
+def test_a_move_that_never_ends_is_a_motor_stall_once_the_controller_was_asked(
+    core: Core,
+) -> None:
     conn = core.open()
+    core.call(p.TimeoutDisable(conn))  # BIRIS's own 4 s would come first: the motor is judged
     _scan(core, conn, 1024)
+    assert core.az_watchdog.deadline is not None
+    core.advance(core.az_watchdog.deadline - core.clock.now + 0.01)
+    # first the level-3 routine is asked to read the board (an end whose interrupt was lost)
+    assert core.admin.life.fault is None and core.rechecks == 1
+    assert core.az_watchdog.arms[-1] == RECHECK_GRACE_S
     assert core.az_watchdog.deadline is not None
     core.advance(core.az_watchdog.deadline - core.clock.now + 0.01)
     fault = core.admin.life.fault
     assert fault is not None and fault.kind == "motor_stall"
+    assert "asked" in fault.message and core.rechecks == 1  # asked once, not again
+
+
+def test_a_move_whose_end_is_found_on_asking_completes(core: Core) -> None:
+    conn = core.open()
+    acquire, _ = _scan(core, conn, 1024)
+    assert core.az_watchdog.deadline is not None
+    core.advance(core.az_watchdog.deadline - core.clock.now + 0.01)
+    assert core.rechecks == 1
+    core.acquisitions(acquire.seq_id, range(acquire.n_acquisitions))
+    core.complete(acquire)
+    core.arrive()  # the notifier, woken by the routine's look, verified the arrival
+    assert core.az_watchdog.deadline is None  # disarmed by the end
+    core.advance(RECHECK_GRACE_S * 2)
+    assert core.admin.life.fault is None
+    assert core.admin.state() is ServerState.IDLE
+    # the next move gets the whole bound and its own one question
+    _scan(core, conn, 0)
+    assert core.admin.az.rechecked is False and core.az_watchdog.arms[-1] > RECHECK_GRACE_S
 
 
 def test_a_refused_request_changes_nothing(core: Core) -> None:

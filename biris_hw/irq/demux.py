@@ -27,6 +27,11 @@ ways, for two kinds of owner:
 
 Either way :meth:`Demultiplexer.close` stops and joins the thread, and only then closes the stop
 eventfd and the logical lines.
+
+An owner that expected an interrupt and has not seen it (an edge lost on the way: a motor
+watchdog running out on a move whose profile has in fact ended) calls
+:meth:`Demultiplexer.recheck`: the routine's thread then reads the devices once as if they had
+interrupted (:meth:`Demultiplexer._look`), so a lost interrupt costs a delay, not the move.
 """
 
 from __future__ import annotations
@@ -78,6 +83,12 @@ class Demultiplexer(ABC, Generic[K]):
         except BaseException:
             self._close_logical()
             raise
+        try:
+            self._look_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
+        except BaseException:
+            os.close(self._stop_fd)
+            self._close_logical()
+            raise
         self._lifecycle = threading.Lock()
         self._stats = threading.Lock()
         self._counts: dict[K, int] = dict.fromkeys(self._lines, 0)
@@ -122,6 +133,14 @@ class Demultiplexer(ABC, Generic[K]):
     @property
     def closed(self) -> bool:
         return self._closed
+
+    def recheck(self) -> None:
+        """Ask the routine to look at the devices as if they had interrupted (:meth:`_look`),
+        from any thread, without waiting: for an owner that expected an interrupt and has not
+        seen it (a lost edge). Nothing once closed."""
+        with self._lifecycle:
+            if not self._closed:
+                os.eventfd_write(self._look_fd, 1)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def start(self) -> None:
@@ -189,6 +208,7 @@ class Demultiplexer(ABC, Generic[K]):
                 release, self._release_on_exit = self._release_on_exit, False
             if release:
                 os.close(self._stop_fd)
+                os.close(self._look_fd)
 
     def _enter(self) -> bool:
         """Claim the routine for the calling thread; False if it is closed already."""
@@ -235,6 +255,7 @@ class Demultiplexer(ABC, Generic[K]):
             self._release_on_exit = inside
         if not inside:
             os.close(self._stop_fd)
+            os.close(self._look_fd)
         self._shut.set()
 
     def __enter__(self: _D) -> _D:
@@ -259,15 +280,19 @@ class Demultiplexer(ABC, Generic[K]):
         poller.register(self._stop_fd, select.POLLIN)
         line_fd = self._line.fileno()  # LineClosed if it is closed already
         poller.register(line_fd, select.POLLIN | select.POLLERR)
+        poller.register(self._look_fd, select.POLLIN)
         while True:
             ready = dict(poller.poll())
             if self._stop_fd in ready:  # checked first: shutdown wins over an interrupt flood
                 return
-            if line_fd not in ready:
-                continue
-            count = self._line.wait(0)
-            if count:
-                self._service(count)
+            if line_fd in ready:
+                count = self._line.wait(0)
+                if count:
+                    self._service(count)
+            if self._look_fd in ready:
+                with contextlib.suppress(BlockingIOError):
+                    os.eventfd_read(self._look_fd)
+                self._look()
 
     def _close_logical(self) -> None:
         for logical_line in self._lines.values():
@@ -302,3 +327,8 @@ class Demultiplexer(ABC, Generic[K]):
     @abstractmethod
     def _service(self, count: int) -> None:
         """Decode ``count`` coalesced physical interrupts into logical ones."""
+
+    def _look(self) -> None:
+        """:meth:`recheck` asked: read the devices with no interrupt behind it, raising what
+        they say has happened. Nothing by default (a routine whose devices keep no state to
+        read again)."""

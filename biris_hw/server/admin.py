@@ -90,8 +90,12 @@ class Administrator:
         start_initialiser: Callable[[], None],
         elevation_watchdog: Timer | None = None,
         time_scale: float = 1.0,
+        recheck_motion: Callable[[], None] | None = None,
     ) -> None:
         self.record = record
+        self._recheck_motion = recheck_motion
+        """Asks the level-3 routine to read the motion controller as if it had interrupted
+        (never blocks); None: a watchdog that runs out is a fault at once."""
         self.inbox = inbox
         self.clock = clock
         self._start_initialiser = start_initialiser
@@ -693,10 +697,24 @@ class Administrator:
             fail_quietly(job.requester, fault)
 
     def _on_watchdog_err(self, env: Envelope, msg: m.MotorWatchdogErr) -> None:
+        """A move's end was not reported within its bound. Once, the controller is asked
+        whether it had ended (its interrupt lost on the way: the notifier, woken, still
+        verifies the arrival) and the watchdog allows RECHECK_GRACE_S more; then, or with no
+        one to ask, the move is a motor_stall."""
         env.reply(None)
         axis = self._axis(msg.axis)
-        if msg.generation == axis.watchdog_gen and axis.current is not None:
-            self._fault("motor_stall", f"the {axis.name} motor did not reach its destination")
+        if msg.generation != axis.watchdog_gen or axis.current is None:
+            return
+        if not axis.rechecked and self._recheck_motion is not None:
+            log.warning(
+                "the %s move's end was not reported within its bound; asking the controller",
+                axis.name,
+            )
+            axis.grace()
+            self._recheck_motion()
+            return
+        asked = " (asked, the controller had not ended the move)" if axis.rechecked else ""
+        self._fault("motor_stall", f"the {axis.name} motor did not reach its destination{asked}")
 
     def _on_task_failed(self, env: Envelope, msg: m.TaskFailed) -> None:
         """A task hit a bus error (the target is gone), raised a hardware fault (a CiA 402

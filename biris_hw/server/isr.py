@@ -308,3 +308,22 @@ class Level3Demux(Demultiplexer[Logical]):
         for axis, logical in ended:
             self._controller.acknowledge(axis)
             self._raise(logical)
+
+    def _look(self) -> None:
+        """A motor watchdog ran out (:meth:`~biris_hw.irq.demux.Demultiplexer.recheck`): read
+        the controller fresh (never an IRQ stack's old read) and raise each axis whose end is
+        latched there: its interrupt was lost on the way, and the move's notifier, woken now,
+        still verifies the arrival. Said as a warning; nothing latched, nothing raised."""
+        fault = self._controller.take_fault()
+        if fault is not None:
+            raise fault
+        status = self._controller.ended_axes()
+        for axis, bit, logical in _AXES:
+            if status & bit:
+                log.warning(
+                    "%s: %s was latched but its interrupt never came; raised on asking",
+                    self.name,
+                    logical.name,
+                )
+                self._controller.acknowledge(axis)
+                self._raise(logical)

@@ -44,6 +44,11 @@ fault, never a completed scan. Appendix B's filter settles to 0 counts with at m
 overshoot; 8 leaves room for a softer user filter while any real failure (a locked shaft, a dead
 amplifier, a gain of 0) misses by the whole move."""
 
+RECHECK_GRACE_S = SETTLE_LIMIT_S + 0.5
+"""Hardware seconds a watchdog that ran out allows once more, after asking the controller
+whether the move had in fact ended (its interrupt lost): the notifier, woken, settles (up to
+:data:`SETTLE_LIMIT_S`) and reports. Only then is the move a motor_stall."""
+
 WATCHDOG_REAL_SLACK_S = 0.5
 """Real seconds a motor watchdog allows on top, for notifier threads that a busy machine runs
 late: on a simulator clock 20 times fast, 50 ms of starvation is a whole hardware second."""
@@ -94,6 +99,8 @@ class AxisState:
         self.current: Motion | None = None
         self.position = 0
         self.watchdog_gen = -1
+        self.rechecked = False
+        """The running move's watchdog ran out once and the controller was asked."""
         self._tokens = 0
 
     @property
@@ -141,9 +148,16 @@ class AxisState:
             self.watchdog_gen = self.watchdog.arm(
                 duration * 1.5 + SETTLE_LIMIT_S + 1.0, real_slack_s=WATCHDOG_REAL_SLACK_S
             )
+            self.rechecked = False
             self.position = dest
         env.reply(order)
         return True
+
+    def grace(self) -> None:
+        """The watchdog ran out: arm it once more for :data:`RECHECK_GRACE_S` while the
+        controller is asked whether the move had ended."""
+        self.rechecked = True
+        self.watchdog_gen = self.watchdog.arm(RECHECK_GRACE_S, real_slack_s=WATCHDOG_REAL_SLACK_S)
 
     def finish_current(self) -> Motion | None:
         """The running order is over (its end was reported); returns it."""

@@ -102,6 +102,7 @@ class BirisServer:
             self._start_initialiser,
             self.elevation_watchdog,
             hw.time_scale,
+            self.level3.recheck,
         )
         self.crate_watch: CrateWatch | None = None
         """The crate monitor's poller (``hardware.crate``), or None without one."""
