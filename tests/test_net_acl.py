@@ -107,18 +107,20 @@ RULES: list[tuple[str, str, list[str], list[str]]] = [
 readers and controllers."""
 
 
+def _allow(ident: str, flow: str, messages: list[str], keys: list[str]) -> dict[str, Any]:
+    """One allowing rule in Zenoh's configuration form."""
+    return {
+        "id": ident,
+        "permission": "allow",
+        "flows": [flow],
+        "messages": messages,
+        "key_exprs": keys,
+    }
+
+
 def access_control() -> dict[str, Any]:
     """The ``access_control`` section of the service's Zenoh configuration."""
-    rules = [
-        {
-            "id": ident,
-            "permission": "allow",
-            "flows": [flow],
-            "messages": messages,
-            "key_exprs": keys,
-        }
-        for ident, flow, messages, keys in RULES
-    ]
+    rules = [_allow(*rule) for rule in RULES]
     everyone = [ident for ident, *_ in RULES if ident != "control"]
     return {
         "enabled": True,
@@ -166,16 +168,7 @@ ROUTER_RULES: list[tuple[str, str, str, list[str], list[str]]] = [
 
 def router_access_control() -> dict[str, Any]:
     """The ``access_control`` section of the router's Zenoh configuration."""
-    rules = [
-        {
-            "id": ident,
-            "permission": "allow",
-            "flows": [flow],
-            "messages": messages,
-            "key_exprs": keys,
-        }
-        for ident, flow, _, messages, keys in ROUTER_RULES
-    ]
+    rules = [_allow(ident, flow, messages, keys) for ident, flow, _, messages, keys in ROUTER_RULES]
     subjects = {
         "service": ["service"],
         "clients": ["readers", "controllers"],
