@@ -601,12 +601,9 @@ def _crate_status(status: Mapping[str, Any], hardware_id: str) -> Any:
             level, message = _ERROR, "; ".join(alarms)
         values.append(key_value(key="crate_id", value=str(reading.crate_id)))
         values.append(key_value(key="power", value="on" if reading.power_on else "off"))
-        for channel, (volts, amps) in enumerate(
-            zip(reading.voltages_v, reading.currents_a, strict=True)
-        ):
-            if volts or amps:  # a channel not fitted reads 0 V, 0 A
-                values.append(key_value(key=f"channel{channel}.volts", value=f"{volts:.2f}"))
-                values.append(key_value(key=f"channel{channel}.amps", value=f"{amps:.2f}"))
+        for channel, volts, amps in reading.fitted():
+            values.append(key_value(key=f"channel{channel}.volts", value=f"{volts:.2f}"))
+            values.append(key_value(key=f"channel{channel}.amps", value=f"{amps:.2f}"))
         for fan, rps in enumerate(reading.fans_rps, start=1):
             values.append(key_value(key=f"fan{fan}.rpm", value=str(rps * 60)))
         for sensor, celsius in enumerate(reading.temperatures_c, start=1):

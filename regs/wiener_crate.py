@@ -480,6 +480,15 @@ class CrateReading:
         """No alarm."""
         return not self.alarms()
 
+    def fitted(self) -> tuple[tuple[int, float, float], ...]:
+        """``(channel, volts, amps)`` of each channel that delivers anything: a channel not
+        fitted reads 0 V and 0 A, and a display that lists it only adds noise."""
+        return tuple(
+            (n, volts, amps)
+            for n, (volts, amps) in enumerate(zip(self.voltages_v, self.currents_a, strict=True))
+            if volts or amps
+        )
+
     # -- across processes --------------------------------------------------------------------------
     def to_dict(self) -> dict[str, object]:
         """JSON-ready: lists for tuples, ``status_bytes`` as 16 hex digits, and the derived

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from biris_hw.records import BirisInitRecord
+from biris_hw.status import ServerState, ServerStatus
 from sim.rig import SimulatedBiris
 from sim.scene import Scene
 
@@ -40,6 +41,25 @@ if "BIRIS_STATE_DIR" not in os.environ:
 
 WAIT = 5.0
 """Timeout for things that should happen almost at once; only reached when a test fails."""
+
+
+def idle_status(**changes: Any) -> ServerStatus:
+    """An idle server's status, nothing done yet, with ``changes`` (field values) applied: for
+    tests of what carries a status (the wire, diagnostics, watch, fakes) without a server."""
+    fields: dict[str, Any] = {
+        "state": ServerState.IDLE,
+        "fault": None,
+        "azimuth": 0,
+        "elevation": 0,
+        "calibration": None,
+        "continuous": False,
+        "acquisition": "single",
+        "ring": "off",
+        "counters": {"scans": 0},
+        "connections": {},
+    }
+    fields.update(changes)
+    return ServerStatus(**fields)
 
 
 def until(

@@ -381,23 +381,12 @@ class FakeSensor:
         return conn
 
     def status(self) -> Any:
-        from biris_hw.status import ServerState, ServerStatus
+        from tests.conftest import idle_status
 
         if self.status_error is not None:
             error, self.status_error = self.status_error, None
             raise error
-        return ServerStatus(
-            state=ServerState.IDLE,
-            fault=None,
-            azimuth=0,
-            elevation=0,
-            calibration=None,
-            continuous=False,
-            acquisition="single",
-            ring="off",
-            counters={"scans": 0},
-            connections={},
-        )
+        return idle_status()
 
     def close(self) -> None:
         pass

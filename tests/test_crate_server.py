@@ -21,12 +21,12 @@ from biris_hw.crate import CrateMonitor
 from biris_hw.errors import RequestError
 from biris_hw.ros2 import diagnostics, typestore
 from biris_hw.server.crate_watch import CrateWatch
-from biris_hw.status import ServerState, ServerStatus
+from biris_hw.status import ServerState
 from biris_hw.target import load_target
 from biris_hw.wire import decode_status, encode_status
 from regs.wiener_crate import CrateReading
 from sim import SimulatedBiris
-from tests.conftest import RigFactory, Run
+from tests.conftest import RigFactory, Run, idle_status
 
 WAIT = 10.0
 
@@ -143,19 +143,7 @@ def test_the_crate_reaches_network_clients_diagnostics_and_watch(
 
 
 def test_an_unreachable_crate_crosses_the_wire_as_an_error() -> None:
-    status = ServerStatus(
-        state=ServerState.IDLE,
-        fault=None,
-        azimuth=0,
-        elevation=0,
-        calibration=0,
-        continuous=False,
-        acquisition="single",
-        ring="off",
-        counters={},
-        connections={},
-        crate_error="no answer from crate 7",
-    )
+    status = idle_status(crate_error="no answer from crate 7")
     back = decode_status(encode_status(status))
     assert back.crate is None and back.crate_error == "no answer from crate 7"
     encoded = diagnostics(status, 0.0)

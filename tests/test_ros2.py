@@ -10,6 +10,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from biris_hw import ros2
 from biris_hw.status import ServerState, ServerStatus
+from tests.conftest import idle_status
 from tests.test_record_support import cloud_xyz, points_of, synthetic_scans
 
 STANDARD = get_typestore(Stores.ROS2_HUMBLE)
@@ -72,18 +73,7 @@ def test_profile_through_the_transform_chain_lands_on_point_points() -> None:
 
 def test_diagnostics_levels_follow_the_state() -> None:
     def status(state: ServerState, fault: str | None = None) -> ServerStatus:
-        return ServerStatus(
-            state=state,
-            fault=fault,  # type: ignore[arg-type]
-            azimuth=0,
-            elevation=0,
-            calibration=None,
-            continuous=False,
-            acquisition="single",
-            ring="off",
-            counters={"scans": 3},
-            connections={},
-        )
+        return idle_status(state=state, fault=fault, counters={"scans": 3})
 
     def levels(encoded: ros2.Encoded) -> list[tuple[str, int]]:
         msg = STANDARD.deserialize_cdr(encoded.data, ros2.DIAGNOSTIC_ARRAY)

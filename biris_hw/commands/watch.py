@@ -183,11 +183,7 @@ def _crate_rows(status: Mapping[str, Any]) -> list[tuple[str, str]]:
         rows.append(("crate error", str(error)))
     reading = status.get("crate")
     if isinstance(reading, CrateReading):
-        supplies = ", ".join(
-            f"{volts:+.2f} V {amps:.2f} A"
-            for volts, amps in zip(reading.voltages_v, reading.currents_a, strict=True)
-            if volts or amps  # a channel not fitted reads 0 V, 0 A
-        )
+        supplies = ", ".join(f"{volts:+.2f} V {amps:.2f} A" for _, volts, amps in reading.fitted())
         rows.append(("crate supplies", supplies or "-"))
         rows.append(("crate fans", " ".join(f"{rps * 60}" for rps in reading.fans_rps) + " rpm"))
         rows.append(("crate temperatures", " ".join(f"{c}" for c in reading.temperatures_c) + " C"))

@@ -296,34 +296,33 @@ class Level3Demux(Demultiplexer[Logical]):
         coupler fault that BIT3_BERR could carry, and waiting for the motor watchdog would
         report a lost board as a stalled motor.
         """
-        fault = self._controller.take_fault()
-        if fault is not None:
-            raise fault
         pre = prefetched(self._line, len(LEVEL3_PREFETCH))
-        status = self._controller.ended_axes() if pre is None else pre[0]
-        ended = [(axis, logical) for axis, bit, logical in _AXES if status & bit]
-        if not ended:
+        if not self._raise_ended(None if pre is None else pre[0]):
             self._count_spurious(count)
-            return
-        for axis, logical in ended:
-            self._controller.acknowledge(axis)
-            self._raise(logical)
 
     def _look(self) -> None:
         """A motor watchdog ran out (:meth:`~biris_hw.irq.demux.Demultiplexer.recheck`): read
         the controller fresh (never an IRQ stack's old read) and raise each axis whose end is
         latched there: its interrupt was lost on the way, and the move's notifier, woken now,
         still verifies the arrival. Said as a warning; nothing latched, nothing raised."""
+        self._raise_ended(None, asked=True)
+
+    def _raise_ended(self, status: int | None, *, asked: bool = False) -> bool:
+        """Raise a fault the controller holds; else acknowledge and raise each axis that ended
+        by ``status`` (the controller's, read now, when None). True if any had."""
         fault = self._controller.take_fault()
         if fault is not None:
             raise fault
-        status = self._controller.ended_axes()
-        for axis, bit, logical in _AXES:
-            if status & bit:
+        if status is None:
+            status = self._controller.ended_axes()
+        ended = [(axis, logical) for axis, bit, logical in _AXES if status & bit]
+        for axis, logical in ended:
+            if asked:
                 log.warning(
                     "%s: %s was latched but its interrupt never came; raised on asking",
                     self.name,
                     logical.name,
                 )
-                self._controller.acknowledge(axis)
-                self._raise(logical)
+            self._controller.acknowledge(axis)
+            self._raise(logical)
+        return bool(ended)
