@@ -8,8 +8,10 @@ says so in one line.
 
 While a command runs, what the server says it is doing (homing, booting BIRIS, waiting for a
 command to finish) is shown on stderr when a person watches it
-(:func:`~biris_hw.commands.common.progress_to_stderr`); Ctrl-C is exit status 130, after the
-command has kept what it could.
+(:func:`~biris_hw.commands.common.progress_to_stderr`), and what the driver warns about (a scan
+that came out short, acquisitions lost) always is, one ``biris: warning: ...`` line each
+(:func:`~biris_hw.commands.common.log_to_stderr`; ``--debug`` shows the whole log instead);
+Ctrl-C is exit status 130, after the command has kept what it could.
 """
 
 from __future__ import annotations
@@ -107,7 +109,8 @@ COMMANDS: tuple[Command, ...] = (
         "replay",
         "biris_hw.commands.replay",
         "play a recording back as a sensor",
-        "Serve an MCAP recording through the client API; print, --json or --plot its scans.",
+        "Serve an MCAP recording through the client API; print, --json or --plot its scans, "
+        "or --check them against the scan invariants (a .npz scan file too).",
     ),
     Command(
         "view",

@@ -139,10 +139,19 @@ class Scan:
     BI_ACQUIRE sequence of its own (the report's mode), or ``"continuous"``, cut out of
     Appendix D's ring. Clients are told through the data because the mode can change while they
     listen (``conn.start_continuous()`` / ``stop_continuous()`` from any connection), and the two
-    differ in what a scan covers. ``partial`` is True when the scan covers only part of the sweep
-    it belongs to -- the first sweep of a continuous scan, begun from wherever the head stood
-    rather than from a limit, or a sweep whose ring STOP_CONTINUOUS stopped under it -- so that a
-    client can tell it from a full one; its ``azimuth`` says which part.
+    differ in what a scan covers.
+
+    ``span`` is the ``(start, destination)``, in counts, the scan was asked to cover: ``start``
+    where the head stood when the scan began, ``destination`` the requested end (None when not
+    known: data recorded before the field existed). ``partial`` is True when the scan does not cover
+    its span -- it ended short of its destination, began away from its start or holds no acquisition
+    at all (a motor that started late, an acquisition sequence cut short), or it is the first sweep
+    of a continuous scan, begun from wherever the head stood rather than from the opposite limit, or
+    a sweep whose ring STOP_CONTINUOUS stopped under it -- so that a client never mistakes it for a
+    whole one; its ``azimuth`` says which part it holds. ``partial_reason`` says why, in words
+    (``"ended 312 counts (27.4 deg) short of its destination 2048"``), and is ``""`` for a whole
+    scan; a reason without ``partial`` is refused, since it would contradict itself.
+    :func:`biris_hw.scancheck.coverage_shortfall` is the rule that decides "covers".
 
     Equality is identity: comparing array contents is the caller's choice (``np.array_equal``).
     """
@@ -160,6 +169,8 @@ class Scan:
     mount: Mount | None = None
     acquisition: str = "single"
     partial: bool = False
+    partial_reason: str = ""
+    span: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         def put(key: str, value: object) -> None:
@@ -173,6 +184,8 @@ class Scan:
         _check_mount(self.mount)
         put("acquisition", _acquisition(self.acquisition))
         put("partial", _flag("partial", self.partial))
+        put("partial_reason", _reason(self.partial_reason, self.partial))
+        put("span", _span(self.span))
         azimuth = _frozen("azimuth", self.azimuth, np.int32, 1)
         range_mm = _frozen("range_mm", self.range_mm, np.int16, 2)
         closest = _frozen("closest_mm", self.closest_mm, np.int16, 1)
@@ -348,6 +361,34 @@ def _flag(name: str, value: object) -> bool:
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
     raise ValueError(f"{name} must be True or False, not {value!r}")
+
+
+def _reason(value: object, partial: bool) -> str:
+    """``partial_reason`` as a plain str; a reason on a scan that is not partial is refused (one
+    of the two fields would be wrong, and a client reading either must be able to trust it)."""
+    if not isinstance(value, str):
+        raise ValueError(f"partial_reason must be a str, not {type(value).__name__}")
+    if value and not partial:
+        raise ValueError(f"partial_reason {value!r} given for a scan that is not partial")
+    return str(value)
+
+
+def _span(value: object) -> tuple[int, int] | None:
+    """``span`` as a tuple of two Python ints, or None. Whole numbers of any integer type (a
+    numpy int from a file) are taken; floats and bools are refused: a count is exact."""
+    if value is None:
+        return None
+    if not isinstance(value, (tuple, list)) or len(value) != 2:
+        raise ValueError(f"span must be (start, destination) in counts or None, not {value!r}")
+    ends = []
+    for end in value:
+        if isinstance(end, (bool, np.bool_)):
+            raise ValueError(f"span must hold two whole counts, not {value!r}")
+        try:
+            ends.append(operator.index(end))
+        except TypeError:
+            raise ValueError(f"span must hold two whole counts, not {value!r}") from None
+    return ends[0], ends[1]
 
 
 def _count(name: str, value: int) -> int:

@@ -176,6 +176,8 @@ class AxisDriver:
         self._clock = clock
         self._scale = time_scale
         self._latch = threading.Lock()
+        self._prepared: tuple[int, int] | None = None
+        """(start, destination) recorded ahead by :meth:`prepare_trapezoid`, until started."""
         """A position is three byte reads that must not interleave with another thread's: the
         R14H read latches R13H/R12H, and a second latch between them would mix two readings.
         The parameter block is written and read back under it too, so a reader never sees half
@@ -309,6 +311,17 @@ class AxisDriver:
             self._wr(Reg.FLAG, flag_write(flag, False))
         self._wr(Reg.PROGRAM_COUNTER, ProgramCounter.CONTROL)
 
+    def prepare_trapezoid(self, destination: int) -> None:
+        """Record the move :meth:`start_trapezoid` of ``destination`` will make in the pan
+        reference's journal now (a durable file write, which can take milliseconds), so that
+        the start itself is only the chip's registers. Nothing on the tilt."""
+        if self.reference is None:
+            return
+        dest = self.reference.safe_destination(clamp_counts(destination))
+        start = self.command_position()
+        self.reference.record_move(start, dest)
+        self._prepared = (start, dest)
+
     def start_trapezoid(self, destination: int) -> int:
         """Start a trapezoidal move from the present command position; returns the destination.
 
@@ -330,7 +343,10 @@ class AxisDriver:
         if self.profile_active():
             # the previous move never ended: the motor's fault, not BIRIS's
             raise HardwareFault("motor_stall", f"axis {self.axis.name}: profile already running")
-        if self.reference is not None:
+        prepared, self._prepared = self._prepared, None
+        if self.reference is not None and (prepared is None or prepared[1] != dest):
+            # unless recorded ahead (the command position cannot change while the chip holds
+            # the head: what was recorded then is this move)
             self.reference.record_move(self.command_position(), dest)
         for reg, byte in zip(
             (Reg.FINAL_POS_LSB, Reg.FINAL_POS_MID, Reg.FINAL_POS_MSB),

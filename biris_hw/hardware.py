@@ -67,6 +67,10 @@ class BirisHardware:
     ``status()``; the bundle closes it with itself."""
     crate_poll_s: float = 1.0
     """Real seconds between two readings of :attr:`crate`."""
+    lag: Callable[[], float] | None = None
+    """How far behind its own clock the hardware runs (hardware seconds): a simulator's
+    (``SimulatedBiris.lag_s``), so that a fault met on a host that cannot keep up says so;
+    None on the real target, whose clock is the host's."""
     pan_reference: PanReference = field(init=False, repr=False, compare=False)
     """The pan counter's relation to true zero, built here once (reads the journal if any)."""
     devices: Devices = field(init=False, repr=False, compare=False)

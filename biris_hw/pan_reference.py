@@ -390,8 +390,11 @@ class PanReference:
     def record_move(self, start: int, destination: int) -> None:
         """Written ahead of every pan move (durably, see the module notes); raises
         HardwareFault("internal") when the journal cannot be written, so that the move is not
-        made: a restart could not know where it left the head."""
+        made: a restart could not know where it left the head. The same move recorded twice is
+        written once (a scheduled start records it ahead, then starts it)."""
         with self._lock:
+            if self._state.move == (start, destination):
+                return  # recorded ahead already (a scheduled start: prepare_trapezoid)
             self._state = replace(self._state, move=(start, destination))
             self._write(durable=True)
 

@@ -3,21 +3,25 @@
 :func:`save_scans` writes a list of :class:`~biris_hw.Scan` to ``.npz`` and :func:`load_scans`
 gives back scans equal to them field by field: every array with its dtype and shape, and
 ``direction``, ``seq``, ``dropped``, ``elevation``, ``t_delivered`` (None kept as None),
-``mount`` (None kept as None), ``acquisition`` and ``partial``. Scans of different sample counts
-may share a file.
+``mount`` (None kept as None), ``acquisition``, ``partial``, ``partial_reason`` and ``span``
+(None kept as None). Scans of different sample counts may share a file.
 
-The ``.npz`` (format version 3) is plain numpy arrays, no pickles, readable without this
+The ``.npz`` (format version 4) is plain numpy arrays, no pickles, readable without this
 module. Per scan, in saving order: ``direction`` (0 CW, 1 CCW), ``seq``, ``dropped``,
 ``elevation`` (counts), ``n_acq``, ``samples``, ``t_delivered`` (NaN where
 ``has_t_delivered`` is false), ``has_mount``, ``mount_offset_m`` (n, 3), ``mount_head_height_m``,
-``mount_head_offset_m``, ``acquisition`` (text: ``single`` or ``continuous``) and ``partial``
-(bool). Per acquisition, every scan's rows one after the other:
+``mount_head_offset_m``, ``acquisition`` (text: ``single`` or ``continuous``), ``partial``
+(bool), ``partial_reason`` (text, empty for a whole scan), ``has_span`` (bool) and ``span``
+(n, 2: start and destination in counts, 0 where ``has_span`` is false). Per acquisition,
+every scan's rows one after the other:
 ``scan_index`` (which scan the row belongs to), ``azimuth`` (counts, int32), ``azimuth_deg``
 (for convenience; not read back), ``t``, ``closest_mm``, and ``range_mm`` and ``intensity``
 (int16, as wide as the widest scan; a narrower scan's rows are padded with 0, "no return", and
-its ``samples`` says where they end). ``format_version`` is 3.
+its ``samples`` says where they end). ``format_version`` is 4.
 
-Files of earlier format versions load too. Version 2 did not keep ``acquisition`` or
+Files of earlier format versions load too. Version 3 did not keep ``partial_reason`` or
+``span``: they come back as ``""`` and None (not known), and a partial scan of such a file says
+no more than that it is partial. Version 2 did not keep ``acquisition`` or
 ``partial``: every scan of its day was a single-acquisition one or a whole continuous-acquisition
 sweep, and they come back as ``"single"`` and False (the mode is not recorded anywhere else, so a
 version-2 file of Appendix D sweeps reads as single). Files written before version 2 (by
@@ -28,8 +32,8 @@ The ``.csv`` (:func:`export_csv`) is an export, not a second format: one row per
 with ``scan`` (index in the list), ``direction`` (CW/CCW), ``seq``, ``acq``, ``t_s`` (to the
 microsecond), ``azimuth_counts``, ``azimuth_deg``, ``closest_mm`` and ``range_1_mm`` ...
 ``range_N_mm`` (the profile, top row first). It leaves out intensities, ``dropped``,
-``elevation``, ``t_delivered``, ``mount``, ``acquisition`` and ``partial``; it is never read
-back.
+``elevation``, ``t_delivered``, ``mount``, ``acquisition``, ``partial``, ``partial_reason`` and
+``span``; it is never read back.
 """
 
 from __future__ import annotations
@@ -49,9 +53,10 @@ from biris_hw.geometry import Mount
 
 __all__ = ["FORMAT_VERSION", "SAVED_FIELDS", "export_csv", "load_scans", "save_scans"]
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 """Version 1 (no ``format_version`` key) kept the arrays, direction, seq and dropped only;
-version 2 added elevation, t_delivered and mount; version 3 added acquisition and partial."""
+version 2 added elevation, t_delivered and mount; version 3 added acquisition and partial;
+version 4 added partial_reason and span."""
 
 SAVED_FIELDS = frozenset(
     {
@@ -68,6 +73,8 @@ SAVED_FIELDS = frozenset(
         "mount",
         "acquisition",
         "partial",
+        "partial_reason",
+        "span",
     }
 )
 """The :class:`~biris_hw.Scan` fields a ``.npz`` keeps: all of them (tests/test_scanfile.py
@@ -134,6 +141,12 @@ def save_scans(path: str | os.PathLike[str], scans: Sequence[Scan]) -> Path:
         "mount_head_offset_m": np.array([m[2] for m in mounts], dtype=np.float64),
         "acquisition": np.array([s.acquisition for s in scans], dtype=_MODE_DTYPE),
         "partial": np.array([s.partial for s in scans], dtype=np.bool_),
+        # text of the longest reason's width (numpy's str dtype), never an object array
+        "partial_reason": np.array([s.partial_reason for s in scans], dtype=np.str_),
+        "has_span": np.array([s.span is not None for s in scans], dtype=np.bool_),
+        "span": np.array(
+            [s.span if s.span is not None else (0, 0) for s in scans], dtype=np.int64
+        ).reshape(-1, 2),
         # per acquisition
         "scan_index": np.repeat(
             np.arange(len(scans), dtype=np.int32), [s.n_acq for s in scans]
@@ -153,7 +166,7 @@ def save_scans(path: str | os.PathLike[str], scans: Sequence[Scan]) -> Path:
 def load_scans(path: str | os.PathLike[str]) -> list[Scan]:
     """The scans a :func:`save_scans` ``.npz`` holds, in the order they were saved.
 
-    ``.npz`` is appended unless the path ends so. Reads format version 3 and the files of
+    ``.npz`` is appended unless the path ends so. Reads format version 4 and the files of
     earlier releases (see the module's notes). ValueError if the file is not a scan file.
     """
     source = _with_suffix(path, ".npz")
@@ -163,17 +176,18 @@ def load_scans(path: str | os.PathLike[str]) -> list[Scan]:
         if "format_version" not in arrays:
             return _load_v1(arrays)
         version = int(arrays["format_version"])
-        if version not in (2, FORMAT_VERSION):
-            raise ValueError(f"format version {version}; this release reads 1, 2 and 3")
-        return _load_v2(arrays, with_mode=version >= 3)
+        if version not in (2, 3, FORMAT_VERSION):
+            raise ValueError(f"format version {version}; this release reads 1 to 4")
+        return _load_v2(arrays, with_mode=version >= 3, with_span=version >= 4)
     except KeyError as exc:
         raise ValueError(f"{source} is not a file of BIRIS scans: no {exc.args[0]!r}") from None
     except ValueError as exc:
         raise ValueError(f"{source}: {exc}") from None
 
 
-def _load_v2(a: dict[str, NDArray[Any]], *, with_mode: bool) -> list[Scan]:
-    """Versions 2 and 3 (``with_mode``: the file keeps ``acquisition`` and ``partial``)."""
+def _load_v2(a: dict[str, NDArray[Any]], *, with_mode: bool, with_span: bool) -> list[Scan]:
+    """Versions 2 to 4 (``with_mode``: the file keeps ``acquisition`` and ``partial``;
+    ``with_span``: ``partial_reason`` and ``span`` too)."""
     n_acq = a["n_acq"]
     total = int(n_acq.sum()) if n_acq.size else 0
     if a["azimuth"].shape[0] != total:
@@ -207,9 +221,19 @@ def _load_v2(a: dict[str, NDArray[Any]], *, with_mode: bool) -> list[Scan]:
                 mount=mount,
                 acquisition=str(a["acquisition"][i]) if with_mode else "single",
                 partial=bool(a["partial"][i]) if with_mode else False,
+                partial_reason=str(a["partial_reason"][i]) if with_span else "",
+                span=_span(a, i) if with_span else None,
             )
         )
     return scans
+
+
+def _span(a: dict[str, NDArray[Any]], i: int) -> tuple[int, int] | None:
+    """Scan ``i``'s span as a version-4 file keeps it (None where ``has_span`` is false)."""
+    if not bool(a["has_span"][i]):
+        return None
+    start, destination = (int(v) for v in a["span"][i])
+    return start, destination
 
 
 def _load_v1(a: dict[str, NDArray[Any]]) -> list[Scan]:

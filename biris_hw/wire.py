@@ -120,7 +120,14 @@ bool has_mount
 biris_msgs/Mount mount
 # "single" or "continuous"
 string acquisition
+# true when the scan does not cover its requested span; partial_reason says why ("" if whole)
 bool partial
+string partial_reason
+# the span the scan was asked to cover, in counts: where the head stood when it began, and the
+# requested end (has_span false: not known)
+bool has_span
+int32 span_start
+int32 span_destination
 """,
     POINT: """\
 # One acquisition (biris_hw.data.Point), losslessly.
@@ -241,6 +248,13 @@ string message
 """msgtype -> its ``.msg`` text (what an MCAP ``ros2msg`` schema or a ROS 2 package holds).
 Each text names its own fields only; :func:`full_definition` appends the types it uses."""
 
+_V1_END = "bool partial\n"
+_SCAN_V1 = MSG_DEFINITIONS[SCAN][: MSG_DEFINITIONS[SCAN].index(_V1_END) + len(_V1_END)]
+"""``biris_msgs/msg/Scan`` as written before ``partial_reason`` and ``span`` were appended: the
+current definition up to ``bool partial``, its last field then. Recordings made before hold it,
+and :func:`decode_scan` still reads them. Fields are only ever appended, so that the old layout
+stays a prefix of the new one and a payload tells which it is by where it ends."""
+
 _FAULT_KINDS = ("timeout", "bus", "parity", "motor_stall", "protocol", "internal")
 
 
@@ -254,6 +268,18 @@ def typestore() -> Typestore:
     types: dict[str, Any] = {}
     for name, text in MSG_DEFINITIONS.items():
         types.update(get_types_from_msg(text, name))
+    store.register(types)
+    return store
+
+
+@functools.cache
+def _legacy_typestore() -> Typestore:
+    """A typestore in which ``biris_msgs/msg/Scan`` has its first definition (:data:`_SCAN_V1`):
+    a store of its own, since one store holds one definition per name."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types: dict[str, Any] = {}
+    for name in (MOUNT, SCAN):
+        types.update(get_types_from_msg(_SCAN_V1 if name == SCAN else MSG_DEFINITIONS[name], name))
     store.register(types)
     return store
 
@@ -313,8 +339,11 @@ def _serialize(msg: Any, msgtype: str) -> bytes:
         raise WireError(f"cannot encode {msgtype}: {exc}") from exc
 
 
-def _deserialize(data: bytes | bytearray | memoryview, msgtype: str) -> Any:
-    """Parse ``data`` as ``msgtype``; :class:`WireError` for anything but one whole message."""
+def _deserialize(
+    data: bytes | bytearray | memoryview, msgtype: str, store: Typestore | None = None
+) -> Any:
+    """Parse ``data`` as ``msgtype`` (in ``store``, by default :func:`typestore`);
+    :class:`WireError` for anything but one whole message."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise WireError(f"{msgtype}: payload must be bytes, not {type(data).__name__}")
     raw = bytes(data)
@@ -324,7 +353,7 @@ def _deserialize(data: bytes | bytearray | memoryview, msgtype: str) -> Any:
         raise WireError(f"{msgtype}: not a CDR payload (bad encapsulation header)")
     try:
         # rosbags checks that the message ends where the bytes do (save CDR's alignment pad)
-        return typestore().deserialize_cdr(raw, msgtype)
+        return (store or typestore()).deserialize_cdr(raw, msgtype)
     except Exception as exc:  # the parser's failure modes are not ours to list
         raise WireError(f"{msgtype}: malformed payload ({type(exc).__name__}: {exc})") from exc
 
@@ -372,13 +401,28 @@ def encode_scan(scan: Scan) -> bytes:
         mount=_mount(scan.mount),
         acquisition=scan.acquisition,
         partial=scan.partial,
+        partial_reason=scan.partial_reason,
+        has_span=scan.span is not None,
+        span_start=scan.span[0] if scan.span is not None else 0,
+        span_destination=scan.span[1] if scan.span is not None else 0,
     )
     return _serialize(msg, SCAN)
 
 
 def decode_scan(data: bytes | bytearray | memoryview) -> Scan:
-    """The :class:`Scan` that :func:`encode_scan` (or any CDR writer of the type) encoded."""
-    msg = _deserialize(data, SCAN)
+    """The :class:`Scan` that :func:`encode_scan` (or any CDR writer of the type) encoded.
+
+    A payload of the first definition (:data:`_SCAN_V1`, recordings made before ``partial_reason``
+    and ``span`` existed) decodes too, with ``partial_reason=""`` and ``span=None``: tried only
+    when the payload is not one of the current type, so a current payload costs nothing more.
+    """
+    try:
+        msg = _deserialize(data, SCAN)
+    except WireError as current:
+        try:
+            msg = _deserialize(data, SCAN, _legacy_typestore())
+        except WireError:
+            raise current from None  # neither: the current type's complaint is the useful one
     try:
         n_acq, samples = int(msg.n_acq), int(msg.samples)
         if msg.range_mm.size != n_acq * samples or msg.intensity.size != n_acq * samples:
@@ -400,6 +444,10 @@ def decode_scan(data: bytes | bytearray | memoryview) -> Scan:
             mount=_unmount(msg.has_mount, msg.mount),
             acquisition=str(msg.acquisition),
             partial=bool(msg.partial),
+            partial_reason=str(getattr(msg, "partial_reason", "")),
+            span=(int(msg.span_start), int(msg.span_destination))
+            if getattr(msg, "has_span", False)
+            else None,
         )
     except (ValueError, TypeError) as exc:
         raise WireError(f"{SCAN}: not a valid scan: {exc}") from exc

@@ -2,18 +2,30 @@
 
 Each method breaks one thing the way the real target would; ``clear_*`` (or :meth:`clear_all`)
 undoes it. The driver sees only registers and interrupts, exactly as on the VME target.
+
+Host latency is a fault too: the hardware keeps its time while the driver's host is late to take
+its interrupts (:meth:`FaultPanel.late_interrupts`) or its bus reads take longer
+(:meth:`FaultPanel.slow_reads`), for a while (:meth:`FaultPanel.latency_burst`) or until
+cleared. Delays are hardware seconds, like every time in the simulator, and drawn from seeded
+generators, so a run that injects them is reproducible.
 """
 
 from __future__ import annotations
 
+import math
+import random
+import threading
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING
 
 from sim.bit3 import Bit3Coupler
 from sim.irqgate import InterruptGate
+from sim.latency import SlowReads
 from sim.supervisor import BirisSupervisor
 from sim.tech80 import Model7600
 
 if TYPE_CHECKING:
+    from biris_hw.bus.base import BusWindow
     from sim.cia402 import SimulatedDrive
 
 __all__ = ["FaultPanel"]
@@ -21,8 +33,13 @@ __all__ = ["FaultPanel"]
 
 class FaultPanel:
     """``rig.faults``: parity and bus errors, a hung supervisor, a locked pan shaft, a dead pan
-    amplifier, and interrupt troubles (coalesced, spurious, dropped), plus a malformed PARAM
-    answer."""
+    amplifier, interrupt troubles (coalesced, spurious, dropped), a malformed PARAM answer, and
+    host latency (late interrupts, slow reads).
+
+    ``seed`` (the rig's) seeds the late interrupts' delays unless a call gives its own;
+    ``driver_windows`` returns the windows the driver reads through (``rig.hardware``'s), the
+    ones :meth:`slow_reads` slows.
+    """
 
     def __init__(
         self,
@@ -32,6 +49,9 @@ class FaultPanel:
         level2: InterruptGate,
         level3: InterruptGate,
         pan_drive: SimulatedDrive | None = None,
+        *,
+        seed: int = 0,
+        driver_windows: Callable[[], Iterable[BusWindow]] = tuple,
     ) -> None:
         self._supervisor = supervisor
         self._board = board
@@ -41,6 +61,13 @@ class FaultPanel:
         self._coupler = coupler
         self._gates = (level2, level3)
         self._level2 = level2
+        self._clock = level2.clock
+        self._seed = seed
+        self._slow = SlowReads(self._clock, driver_windows)
+        self._lock = threading.Lock()
+        self._burst_generation = 0
+        self._burst_until: float | None = None
+        self._burst_timers: list[threading.Timer] = []
 
     # -- coupler ---------------------------------------------------------------------------------
     def parity_error(self) -> None:
@@ -127,6 +154,108 @@ class FaultPanel:
         """A level-2 interrupt with no cause behind it."""
         self._level2.spurious()
 
+    # -- host latency ----------------------------------------------------------------------------
+    def late_interrupts(self, max_delay_s: float, seed: int | None = None) -> None:
+        """The host is late to take its interrupts: every interrupt on levels 2 and 3 reaches
+        the driver's line late by a delay drawn uniformly in ``[0, max_delay_s]`` hardware
+        seconds, in the order raised (one raised while an earlier one is held leaves with it or
+        after it, never before).
+
+        The delays come from ``seed`` (default: the rig's), one generator per level, started
+        afresh by each call, so the same calls on the same rig give the same delays. With
+        coalescing on as well, a burst is late as a whole.
+        """
+        if not (math.isfinite(max_delay_s) and max_delay_s >= 0.0):
+            raise ValueError(f"max_delay_s must be finite and not negative, not {max_delay_s}")
+        base = self._seed if seed is None else seed
+        for level, gate in zip((2, 3), self._gates, strict=True):
+            gate.late(max_delay_s, random.Random(f"biris-late-interrupts:{base}:{level}"))
+
+    def clear_late_interrupts(self) -> None:
+        """Deliver every interrupt held by lateness now (in order) and stop delaying; returns
+        once they have reached the lines."""
+        for gate in self._gates:
+            gate.late(None)
+
+    def slow_reads(self, delay_s: float) -> None:
+        """The driver's bus is loaded: every read it makes through ``rig.hardware``'s windows
+        (BIRIS memory, the Model 7600, the coupler; the VM-USB windows with
+        ``transport="vmusb"``) takes ``delay_s`` hardware seconds longer, slept in the reading
+        thread before the access. The simulator's own accesses are not slowed, nor are the
+        reads a VM-USB's IRQ stack makes (the bridge makes them, not the host)."""
+        self._slow.set(delay_s)
+
+    def clear_slow_reads(self) -> None:
+        """Reads take their usual time again."""
+        self._slow.clear()
+
+    def latency_burst(self, duration_s: float, max_delay_s: float, read_delay_s: float) -> None:
+        """Late interrupts (``max_delay_s``) and slow reads (``read_delay_s``) for
+        ``duration_s`` hardware seconds from now, then both cleared by a timer on the
+        simulator's clock, whoever set them. A new burst replaces one still running."""
+        if not (math.isfinite(duration_s) and duration_s > 0.0):
+            raise ValueError(f"duration_s must be finite and positive, not {duration_s}")
+        self.late_interrupts(max_delay_s)
+        self.slow_reads(read_delay_s)
+        with self._lock:
+            self._burst_generation += 1
+            self._burst_until = self._clock.now() + duration_s
+            timer = threading.Timer(
+                self._clock.to_real(duration_s), self._end_burst, args=(self._burst_generation,)
+            )
+            timer.daemon = True
+            timer.name = "faults-latency-burst"
+            for old in self._burst_timers:
+                old.cancel()
+            self._burst_timers = [t for t in self._burst_timers if t.is_alive()]
+            self._burst_timers.append(timer)
+            timer.start()
+
+    def _end_burst(self, generation: int) -> None:
+        """The burst's timer fired: clear both, unless a later burst (or clear_all) took over."""
+        with self._lock:
+            if generation != self._burst_generation:
+                return
+            self._burst_until = None
+        self.clear_late_interrupts()
+        self.clear_slow_reads()
+
+    @property
+    def latency_burst_active(self) -> bool:
+        """A :meth:`latency_burst` is running (its end has not come)."""
+        with self._lock:
+            return self._burst_until is not None
+
+    @property
+    def late_interrupt_bound_s(self) -> float | None:
+        """The bound late interrupts' delays are drawn under; None while they are off."""
+        return self._gates[0].late_bound
+
+    @property
+    def read_delay_s(self) -> float:
+        """The delay each driver read takes longer, hardware seconds; 0.0 while off."""
+        return self._slow.delay_s
+
+    @property
+    def late_interrupts_held(self) -> int:
+        """Interrupts held by lateness on both levels, not yet delivered."""
+        return sum(gate.late_pending for gate in self._gates)
+
+    @property
+    def late_interrupts_delivered(self) -> int:
+        """Interrupts delivered late on both levels since the rig was built."""
+        return sum(gate.late_delivered for gate in self._gates)
+
+    @property
+    def late_delay_max_s(self) -> float:
+        """The largest delay drawn for a late interrupt so far, hardware seconds."""
+        return max(gate.late_delay_max for gate in self._gates)
+
+    @property
+    def slow_reads_made(self) -> int:
+        """Driver reads that :meth:`slow_reads` slowed since the rig was built."""
+        return self._slow.made
+
     # -- all -------------------------------------------------------------------------------------
     def clear_all(self) -> None:
         """Undo every fault that persists (the coupler's sticky bits are the driver's to clear)."""
@@ -134,3 +263,24 @@ class FaultPanel:
         self.clear_stall()
         self.clear_dead_amplifier()
         self.coalesce_interrupts(False)
+        self._cancel_burst()
+        self.clear_late_interrupts()
+        self.clear_slow_reads()
+
+    def _cancel_burst(self) -> None:
+        with self._lock:
+            self._burst_generation += 1
+            self._burst_until = None
+            for timer in self._burst_timers:
+                timer.cancel()
+
+    def close(self) -> None:
+        """Stop a burst's timer and join it, and take the slow-read wrappers off the windows:
+        the rig calls it as it closes, so no thread is left behind."""
+        self._cancel_burst()
+        with self._lock:
+            timers, self._burst_timers = self._burst_timers, []
+        for timer in timers:
+            if timer is not threading.current_thread():
+                timer.join()
+        self.clear_slow_reads()

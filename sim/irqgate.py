@@ -10,10 +10,18 @@ per physical level lets the fault panel shape delivery without the device models
   lone command interrupt is late, never lost), when coalescing is switched off, or by
   :meth:`InterruptGate.flush`;
 - **drop_next(source)** loses the next interrupt from that source;
-- **spurious()** raises an interrupt with no cause behind it.
+- **spurious()** raises an interrupt with no cause behind it;
+- **late(max_delay_s)** plays a host that is slow to take its interrupts: whatever the gate would
+  deliver is held for a delay drawn uniformly in ``[0, max_delay_s]`` hardware seconds from a
+  seeded generator, so a run is reproducible. Held interrupts leave in the order they came (an
+  interrupt is never delivered before one raised earlier: its due time is at least the previous
+  one's), and those that fall due together are delivered as one count. One thread per gate
+  releases them while lateness is on; ``late(None)`` delivers what is held at once and stops
+  delaying. Lateness comes after coalescing: a released burst is late as a whole.
 
-Counters obey ``raised == delivered + dropped + lost + pending``: ``lost`` counts interrupts the
-line refused because the driver had already closed it (a shutdown race, not a fault).
+Counters obey ``raised == delivered + dropped + lost + pending + late_pending``: ``lost`` counts
+interrupts the line refused because the driver had already closed it (a shutdown race, not a
+fault).
 
 **Measurement hook.** :attr:`InterruptGate.on_raise` (None by default) is called for every
 raise with the source and the ``time.perf_counter_ns()`` taken as the model raised it, so a
@@ -23,15 +31,25 @@ benchmark can time the driver from the moment the hardware asserted the interrup
 
 from __future__ import annotations
 
+import math
+import random
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
+from typing import NamedTuple
 
 from biris_hw.errors import LineClosed
 from sim.clock import SimClock
 
-__all__ = ["BIRIS_SOURCES", "DEFAULT_MAX_HOLD", "SPURIOUS", "InterruptGate"]
+__all__ = [
+    "BIRIS_SOURCES",
+    "DEFAULT_MAX_HOLD",
+    "LATE_LOG_SIZE",
+    "SPURIOUS",
+    "InterruptGate",
+    "LateDelivery",
+]
 
 DEFAULT_MAX_HOLD = 0.1
 """Hardware seconds a coalesced interrupt may wait for its burst to fill (six video fields)."""
@@ -41,6 +59,34 @@ SPURIOUS = "spurious"
 
 BIRIS_SOURCES = frozenset({"data", "cmd"})
 """Sources that are BIRIS's own (remote IRQ2 through the coupler), as opposed to the coupler's."""
+
+LATE_LOG_SIZE = 1024
+"""Late deliveries a gate remembers (:attr:`InterruptGate.late_log`): enough for a test to check
+every one of a scan's, bounded so a long run with lateness on stays small."""
+
+
+class LateDelivery(NamedTuple):
+    """One batch of interrupts (``interrupts`` of them: one, or a coalesced burst) that lateness
+    held, as it left the gate (times in hardware seconds).
+
+    ``delay_s`` is the delay drawn for it; ``due_s`` may be later than ``raised_s + delay_s``
+    because a batch never leaves before the one ahead of it. ``delivered_s`` is when the gate's
+    thread handed it to the line, at or after ``due_s`` (by the host's scheduling latency), or
+    earlier when lateness was switched off and everything held went at once.
+    """
+
+    interrupts: int
+    raised_s: float
+    delay_s: float
+    due_s: float
+    delivered_s: float
+
+
+class _Held(NamedTuple):
+    interrupts: int
+    raised_s: float
+    delay_s: float
+    due_s: float
 
 
 class InterruptGate:
@@ -68,6 +114,21 @@ class InterruptGate:
         self._dropped = 0
         self._lost = 0
         self._last_source: str | None = None
+        self._closed = False
+        # lateness (see late()): all under self._lock; the condition wakes the releasing thread
+        self._late_cond = threading.Condition(self._lock)
+        self._late_max: float | None = None
+        self._late_rng = random.Random(0)
+        self._late_queue: deque[_Held] = deque()
+        self._late_pending = 0
+        self._late_delivered = 0
+        self._late_delay_max = 0.0
+        self._late_busy = False
+        """The releasing thread is handing a batch to the line, outside the lock: a raise
+        meanwhile must queue behind it even once lateness is off, or it could overtake."""
+        self._late_thread: threading.Thread | None = None
+        self._late_threads: list[threading.Thread] = []
+        self._late_log: deque[LateDelivery] = deque(maxlen=LATE_LOG_SIZE)
         self.on_raise: Callable[[str, int], None] | None = None
         """Measurement hook: ``on_raise(source, t_ns)`` for every raise (dropped ones too), in the
         raising thread, after the interrupt was handed to the line; ``t_ns`` is
@@ -94,8 +155,7 @@ class InterruptGate:
                 return
             self._last_source = source
             if not self._coalescing:
-                self._delivered += 1
-                deliver = 1
+                deliver = self._release(1)
             else:
                 self._pending += 1
                 if self._pending >= self._burst:
@@ -136,6 +196,42 @@ class InterruptGate:
         with self._lock:
             self._drops[source] += 1
 
+    def late(self, max_delay_s: float | None, rng: random.Random | None = None) -> None:
+        """Deliver every interrupt late by a delay drawn uniformly in ``[0, max_delay_s]``
+        hardware seconds, or, with None, deliver what is held now and stop delaying.
+
+        ``rng`` draws the delays (kept from the previous call when None): seeding it makes the
+        delays reproducible, one draw per delivery in the order the gate makes them. Calling it
+        again while on changes the bound for interrupts raised from then on. Switching off
+        returns once the held interrupts have reached the line (in order, as one count or a
+        few), unless it is called from the releasing thread itself.
+        """
+        if max_delay_s is not None and not (math.isfinite(max_delay_s) and max_delay_s >= 0.0):
+            raise ValueError(f"max_delay_s must be finite and not negative, not {max_delay_s}")
+        with self._lock:
+            if rng is not None:
+                self._late_rng = rng
+            self._late_max = max_delay_s
+            if max_delay_s is None:
+                self._late_cond.notify_all()
+                me = threading.current_thread()
+                # until the releasing thread has flushed the queue (it exits once it is empty),
+                # or someone switched lateness on again, or the gate was closed
+                while (
+                    (self._late_queue or self._late_busy)
+                    and self._late_max is None
+                    and self._late_thread is not None
+                    and self._late_thread is not me
+                ):
+                    self._late_cond.wait()
+                return
+            if self._late_thread is None and not self._closed:
+                thread = threading.Thread(target=self._late_run, name="irqgate-late", daemon=True)
+                self._late_thread = thread
+                self._late_threads = [t for t in self._late_threads if t.is_alive()]
+                self._late_threads.append(thread)
+                thread.start()
+
     def flush(self) -> None:
         """Deliver every held interrupt now, as one burst."""
         with self._lock:
@@ -143,18 +239,31 @@ class InterruptGate:
         self._deliver(deliver)
 
     def close(self) -> None:
-        """Cancel and join the hold timers; held interrupts stay held (nobody is left to take
-        them). Joining matters: a rig that closes must leave no thread behind."""
+        """Cancel and join the hold timers and the late-release thread; held interrupts stay
+        held (nobody is left to take them). Joining matters: a rig that closes must leave no
+        thread behind."""
         with self._lock:
+            self._closed = True
             self._generation += 1
             self._timer = None
             timers, self._timers = self._timers, []
+            self._late_thread = None
+            self._late_cond.notify_all()
+            late_threads, self._late_threads = self._late_threads, []
         for timer in timers:
             timer.cancel()
             if timer is not threading.current_thread():
                 timer.join()
+        for thread in late_threads:
+            if thread is not threading.current_thread():
+                thread.join()
 
     # -- observability -------------------------------------------------------------------------
+    @property
+    def clock(self) -> SimClock:
+        """The hardware clock the gate's holds and delays are measured on."""
+        return self._clock
+
     @property
     def raised(self) -> int:
         """Interrupts raised by the models (including spurious and dropped ones)."""
@@ -186,6 +295,36 @@ class InterruptGate:
             return self._pending
 
     @property
+    def late_pending(self) -> int:
+        """Interrupts held by lateness, not yet delivered."""
+        with self._lock:
+            return self._late_pending
+
+    @property
+    def late_delivered(self) -> int:
+        """Interrupts delivered after lateness held them (included in :attr:`delivered`)."""
+        with self._lock:
+            return self._late_delivered
+
+    @property
+    def late_delay_max(self) -> float:
+        """The largest delay drawn so far, hardware seconds (0.0 before any)."""
+        with self._lock:
+            return self._late_delay_max
+
+    @property
+    def late_bound(self) -> float | None:
+        """The bound delays are drawn under, hardware seconds; None while lateness is off."""
+        with self._lock:
+            return self._late_max
+
+    @property
+    def late_log(self) -> tuple[LateDelivery, ...]:
+        """The latest :data:`LATE_LOG_SIZE` late deliveries, oldest first."""
+        with self._lock:
+            return tuple(self._late_log)
+
+    @property
     def coalescing(self) -> bool:
         with self._lock:
             return self._coalescing
@@ -205,12 +344,84 @@ class InterruptGate:
     def _take_pending(self) -> int:
         """Empty the hold (lock held) and disarm its timer; returns the count to deliver."""
         count, self._pending = self._pending, 0
-        self._delivered += count
         self._generation += 1
         timer, self._timer = self._timer, None
         if timer is not None:
             timer.cancel()
-        return count
+        return self._release(count)
+
+    def _release(self, count: int) -> int:
+        """``count`` interrupts leave the gate's hold (lock held): counted as delivered and
+        returned for :meth:`_deliver`, or queued for the late-release thread (returns 0).
+
+        They queue while lateness is on, and also while anything is still queued or on its way
+        out after it was switched off, so that nothing overtakes an interrupt raised earlier.
+        """
+        if count <= 0:
+            return 0
+        if self._late_max is None and not self._late_queue and not self._late_busy:
+            self._delivered += count
+            return count
+        now = self._clock.now()
+        delay = 0.0 if self._late_max is None else self._late_rng.uniform(0.0, self._late_max)
+        # never before the batch ahead (a batch already flushed early does not count: the bound
+        # holds again as soon as lateness is back on)
+        ahead = self._late_queue[-1].due_s if self._late_queue else now
+        due = max(now + delay, ahead)
+        self._late_queue.append(_Held(count, now, delay, due))
+        self._late_pending += count
+        self._late_delay_max = max(self._late_delay_max, delay)
+        self._late_cond.notify_all()
+        return 0
+
+    def _late_run(self) -> None:
+        """The late-release thread: hands each queued batch to the line once it is due (all of
+        them at once after lateness is switched off), then exits when off and empty."""
+        me = threading.current_thread()
+        with self._lock:
+            try:
+                while self._late_thread is me:
+                    if not self._late_queue and self._late_max is None:
+                        return
+                    self._late_step()
+            finally:
+                # also when the line raised something unexpected: whoever waits for the flush
+                # in late(None) must not wait for a thread that is gone
+                if self._late_thread is me:
+                    self._late_thread = None
+                self._late_cond.notify_all()
+
+    def _late_step(self) -> None:
+        """One turn of the late-release thread (lock held): wait for the head of the queue to
+        fall due, or deliver every batch that is due (every batch, once lateness is off)."""
+        queue = self._late_queue
+        if not queue:
+            self._late_cond.wait()
+            return
+        now = self._clock.now()
+        if self._late_max is not None:
+            wait_hw = queue[0].due_s - now
+            if wait_hw > 0.0:
+                self._late_cond.wait(self._clock.to_real(wait_hw))
+                return
+        count = 0
+        while queue and (self._late_max is None or queue[0].due_s <= now):
+            held = queue.popleft()
+            count += held.interrupts
+            self._late_log.append(
+                LateDelivery(held.interrupts, held.raised_s, held.delay_s, held.due_s, now)
+            )
+        self._late_pending -= count
+        self._late_delivered += count
+        self._delivered += count
+        self._late_busy = True
+        self._lock.release()
+        try:
+            self._deliver(count)
+        finally:
+            self._lock.acquire()
+            self._late_busy = False
+            self._late_cond.notify_all()
 
     def _arm_timer(self) -> None:
         """Start the max-hold timer for a burst that just began (lock held)."""

@@ -338,6 +338,8 @@ class SimulatedBiris:
             self.level2_gate,
             self.level3_gate,
             pan_drive=self.drives.get(Axis.AZIMUTH),
+            seed=self.seed,
+            driver_windows=self._driver_windows,
         )
         self._motion_window: BusWindow = self.board.window()
         self._coupler_window: BusWindow = self.coupler.window()
@@ -358,6 +360,7 @@ class SimulatedBiris:
             biris_base=self.memory_map.biris_base,
             clock=self.clock.now,
             time_scale=time_scale,
+            lag=self.lag_s,
         )
 
     # -- the crate's monitor on CAN ------------------------------------------------------------
@@ -439,6 +442,7 @@ class SimulatedBiris:
             biris_base=self.memory_map.biris_base,
             clock=self.clock.now,
             time_scale=time_scale,
+            lag=self.lag_s,
             axes=axes,
         )
 
@@ -523,7 +527,16 @@ class SimulatedBiris:
             biris_base=self.memory_map.biris_base,
             clock=self.clock.now,
             time_scale=time_scale,
+            lag=self.lag_s,
         )
+
+    def _driver_windows(self) -> list[BusWindow]:
+        """The windows only the driver reads through (those of :attr:`hardware`; the VM-USB's
+        when the transport is ``vmusb``): what the fault panel's slow reads slow. The
+        simulator's own accesses use other objects (the supervisor's window, the device
+        models, the far side of the bridge)."""
+        hw = self.hardware
+        return [w for w in (hw.biris, hw.motion, hw.coupler) if w is not None]
 
     def _vme_irq(self, level: int, count: int) -> None:
         """A VME interrupt of ``level``: the bridge answers its IACK with the vector the
@@ -637,6 +650,7 @@ class SimulatedBiris:
         self._closed = True
         self.supervisor.stop()
         self.board.stop()
+        self.faults.close()
         self.level2_gate.close()
         self.level3_gate.close()
         self.hardware.close()  # the driver's CAN bus first: the drives outlive its last frame

@@ -7,6 +7,12 @@ descriptor is left behind, and the simulator's audit is clean. A test that provo
 purpose says so with ``@pytest.mark.audit_violations_expected`` (or clears the audit itself once
 it has checked what it expected). Tests that build no rig can ask for the leak check with the
 ``no_leaks`` fixture.
+
+Every Scan a server completes during a test (``ScanSequencer.complete``, whatever built the
+server: a fixture, the CLI, the thread-free core) is checked at teardown too, per sequencer, by
+:class:`biris_hw.scancheck.ScanChecker` (issue 21: no scan silently short or empty, none with
+another's rows). A test that makes the server deliver bad scans on purpose says so with
+``@pytest.mark.scan_violations_expected``.
 """
 
 from __future__ import annotations
@@ -21,11 +27,14 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from biris_hw.records import BirisInitRecord
+from biris_hw.scancheck import ScanChecker
 from biris_hw.status import ServerState, ServerStatus
 from sim.rig import SimulatedBiris
 from sim.scene import Scene
+from sim.scene.shapes import Cylinder
 
 if TYPE_CHECKING:
+    from biris_hw.data import Scan
     from biris_hw.server import BirisServer
     from tests.core import Core
 
@@ -137,6 +146,8 @@ class _Watch:
         self.threads = _threads()
         self.fds = _fds()
         self.rigs: list[SimulatedBiris] = []
+        self.rig_options: list[dict[str, Any]] = []
+        """The keywords each rig was built with (``noise``, ``trajectory``), in ``rigs``' order."""
         self.check_leaks = False
 
     def problems(self, audit: bool) -> list[str]:
@@ -208,6 +219,7 @@ def _track_rigs() -> Iterator[None]:
         original(self, *args, **kwargs)
         if _watch is not None:
             _watch.rigs.append(self)
+            _watch.rig_options.append(dict(kwargs))
 
     SimulatedBiris.__init__ = tracked  # type: ignore[method-assign]
     yield
@@ -227,6 +239,124 @@ def _leak_and_audit_check(request: pytest.FixtureRequest, _track_rigs: None) -> 
         _watch = None
     audit = request.node.get_closest_marker("audit_violations_expected") is None
     problems = watch.problems(audit)
+    if problems:
+        pytest.fail("\n".join(problems), pytrace=False)
+
+
+# -- the scan invariants ---------------------------------------------------------------------------
+
+
+class _Delivered:
+    """Every Scan the server completed during one test, per ScanSequencer, in order.
+
+    Recording is all the server's thread does (an append under a lock): checking there would
+    add to the administrator's time per scan, which timing-sensitive tests would feel.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._by_sequencer: dict[int, tuple[object, list[Scan]]] = {}
+
+    def add(self, sequencer: object, scan: Scan) -> None:
+        with self._lock:
+            # the sequencer itself is kept so that its id is not reused within the test
+            self._by_sequencer.setdefault(id(sequencer), (sequencer, []))[1].append(scan)
+
+    def streams(self) -> list[list[Scan]]:
+        with self._lock:
+            return [list(scans) for _, scans in self._by_sequencer.values()]
+
+
+_delivered: _Delivered | None = None
+"""The running test's delivered scans; scans completed while it is set are recorded in it."""
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _track_scans() -> Iterator[None]:
+    """Record every Scan ``ScanSequencer.complete`` returns in the running test's log (patched
+    once per session, as ``_track_rigs`` does, for the same reason)."""
+    from biris_hw.server.scanning import ScanSequencer
+
+    original = ScanSequencer.complete
+
+    def tracked(self: ScanSequencer, scan: Any) -> Scan:
+        result = original(self, scan)
+        log = _delivered
+        if log is not None:
+            log.add(self, result)
+        return result
+
+    ScanSequencer.complete = tracked  # type: ignore[method-assign]
+    yield
+    ScanSequencer.complete = original  # type: ignore[method-assign]
+
+
+def _returns_everywhere(rig: SimulatedBiris, options: dict[str, Any]) -> bool:
+    """Whether every acquisition of ``rig`` must see light somewhere along its line, so that an
+    all-zero row can only be a frame BIRIS never wrote: a round wall centred on the pan axis
+    (:meth:`Scene.circle`), well within the optics' reach and bright enough there, and a head
+    that does not travel. The margins (1.25x the closest range, 0.8x the furthest, twice the
+    weakest return) leave room for the tilt, which lengthens the upper rows' depth, and for the
+    range noise; the lower rows of a head tilted up to 60 degrees still see the wall."""
+    if options.get("trajectory") is not None:
+        return False
+    shapes = rig.scene.shapes
+    if len(shapes) != 1 or not isinstance(shapes[0], Cylinder):
+        return False
+    wall, optics = shapes[0], rig.optics.params
+    brightness = optics.intensity_scale * wall.albedo / (0.8 * optics.max_range_m) ** 2
+    return (
+        tuple(wall.center) == (0.0, 0.0)
+        and 1.25 * optics.min_range_m <= wall.radius <= 0.8 * optics.max_range_m
+        and brightness >= 2.0 * optics.min_return
+    )
+
+
+def _scan_problems(log: _Delivered, watch: _Watch) -> list[str]:
+    """The violations of every sequencer's stream of scans, by :class:`ScanChecker`.
+
+    The rules that depend on the simulator are on only when every rig of the test allows them:
+    "no all-zero row" needs a scene that returns light everywhere, "no row in two scans" needs
+    the optics' noise (without it two sweeps over one azimuth give identical rows). A test with
+    no rig feeds the server made-up acquisitions (the thread-free core: one profile, azimuths
+    that climb whichever way the head turns), so only the server's bookkeeping is judged there
+    (``physical=False``: an empty scan is partial, a partial one says why).
+    """
+    rigs = list(zip(watch.rigs, watch.rig_options, strict=True))
+    expect_returns = bool(rigs) and all(_returns_everywhere(r, o) for r, o in rigs)
+    repeats = all(o.get("noise", True) for _, o in rigs)
+    found: list[str] = []
+    for stream in log.streams():
+        checker = ScanChecker(expect_returns=expect_returns, repeats=repeats, physical=bool(rigs))
+        checker.extend(stream)
+        if not checker.ok:
+            shown = checker.violations[:20]
+            cut = len(checker.violations) - len(shown)
+            found.append(
+                f"the server delivered scans that break the scan invariants "
+                f"(biris_hw.scancheck; {checker.summary()}):\n  "
+                + "\n  ".join(shown)
+                + (f"\n  ... and {cut} more" if cut else "")
+            )
+    return found
+
+
+@pytest.fixture(autouse=True)
+def _scan_invariants(
+    request: pytest.FixtureRequest, _track_scans: None, _leak_and_audit_check: _Watch
+) -> Iterator[None]:
+    """Check every scan the test's servers completed, at teardown (after every other fixture
+    of the test: its servers have stopped by then, and its rigs are known to the watch)."""
+    global _delivered
+    log = _Delivered()
+    _delivered = log
+    try:
+        yield
+    finally:
+        _delivered = None
+    if request.node.get_closest_marker("scan_violations_expected") is not None:
+        return
+    problems = _scan_problems(log, _leak_and_audit_check)
     if problems:
         pytest.fail("\n".join(problems), pytrace=False)
 

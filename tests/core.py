@@ -68,7 +68,9 @@ class Core:
     """The acquisition period the initialiser reports (2 fields)."""
     SAMPLES = 64
 
-    def __init__(self, record: BirisInitRecord | None = None) -> None:
+    def __init__(
+        self, record: BirisInitRecord | None = None, *, recheck_biris: bool = False
+    ) -> None:
         self.record = record if record is not None else BirisInitRecord()
         self.clock = VirtualClock()
         self.inbox = Mailbox("core")
@@ -80,6 +82,9 @@ class Core:
         self.initialiser_starts = 0
         self.rechecks = 0
         """How many times the administrator asked the level-3 routine to look again."""
+        self.biris_rechecks = 0
+        """How many times it asked the level-2 routine to read BIRIS afresh (``recheck_biris``:
+        without, a BIRIS timeout is a fault at once, as with a routine that cannot look)."""
         self.admin = Administrator(
             self.record,
             self.inbox,
@@ -89,6 +94,7 @@ class Core:
             self._start_initialiser,
             self.el_watchdog,
             recheck_motion=self._recheck,
+            recheck_biris=self._recheck_biris if recheck_biris else None,
         )
         self.transfer = self.send(m.CmdTransferRdy())
         self.notifier: Ticket | None = None
@@ -102,6 +108,9 @@ class Core:
 
     def _recheck(self) -> None:
         self.rechecks += 1
+
+    def _recheck_biris(self) -> None:
+        self.biris_rechecks += 1
 
     # -- the inbox ---------------------------------------------------------------------------
     def send(self, message: object) -> Ticket:

@@ -96,6 +96,9 @@ class _Link:
     def acq_line(self) -> int:
         return self.line
 
+    def command(self) -> int:
+        return 0 if self.line == ACQ_LINE_END else 1  # completed only once the sequence ended
+
     def set_flags(self, *, data_int: bool) -> None:
         self.data_int.append(data_int)
 
@@ -592,7 +595,7 @@ def _fault_mid_sweep(server: BirisServer, rig: SimulatedBiris) -> None:
     defect 5, tested with the fault matrix)."""
     conn = server.open()
     kept = server.status().counters["acquisitions"]
-    conn.single_scan(90.0)
+    conn.single_scan(360.0)  # 2.9 s of hardware time: the faults land well within it
     until(lambda: server.status().counters["acquisitions"] >= kept + 5, WAIT)
     rig.faults.stall_motor()
     rig.faults.parity_error()

@@ -189,22 +189,127 @@ def test_a_stale_timer_expiry_is_not_a_fault(core: Core) -> None:
     assert core.admin.life.fault is None
 
 
-def test_a_move_that_never_ends_is_a_motor_stall_once_the_controller_was_asked(
+NOTHING_NOTICED: dict[Axis, int | None] = {Axis.AZIMUTH: None, Axis.ELEVATION: None}
+"""No notifier woke for an end (MotionRechecked.noticed)."""
+
+
+def test_a_move_that_never_ends_is_a_motor_stall_once_the_controller_says_so(
     core: Core,
 ) -> None:
     conn = core.open()
     core.call(p.TimeoutDisable(conn))  # BIRIS's own 4 s would come first: the motor is judged
-    _scan(core, conn, 1024)
+    _acquire, move = _scan(core, conn, 1024)
+    started = core.clock.now
     assert core.az_watchdog.deadline is not None
     core.advance(core.az_watchdog.deadline - core.clock.now + 0.01)
     # first the level-3 routine is asked to read the board (an end whose interrupt was lost)
     assert core.admin.life.fault is None and core.rechecks == 1
     assert core.az_watchdog.arms[-1] == RECHECK_GRACE_S
+    # no answer yet (a host too busy to run the routine): the watchdog asks again, no verdict
     assert core.az_watchdog.deadline is not None
     core.advance(core.az_watchdog.deadline - core.clock.now + 0.01)
+    assert core.admin.life.fault is None and core.rechecks == 2
+    # the controller's answer: the move it started long ago has not ended
+    core.send(m.MotionRechecked(0, {Axis.AZIMUTH: (move.token, started)}, NOTHING_NOTICED))
+    fault = core.admin.life.fault
+    assert fault is not None and fault.kind == "motor_stall" and "asked" in fault.message
+
+
+def test_a_move_its_worker_started_late_is_given_its_time_from_its_start(core: Core) -> None:
+    """A watchdog armed when the move was ordered runs out early if the host ran the worker
+    late: the controller, asked, has not ended a move that started only just now. That is
+    no stall: the watchdog is armed again for what the move has from its start."""
+    conn = core.open()
+    core.call(p.TimeoutDisable(conn))
+    _acquire, move = _scan(core, conn, 1024)
+    assert core.az_watchdog.deadline is not None
+    core.advance(core.az_watchdog.deadline - core.clock.now + 0.01)
+    assert core.rechecks == 1
+    # not started at all yet (still the previous move's record): all of its time
+    core.send(m.MotionRechecked(0, {Axis.AZIMUTH: None}, NOTHING_NOTICED))
+    assert core.admin.life.fault is None
+    allowed = core.az_watchdog.arms[-1]
+    assert allowed > RECHECK_GRACE_S
+    # started half its allowance ago: the rest of it
+    core.advance(allowed + 0.01)
+    assert core.rechecks == 2
+    half = allowed / 2
+    started = (move.token, core.clock.now - half)
+    core.send(m.MotionRechecked(0, {Axis.AZIMUTH: started}, NOTHING_NOTICED))
+    assert core.admin.life.fault is None
+    assert core.az_watchdog.arms[-1] == pytest.approx(allowed - half)
+    # and once it has had all of it, not ended is a stall
+    core.advance(allowed)
+    core.send(m.MotionRechecked(0, {Axis.AZIMUTH: started}, NOTHING_NOTICED))
     fault = core.admin.life.fault
     assert fault is not None and fault.kind == "motor_stall"
-    assert "asked" in fault.message and core.rechecks == 1  # asked once, not again
+
+
+def test_a_move_the_controller_had_ended_is_left_to_its_notifier(core: Core) -> None:
+    conn = core.open()
+    core.call(p.TimeoutDisable(conn))
+    _scan(core, conn, 1024)
+    assert core.az_watchdog.deadline is not None
+    core.advance(core.az_watchdog.deadline - core.clock.now + 0.01)
+    core.send(m.MotionRechecked(1, {Axis.AZIMUTH: None}, NOTHING_NOTICED))
+    assert core.admin.life.fault is None
+    assert core.az_watchdog.deadline is None  # the notifier verifies the arrival, however late
+    core.advance(60.0)
+    assert core.admin.life.fault is None
+
+
+def test_an_end_the_notifier_took_already_is_no_stall(core: Core) -> None:
+    """The level-3 routine acknowledged the end and woke the notifier, which is still settling
+    (a host that polls late watches longer): asked, the controller shows nothing latched, but
+    the notifier's record names this move, so the watchdog leaves it to the notifier."""
+    conn = core.open()
+    core.call(p.TimeoutDisable(conn))
+    _acquire, move = _scan(core, conn, 1024)
+    assert core.az_watchdog.deadline is not None
+    core.advance(core.az_watchdog.deadline - core.clock.now + 0.01)
+    long_ago = (move.token, core.clock.now - 100.0)
+    core.send(m.MotionRechecked(0, {Axis.AZIMUTH: long_ago}, {Axis.AZIMUTH: move.token}))
+    assert core.admin.life.fault is None and core.az_watchdog.deadline is None
+
+
+def test_a_biris_timeout_is_a_fault_only_if_biris_made_nothing_when_read_afresh() -> None:
+    """The countdown runs from the last life the host saw; before calling BIRIS hung the
+    level-2 routine reads it afresh: new acquisitions (posted ahead of the answer) or a
+    completion re-arm it; nothing new is a timeout."""
+    core = Core(recheck_biris=True)
+    core.initialise()
+    conn = core.open()
+    core.call(p.TimeoutEnable(conn))
+    acquire, _ = _scan(core, conn, 1000)
+    core.arrive()
+    core.advance(4.2)  # the host saw nothing for 4 s
+    assert core.admin.life.fault is None and core.biris_rechecks == 1
+    # the routine found acquisitions made meanwhile: they come first, then its answer
+    core.acquisitions(acquire.seq_id, range(0, 3))
+    core.send(m.BirisRechecked(True))
+    assert core.admin.life.fault is None
+    assert core.biris_timeout.deadline is not None  # counting again, from the new life
+    core.advance(4.2)
+    assert core.biris_rechecks == 2
+    core.advance(4.2)  # no answer yet: asked again, still no verdict
+    assert core.biris_rechecks == 3 and core.admin.life.fault is None
+    core.send(m.BirisRechecked(False))  # nothing new at all: BIRIS is hung
+    fault = core.admin.life.fault
+    assert fault is not None and fault.kind == "timeout"
+
+
+def test_life_seen_while_a_biris_recheck_is_out_proves_biris_alive() -> None:
+    core = Core(recheck_biris=True)
+    core.initialise()
+    conn = core.open()
+    core.call(p.TimeoutEnable(conn))
+    acquire, _ = _scan(core, conn, 1000)
+    core.arrive()
+    core.advance(4.2)
+    assert core.biris_rechecks == 1
+    core.acquisitions(acquire.seq_id, range(0, 1))  # a data interrupt came meanwhile
+    core.send(m.BirisRechecked(False))  # the look itself found nothing more
+    assert core.admin.life.fault is None
 
 
 def test_a_move_whose_end_is_found_on_asking_completes(core: Core) -> None:
@@ -321,7 +426,7 @@ def test_every_acquisition_reaches_a_streaming_client_in_order(core: Core) -> No
 
 
 def _prompt() -> ScanTiming:
-    """The timing of a server that has seen its motor start at once (as Core starts it)."""
+    """The timing of a server that has seen its motor start on time (as Core starts it)."""
     timing = ScanTiming(Core.PERIOD)
-    timing.note_start_delay(0.0)
+    timing.note_lateness(0.0)
     return timing

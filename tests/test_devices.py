@@ -148,11 +148,37 @@ def test_a_head_passing_its_command_position_slowly_has_not_settled() -> None:
 
 
 def test_a_head_short_of_its_command_position_has_not_settled_in_time() -> None:
-    clock = Clock(step=0.05)  # 1 s of hardware time is 20 readings
+    clock = Clock(step=0.0015)  # polls on time: 1 s of hardware time watched is 667 of them
     driver, window = _driver(clock)
     _positions(window, Axis.ELEVATION, 100, 200)
     assert driver.wait_settled(threading.Event(), limit_s=1.0) is False
-    assert 1.0 <= clock.now < 1.5
+    assert 1.0 <= clock.now < 1.05
+
+
+def test_a_host_that_polls_late_watches_longer_and_a_head_that_arrived_has_settled() -> None:
+    """The limit is hardware time *watched*: a poll that came 0.3 s after the previous one
+    (a host stalled, a simulator far faster than the host) watched 15 ms of it. A head that
+    arrived during such a stall is seen settled, where counting the stalls called it
+    unsettled after four polls (issue 21: faults a late host invents)."""
+    clock = Clock(step=0.3)
+    driver, window = _driver(clock)
+    _positions(window, Axis.ELEVATION, 100, 200)
+
+    class Arriving(Clock):
+        def __call__(self) -> float:
+            now = clock()
+            if now > 1.5:  # the head reaches its command position after 1.5 s
+                _positions(window, Axis.ELEVATION, 200, 200)
+            return now
+
+    driver = AxisDriver(window, Axis.ELEVATION, Arriving(), time_scale=1.0)
+    assert driver.wait_settled(threading.Event(), limit_s=1.0) is True
+    assert clock.now > 1.5
+    # and the same late host, with a head that never arrives, still gets its verdict
+    clock.now = 0.0
+    _positions(window, Axis.ELEVATION, 100, 200)
+    stuck = AxisDriver(window, Axis.ELEVATION, clock, time_scale=1.0)
+    assert stuck.wait_settled(threading.Event(), limit_s=1.0) is False
 
 
 def test_settling_gives_up_at_once_when_stopped() -> None:

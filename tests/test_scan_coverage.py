@@ -1,8 +1,9 @@
-"""Report-mode scans cover what was asked (issue 12, item 1).
+"""Report-mode scans cover what was asked.
 
-The server writes BI_ACQUIRE first and starts the trapezoid when BIRIS's start-up is over
-(SEQUENCE_STARTED); the count comes from the trapezoid's real duration in real acquisition
-periods. Checked three ways: the count arithmetic against the simulator's own trapezoid, the
+The server writes BI_ACQUIRE first and starts the trapezoid one start-up after the write, by a
+hardware-time schedule (:mod:`biris_hw.server.start_schedule`), whenever the host sees BIRIS's
+interrupts; the count comes from the trapezoid's real duration in real acquisition periods.
+Checked three ways: the count arithmetic against the simulator's own trapezoid, the
 administrator's ordering without threads (tests.core), and whole scans against the simulator,
 whose audit and true azimuths judge.
 """
@@ -10,6 +11,7 @@ whose audit and true azimuths judge.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -20,13 +22,18 @@ from biris_hw.records import BirisInitRecord
 from biris_hw.server import messages as m
 from biris_hw.server.scan_assembly import STILL_COUNTS
 from biris_hw.server.scan_timing import (
+    FIELD_S,
     HOST_LATENCY_S,
-    MAX_START_DELAY_S,
-    START_DELAYS_KEPT,
+    MAX_LATENESS_S,
+    RECENT_KEPT,
+    START_AFTER_S,
+    STARTUP_MAX_S,
+    STARTUP_S,
     ScanTiming,
     data_rate_mismatch,
     trapezoid_s,
 )
+from biris_hw.server.start_schedule import StartSchedule
 from regs.biexec import BiCommand
 from regs.layout import acquisition_period_s
 from sim import Scene, SimulatedBiris
@@ -56,7 +63,7 @@ def test_the_trapezoid_lasts_what_the_chip_takes(distance: int, params: MotorPar
 
 def test_the_count_covers_the_motion_with_the_arrival_and_one_spare() -> None:
     timing = ScanTiming(PERIOD)
-    timing.note_start_delay(0.0)  # a prompt server
+    timing.note_lateness(0.0)  # a prompt server
     assert timing.acquisitions(0, DEFAULT) == 0
     for distance in (1, 100, 1024, 8192):
         n = timing.acquisitions(distance, DEFAULT)
@@ -65,44 +72,64 @@ def test_the_count_covers_the_motion_with_the_arrival_and_one_spare() -> None:
         assert (n - 2 + 0.5) * PERIOD >= trapezoid_s(distance, DEFAULT)
         assert n - 2 <= moving + 1.5
     # the report's BIRIS_DATA_RATE (30 ms) and start-up-blind count asked for more, of which
-    # ~44 % stood at the destination of a 90 degree scan; this is the motion in real periods
+    # ~44 % stood at the destination of a 90 degree scan; this is the motion in real periods,
+    # from a start a quarter field after BIRIS's first acquisition, the host's latency allowed
+    start = START_AFTER_S + HOST_LATENCY_S
     assert (
         timing.acquisitions(1024, DEFAULT)
-        == math.ceil(trapezoid_s(1024, DEFAULT) / PERIOD + 0.25 - 0.5) + 2
+        == math.ceil((start + trapezoid_s(1024, DEFAULT)) / PERIOD + 0.25 - 0.5) + 2
     )
 
 
-def test_the_start_delay_is_learned_from_recent_scans_and_bounded() -> None:
+def test_the_motor_start_lateness_is_learned_from_recent_scans_and_bounded() -> None:
     timing = ScanTiming(PERIOD)
-    # nothing seen yet: one period and the host's latency (a tenth of a period on the real head)
-    assert timing.start_delay_s == pytest.approx(PERIOD + HOST_LATENCY_S)
-    timing.note_start_delay(0.0)
+    # nothing seen yet: the host's latency (a tenth of a period on the real head)
+    assert timing.lateness_allowance_s == pytest.approx(HOST_LATENCY_S)
+    timing.note_lateness(0.0)
     quick = timing.acquisitions(1024, DEFAULT)
-    timing.note_start_delay(3 * PERIOD)
+    timing.note_lateness(3 * PERIOD)
     assert timing.acquisitions(1024, DEFAULT) == quick + 3
-    for _ in range(START_DELAYS_KEPT):  # forgotten once enough quicker starts are seen
-        timing.note_start_delay(0.0)
+    for _ in range(RECENT_KEPT):  # forgotten once enough prompter starts are seen
+        timing.note_lateness(0.0)
     assert timing.acquisitions(1024, DEFAULT) == quick
-    timing.note_start_delay(60.0)
-    timing.note_start_delay(float("nan"))
-    timing.note_start_delay(-1.0)
-    assert timing.start_delay_s == MAX_START_DELAY_S
+    timing.note_lateness(60.0)
+    timing.note_lateness(float("nan"))
+    timing.note_lateness(-1.0)
+    assert timing.lateness_allowance_s == MAX_LATENESS_S
+
+
+def test_the_start_up_is_learned_as_the_smallest_bound_and_capped_by_the_reports() -> None:
+    timing = ScanTiming(PERIOD)
+    # before any scan: the report's 240 ms plus the field BIRIS may take to see the command
+    assert timing.startup_lead_s == pytest.approx(STARTUP_S + FIELD_S)
+    timing.note_startup(0.262)
+    timing.note_startup(0.251)  # a prompter look: a tighter bound
+    timing.note_startup(0.290)
+    assert timing.startup_s == pytest.approx(0.251)
+    assert timing.startup_lead_s == pytest.approx(0.251 + START_AFTER_S)
+    # bounds made loose by a host that only looked late never push the motor's start beyond
+    # the report's longest start-up (a late motor is a short scan)
+    loose = ScanTiming(PERIOD)
+    for _ in range(3):
+        loose.note_startup(0.4)
+    assert loose.startup_s == pytest.approx(STARTUP_MAX_S)
+    for nonsense in (float("nan"), -0.1, 0.0, 5.0):
+        loose.note_startup(nonsense)
+    assert loose.startup_s == pytest.approx(STARTUP_MAX_S)
 
 
 def test_before_any_start_is_seen_a_scaled_simulation_allows_the_hosts_latency() -> None:
-    """At x30 three host milliseconds are 90 ms of hardware time: the first scan asks for that
-    many more (standing at its end, dropped and counted) rather than end short of its
+    """At x30 three host milliseconds are 90 ms of hardware time: the scan asks for that many
+    more (standing at its end, dropped and counted) rather than end short of its
     destination, which a loaded host made it do (9 counts short of +45 degrees, stop 19's CI)."""
     real, scaled = ScanTiming(PERIOD), ScanTiming(PERIOD, time_scale=30.0)
-    assert scaled.start_delay_s == pytest.approx(PERIOD + 30.0 * HOST_LATENCY_S)
+    assert scaled.lateness_allowance_s == pytest.approx(30.0 * HOST_LATENCY_S)
     extra = scaled.acquisitions(512, DEFAULT) - real.acquisitions(512, DEFAULT)
     assert extra == pytest.approx(29.0 * HOST_LATENCY_S / PERIOD, abs=1.0)
-    # once a start is seen, what was seen counts, on any scale
-    scaled.note_start_delay(0.0)
-    real.note_start_delay(0.0)
-    assert scaled.acquisitions(512, DEFAULT) == real.acquisitions(512, DEFAULT)
-    # and no scale makes the allowance unbounded
-    assert ScanTiming(PERIOD, time_scale=1e6).start_delay_s == MAX_START_DELAY_S
+    # a late start seen counts, on any scale; and no scale makes the allowance unbounded
+    real.note_lateness(0.4)
+    assert real.acquisitions(512, DEFAULT) >= scaled.acquisitions(512, DEFAULT)
+    assert ScanTiming(PERIOD, time_scale=1e6).lateness_allowance_s == MAX_LATENESS_S
 
 
 def test_biris_data_rate_is_checked_against_the_real_period() -> None:
@@ -113,29 +140,72 @@ def test_biris_data_rate_is_checked_against_the_real_period() -> None:
 
 
 # -- the ordering, without threads ---------------------------------------------------------------
-def test_the_motor_waits_for_biris_to_begin_acquiring(core: Core) -> None:
+def test_the_motor_is_ordered_with_the_command_on_its_schedule(core: Core) -> None:
+    """The trapezoid is ordered at once, carrying the same schedule as BI_ACQUIRE: it starts a
+    start-up after the write, whenever (or whether) SEQUENCE_STARTED reaches the server."""
     conn = core.open()
     assert core.call(p.SingleScanRqst(conn, 1024)) == 1024
     acquire = core.command(start=False)
     assert acquire is not None and acquire.code == BiCommand.BI_ACQUIRE
-    assert core.move() is None  # BIRIS is in its start-up: the head stands
-    core.started(acquire.seq_id + 99)  # not this sequence's: ignored
-    assert core.move() is None
-    core.advance(0.01)
-    core.started(acquire.seq_id)
     move = core.move()
     assert isinstance(move, m.MoveOrder) and move.destination == 1024
-    assert core.admin.scans.timing.start_delay_s == pytest.approx(0.0)
+    assert move.schedule is not None and move.schedule is acquire.schedule
+    assert move.schedule.lead_s == pytest.approx(core.admin.scans.timing.startup_lead_s)
+    core.started(acquire.seq_id + 99)  # another sequence's: ignored, nothing else ordered
+    assert core.move() is None
 
 
-def test_a_fault_forgets_a_motor_start_it_was_holding(core: Core) -> None:
+def test_a_fault_cancels_a_motor_start_that_waits_for_its_schedule(core: Core) -> None:
     conn = core.open()
     core.call(p.SingleScanRqst(conn, 1024))
     acquire = core.command(start=False)
-    assert acquire is not None
+    assert acquire is not None and acquire.schedule is not None
+    assert not acquire.schedule.cancelled
     core.send(m.BirisParityErr())  # a fault while BIRIS starts up
-    core.started(acquire.seq_id)  # the start-up ends anyway: the head must stay
-    assert core.move() is None
+    assert acquire.schedule.cancelled  # the worker waiting on it starts nothing
+    assert not acquire.schedule.wait_start()
+
+
+def test_a_reset_cancels_the_schedule_too(core: Core) -> None:
+    conn = core.open()
+    core.call(p.SingleScanRqst(conn, 1024))
+    acquire = core.command(start=False)
+    assert acquire is not None and acquire.schedule is not None
+    core.send(p.ResetRequest(conn))
+    assert acquire.schedule.cancelled
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_a_schedule_starts_when_due_and_says_how_late() -> None:
+    clock = _Clock()
+    schedule = StartSchedule(0.25, clock)
+    assert schedule.start_at is None and schedule.late_s is None
+    schedule.written(10.0)
+    assert schedule.start_at == pytest.approx(10.25)
+    clock.now = 10.30  # the worker woke 50 ms late
+    assert schedule.wait_start()
+    assert schedule.started_at == pytest.approx(10.30)
+    assert schedule.late_s == pytest.approx(0.05)
+
+
+def test_a_schedule_waits_for_its_due_time_and_a_cancel_ends_the_wait() -> None:
+    clock = _Clock()
+    schedule = StartSchedule(3600.0, clock)  # due in an hour: only a cancel can end the wait
+    schedule.written(0.0)
+    result: list[bool] = []
+    worker = threading.Thread(target=lambda: result.append(schedule.wait_start()))
+    worker.start()
+    assert result == []  # not due for an hour: still waiting
+    schedule.cancel()
+    worker.join(timeout=10.0)
+    assert result == [False] and schedule.started_at is None
 
 
 def test_standing_acquisitions_at_either_end_are_dropped_and_counted(core: Core) -> None:

@@ -92,6 +92,9 @@ class _Link:
     def acq_line(self) -> int:
         return ACQ_LINE_END
 
+    def command(self) -> int:
+        return 0  # BI_ACQUIRE has completed: the -128 is its sequence's end
+
 
 def _reference_read(
     window: MemoryWindow, addr: FrameAddressing, slot: int, samples: int, max_range: int
@@ -126,6 +129,7 @@ def test_frame_read_matches_two_reads(samples: int, gap_words: int, max_range: i
     reader = AcquisitionReader(window, _Link(), lambda: 0.0, max_range)  # type: ignore[arg-type]
     reader.configure(addr, samples, 0.05)
     reader.begin(seq_id=1, n=12)
+    reader.written()  # BI_ACQUIRE written: BIEXEC_COM is its sequence's from now
     with reader.lock:
         drained = reader.drain()
     assert drained.finished and drained.lost == 0

@@ -177,7 +177,7 @@ class FakeReader:
         self.lock = threading.Lock()
         self.drained = 0
 
-    def drain(self, final: bool = False) -> Drained:
+    def drain(self, final: bool = False, ran: bool = True) -> Drained:
         assert self.lock.locked()
         self.drained += 1
         return Drained((_acq(self.drained),), 0, final)

@@ -43,6 +43,9 @@ class _Link:
     def acq_line(self) -> int:
         return self.line
 
+    def command(self) -> int:
+        return 0 if self.line == ACQ_LINE_END else 1  # completed only once the sequence ended
+
     def set_flags(self, *, data_int: bool) -> None:
         self.flags.append(data_int)
 
@@ -93,6 +96,7 @@ def test_a_sequences_scan_is_timed_from_its_promptest_wake() -> None:
     reader, link, clock = _reader()
     start = 3.0  # acquisition 0 began here
     reader.begin(1, 10)
+    reader.written()  # BI_ACQUIRE written: BIEXEC_COM is its sequence's from now
     acqs: list[Acquisition] = []
     for line, late in LATE_THEN_PROMPT:
         acqs += _wake(reader, link, clock, line, start + line * PERIOD + late)
@@ -135,6 +139,7 @@ def test_a_continuous_sweep_is_timed_from_its_promptest_wake() -> None:
 def test_short_scans_keep_their_times(n: int) -> None:
     reader, link, clock = _reader()
     reader.begin(1, n)
+    reader.written()  # BI_ACQUIRE written: BIEXEC_COM is its sequence's from now
     acqs = _wake(reader, link, clock, ACQ_LINE_END, 5.0)
     t = _scan_of(acqs, ring=False)
     assert len(t) == n

@@ -26,7 +26,7 @@ from biris_hw.ipc import Mailbox, TaskStopped
 from biris_hw.irq import EventFdLine
 from biris_hw.server import BirisServer, scan_assembly, tasks
 from biris_hw.server.isr import Level3Demux
-from biris_hw.server.messages import BirisParityErr, TaskFailed
+from biris_hw.server.messages import BirisParityErr, MoveOrder, TaskFailed
 from biris_hw.server.task_table import Restart, Starts, threads
 from regs.biexec import BiCommand
 from regs.tech80 import Axis
@@ -281,16 +281,17 @@ def test_a_failure_keeps_its_fault_kind_to_every_caller(
     """Thread-free, the supervisor's report of a failure into the administrator's case: a
     HardwareFault keeps its own kind (the level-3 routine raising a drive's EMCY is
     ``motor_stall``, not ``internal``), any other BusError is ``bus``, a bug ``internal``; and
-    every parked caller is told that kind. The server is busy with the pan standing (BIRIS has
-    not started the scan's sequence, so no move was ordered): no move's end or refusal could
-    have carried it."""
+    every parked caller is told that kind. The server is busy with the pan standing (the scan's
+    move waits in its worker for its schedule, BIRIS's start-up): no move's end or refusal
+    could have carried it."""
     assert tasks.failure_kind(exc) == kind
     conn = core.open()
     data = core.open(ConnectionKind.DATA)
     assert core.call(p.SingleScanRqst(conn, 1024)) == 1024
     acquire = core.command(start=False)
     assert acquire is not None and acquire.code == BiCommand.BI_ACQUIRE
-    assert core.move() is None  # the pan stands: its order waits for the sequence
+    move = core.move()  # the pan stands: its worker waits for the schedule
+    assert isinstance(move, MoveOrder) and move.schedule is acquire.schedule
     waiting = [core.send(p.WaitIdle(conn)), core.send(p.ReadyForData(data))]
     assert not any(ticket.done for ticket in waiting)
     supervisor = tasks.Supervisor(core.inbox)

@@ -963,6 +963,14 @@ class Cia402Axis:
         self._zero_here()
         self._go(DISABLE_OPERATION, 0, DriveState.SWITCHED_ON)
 
+    def prepare_trapezoid(self, destination: int) -> None:
+        """Record the move :meth:`start_trapezoid` of ``destination`` will make in the pan
+        reference's journal now (as :meth:`biris_hw.devices.AxisDriver.prepare_trapezoid`)."""
+        if self.reference is None:
+            return
+        dest = self.reference.safe_destination(clamp_counts(destination))
+        self.reference.record_move(self.command_position(), dest)
+
     def start_trapezoid(self, destination: int) -> int:
         """Send a profile-position set-point; returns the destination commanded.
 

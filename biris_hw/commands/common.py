@@ -940,29 +940,76 @@ def progress_to_stderr(prog: str, enabled: bool) -> Iterator[None]:
         logger.setLevel(level)
 
 
+def _carries_fault(record: logging.LogRecord) -> bool:
+    """The record announces a :class:`HardwareFault` (one of its arguments, or its exception)."""
+    args = record.args if isinstance(record.args, tuple) else ()
+    exc = record.exc_info[1] if record.exc_info else None
+    return isinstance(exc, HardwareFault) or any(isinstance(a, HardwareFault) for a in args)
+
+
+class _WarningLines(logging.Handler):
+    """``biris: warning: 2 acquisitions lost``: one line on stderr per warning or error record.
+
+    What the server warns about (a scan that came out short, acquisitions lost, a task that
+    failed) is what a person running a command must not miss, so it is shown without --debug,
+    but plainly: one line, no logger name or time, a multi-line message folded onto it, an
+    exception's traceback reduced to its type and text (--debug shows it whole). stderr is looked
+    up at each record, not kept, as for the progress lines: a live display that has taken stderr
+    over prints the line above itself instead of being scribbled over.
+
+    A record that announces a hardware fault (a :class:`HardwareFault` among its arguments) is
+    left out: the server hands that fault to every caller, so the command reports it in its own
+    words -- its one error line, ``watch``'s state, the demo's fault count -- and a second line
+    saying the same would break the one-line error contract.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if _carries_fault(record):
+            return
+        try:
+            text = " ".join(record.getMessage().split())
+            if record.exc_info and record.exc_info[1] is not None:
+                exc = record.exc_info[1]
+                text += f" ({type(exc).__name__}: {' '.join(str(exc).split())})"
+            kind = "warning" if record.levelno < logging.ERROR else "error"
+            stream = sys.stderr
+            stream.write(f"biris: {kind}: {text}\n")
+            stream.flush()
+        except Exception:
+            self.handleError(record)
+
+
 @contextlib.contextmanager
 def log_to_stderr(debug: bool) -> Iterator[None]:
-    """The driver's log on stderr with --debug; silence otherwise.
+    """The driver's warnings and errors on stderr, a plain line each (``biris: warning: ...``);
+    with --debug its whole log instead, every record with its time and logger.
 
-    Without a handler Python prints warnings to stderr by itself, which would add lines to the
-    one-line error contract and scribble over live displays; the command reports what matters.
+    The simulator's log (``sim``) is shown with --debug only: it is about the simulation, not
+    the sensor. Without some handler Python's last resort would print warnings in its own form
+    (and the simulator's too); here every record goes through one of ours or none.
     """
     loggers = [logging.getLogger(name) for name in ("biris_hw", "sim")]
-    handler: logging.Handler
+    handlers: list[logging.Handler]
     if debug:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("%(relativeCreated)8.0f ms %(name)s: %(message)s"))
+        shared = logging.StreamHandler(sys.stderr)
+        shared.setFormatter(logging.Formatter("%(relativeCreated)8.0f ms %(name)s: %(message)s"))
+        handlers = [shared, shared]
     else:
-        handler = logging.NullHandler()
+        handlers = [_WarningLines(), logging.NullHandler()]
     saved: list[tuple[logging.Logger, int]] = []
-    for logger in loggers:
+    for logger, handler in zip(loggers, handlers, strict=True):
         saved.append((logger, logger.level))
         logger.addHandler(handler)
         if debug:
             logger.setLevel(logging.DEBUG)
+        elif logger.name == "biris_hw" and logger.getEffectiveLevel() > logging.WARNING:
+            logger.setLevel(logging.WARNING)  # a quieter root must not hide the warnings
     try:
         yield
     finally:
-        for logger, level in saved:
+        for (logger, level), handler in zip(saved, handlers, strict=True):
             logger.removeHandler(handler)
             logger.setLevel(level)

@@ -126,6 +126,9 @@ class DemoStatus:
     violations: int = 0
     interrupts: dict[str, int] = field(default_factory=dict)
     latest: Scan | None = None
+    partial: list[str] = field(default_factory=list)
+    """Each partial sweep received, named with its reason (the first sweep, from where the head
+    stood, always is one): listed after the summary so that a short sweep is never silent."""
     data_age_s: float | None = None
     """Hardware seconds since the newest delivered sweep's last acquisition."""
     interrupted: bool = False
@@ -253,6 +256,9 @@ def _sweep(
                 status.latest = scan
                 status.sweeps[scan.direction] += 1
                 status.dropped_buffers = sweeps.dropped
+                if scan.partial:
+                    why = f": {scan.partial_reason}" if scan.partial_reason else ""
+                    status.partial.append(f"{scan.direction.name} #{scan.seq}{why}")
 
             while (remaining := deadline - time.monotonic()) > 0:
                 scan = sweeps.next(timeout=min(_POLL_S, remaining))
@@ -331,6 +337,8 @@ def _draw(
 def _print_summary(result: DemoResult, out: TextIO) -> None:
     s = result.status
     print(f"biris demo: {summary_line(s)}", file=out)
+    for sweep in s.partial:
+        print(f"  partial: {sweep}", file=out)
     for picture in result.pictures:
         print(f"  picture: {picture}", file=out)
     if result.data_files is not None:

@@ -7,7 +7,9 @@ motor starts a period or two after BIRIS's start-up, as a loaded host or a simul
 process may make it; the head barely moves) and
 asks for the point once the scan has ended, which is the moment its last acquisition is in.
 ``--continuous`` makes that scan with Appendix D's continuous acquisition; ``--to`` is clamped
-and confirmed (``--yes``) as ``biris scan --to`` is.
+and confirmed (``--yes``) as ``biris scan --to`` is. If that scan came out partial (short of
+``--to``: a motor that started late, say), the summary says so and why, and ``--json`` gives the
+reason as ``"scan_partial_reason"`` (``""`` when the scan was whole or none was made).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from biris_hw.commands.common import (
     note_clamped,
     open_session,
 )
-from biris_hw.data import Point
+from biris_hw.data import Direction, Point, Scan
 
 __all__ = ["add_arguments", "point_summary", "point_to_json", "run"]
 
@@ -54,12 +56,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     stream = out or sys.stdout
+    made: list[Scan] = []
     with open_session(args) as session:
-        point = latest_point(session, args.to, args.timeout, args)
+        point = latest_point(session, args.to, args.timeout, args, made=made)
+    partial = next((scan for scan in made if scan.partial), None)
     if args.json:
-        print(json.dumps(point_to_json(point)), file=stream)
+        answer = point_to_json(point)
+        answer["scan_partial_reason"] = "" if partial is None else partial.partial_reason
+        print(json.dumps(answer), file=stream)
         return 0
     print(point_summary(point), file=stream)
+    if partial is not None:
+        why = partial.partial_reason or "no reason given"
+        print(
+            f"  the scan that made it ({partial.direction.name} #{partial.seq}) is partial: {why}",
+            file=stream,
+        )
     if args.profile:
         for k, (r, i) in enumerate(zip(point.profile, point.intensity, strict=True)):
             print(f"  row {k + 1:3d}: {int(r):5d} mm  intensity {int(i):5d}", file=stream)
@@ -67,19 +79,30 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
 
 
 def latest_point(
-    session: Session, to_deg: float, timeout: float, args: argparse.Namespace | None = None
+    session: Session,
+    to_deg: float,
+    timeout: float,
+    args: argparse.Namespace | None = None,
+    *,
+    made: list[Scan] | None = None,
 ) -> Point:
     """The server's latest point; scans to ``to_deg`` first when it has none yet (asking for
-    ``--yes`` in ``args`` first if that is more than half a turn on a real head)."""
+    ``--yes`` in ``args`` first if that is more than half a turn on a real head). The scan it
+    made, if any, is appended to ``made``, so that the caller can say whether it was whole."""
     with session.server.open() as conn:
         point: Point | None = conn.request_point()
         if point is None:
             dest = destination_counts(to_deg, "--to")
             confirm_moves(session, args or argparse.Namespace(), [(f"--to {to_deg:g}", dest)])
+            start = int(session.server.status()["azimuth"])
             dest = conn.single_scan(to_deg)
             note_clamped(session.prog, "--to", to_deg, dest)
             conn.wait_idle(timeout=timeout)
             point = conn.request_point()
+            if made is not None and dest != start:
+                scan = conn.request_scan_data(Direction.of_motion(start, dest))
+                if scan is not None:
+                    made.append(scan)
     if point is None:
         raise TimeoutError("the scan ended without an acquisition")
     return point

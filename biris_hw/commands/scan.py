@@ -224,8 +224,11 @@ def _report(scan: Scan, args: argparse.Namespace, stream: TextIO) -> None:
 
 
 def scan_summary(scan: Scan) -> str:
-    """One line: direction, sequence, extent, the closest return, how much of it is valid."""
-    partial = ", partial sweep (from where the head stood)" if scan.partial else ""
+    """One line: direction, sequence, extent, the closest return, how much of it is valid, and
+    whether it is partial (with the reason the scan gives)."""
+    partial = ""
+    if scan.partial:  # never silent (issue 21): and why, when the data say
+        partial = ", partial sweep" + (f" ({scan.partial_reason})" if scan.partial_reason else "")
     head = f"{scan.direction.name} #{scan.seq}: {scan.n_acq} acquisitions"
     if scan.n_acq == 0:
         return f"{head}, dropped {scan.dropped}{partial}"
@@ -252,6 +255,8 @@ def scan_to_json(scan: Scan) -> dict[str, Any]:
         "dropped": scan.dropped,
         "acquisition": scan.acquisition,
         "partial": scan.partial,
+        "partial_reason": scan.partial_reason,
+        "span_counts": None if scan.span is None else list(scan.span),
         "azimuth_counts": scan.azimuth.tolist(),
         "azimuth_deg": [round(float(a), 4) for a in scan.azimuth_deg],
         "t": scan.t.tolist(),

@@ -121,6 +121,10 @@ class RecordSummary:
     bytes: int
     seconds: float
     error: str | None = None
+    partial_scans: tuple[str, ...] = ()
+    """The partial scans recorded, each named with its reason when it has one (``"CW #1
+    (partial: ended 312 counts (27.4 deg) short of its destination -2048)"``): a recording of
+    short sweeps says so where the person who made it looks."""
 
     @property
     def dropped(self) -> int:
@@ -135,6 +139,9 @@ class RecordSummary:
         )
         if self.lost_messages:
             text += f", {self.lost_messages} messages lost"
+        if self.partial_scans:
+            n = len(self.partial_scans)
+            text += f"; {n} partial scan{'s' if n > 1 else ''}: " + ", ".join(self.partial_scans)
         if not self.complete:
             text += " (no summary: file cut short, still valid)"
         return text
@@ -197,6 +204,8 @@ class Recorder:
         self.points = 0
         self.scans = 0
         self.statuses = 0
+        self.partial_scans: list[str] = []
+        """Each partial scan recorded so far, named with its reason (see RecordSummary)."""
         self._summary: RecordSummary | None = None
 
     # -- the run ---------------------------------------------------------------------------------
@@ -257,6 +266,7 @@ class Recorder:
             bytes=self.path.stat().st_size if self.path.exists() else 0,
             seconds=self._stopped - self._started if self._started else 0.0,
             error=None if error is None else str(error),
+            partial_scans=tuple(self.partial_scans),
         )
         return self._summary
 
@@ -316,6 +326,8 @@ class Recorder:
             _write(self._file, ros2.scan_cloud(scan, self.frame), t)
             _write(self._file, _raw(RAW_SCAN_TOPIC, wire.SCAN, wire.encode_scan(scan), t))
             self.scans += 1
+            if scan.partial:
+                self.partial_scans.append(_partial_name(scan))
 
     def _status(self, status: Mapping[str, Any] | None, error: str | None) -> None:
         t = ros2.sensor_time(self.source, self._now)
@@ -329,6 +341,13 @@ class Recorder:
             self._last_flush = time.monotonic()
             if not self._file.flush():
                 raise self._file.error or RecordError(f"cannot write {self.path}")
+
+
+def _partial_name(scan: Scan) -> str:
+    """``CW #1 (partial: why)``: a partial scan named for a summary line, with its reason when
+    the data give one."""
+    why = f": {scan.partial_reason}" if scan.partial_reason else ""
+    return f"{scan.direction.name} #{scan.seq} (partial{why})"
 
 
 def write_scans(

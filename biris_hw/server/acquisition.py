@@ -163,6 +163,9 @@ class Drained:
     no longer -1): the moment a report-mode scan's motor starts (SEQUENCE_STARTED)."""
     started_at: float = 0.0
     """With ``started``: the bound on when acquisition 0 began (hardware clock)."""
+    untrusted: int = 0
+    """Of ``lost``: frames read but dropped because BIRIS was seen entering their ring slot
+    again while they were read (:meth:`AcquisitionReader._read_frames`)."""
 
 
 _NOTHING = Drained((), 0, False)
@@ -195,6 +198,12 @@ class AcquisitionReader:
         self._t0 = math.inf
         self._started = False
         """The BI_ACQUIRE sequence's start-up has been seen over (SEQUENCE_STARTED sent)."""
+        self._written = False
+        """BI_ACQUIRE has been written to COMMAND (:meth:`written`)."""
+        self._written_at = -math.inf
+        self._seen_running = False
+        """ACQ_LINE has been seen at -1 or at an acquisition since BI_ACQUIRE was written: this
+        sequence's own, so a -128 seen after it is this sequence's end."""
         # continuous mode
         self._ring_state = RingState.OFF
         self._ring = 0
@@ -211,6 +220,8 @@ class AcquisitionReader:
         self._owed_acqs: list[Acquisition] = []
         self._owed_lost = 0
         self._owed_idle = 0
+        self._untrusted = 0
+        """Frames dropped as untrusted since the last hand-over (each counted in a lost)."""
 
     def configure(self, addressing: FrameAddressing, samples: int, period_s: float) -> None:
         """Where the frames are, as learned from BIRIS at initialisation."""
@@ -229,16 +240,18 @@ class AcquisitionReader:
 
     def _hand(self, drained: Drained) -> Drained:
         """``drained`` with what was accounted for where nothing could be posted (a sweep
-        opening, the ring stopping): each such count is handed over exactly once."""
-        if not (self._owed_acqs or self._owed_lost or self._owed_idle):
+        opening, the ring stopping), and the untrusted frames among everything lost so far:
+        each such count is handed over exactly once."""
+        if not (self._owed_acqs or self._owed_lost or self._owed_idle or self._untrusted):
             return drained
         handed = dataclasses.replace(
             drained,
             acquisitions=(*self._owed_acqs, *drained.acquisitions),
             lost=drained.lost + self._owed_lost,
             idle=drained.idle + self._owed_idle,
+            untrusted=drained.untrusted + self._untrusted,
         )
-        self._owed_acqs, self._owed_lost, self._owed_idle = [], 0, 0
+        self._owed_acqs, self._owed_lost, self._owed_idle, self._untrusted = [], 0, 0, 0
         return handed
 
     # -- single sequences (BI_ACQUIRE) ----------------------------------------------------------
@@ -251,6 +264,20 @@ class AcquisitionReader:
             self._next = 0
             self._t0 = math.inf
             self._started = False
+            self._written = False
+            self._seen_running = False
+
+    def written(self) -> float:
+        """BI_ACQUIRE has just been written to COMMAND (by biris_cmd_transfer, after
+        :meth:`begin`); returns the hardware time of the write, noted as the sequence's.
+
+        Until then BIEXEC_COM still shows the previous sequence (COMMAND 0, ACQ_LINE -128):
+        see :meth:`_sequence_line`."""
+        now = self._clock()  # before the lock: a drain holding it must not make it late
+        with self.lock:
+            self._written = True
+            self._written_at = now
+        return now
 
     def drain(self, final: bool = False) -> Drained:
         """Read every acquisition completed since the last drain. Hold ``self.lock``.
@@ -263,19 +290,62 @@ class AcquisitionReader:
                 return self._hand(self._drain_ring())
             return self.drain_sequence(final)
 
-    def drain_sequence(self, final: bool = False) -> Drained:
+    def drain_sequence(self, final: bool = False, ran: bool = True) -> Drained:
         """The BI_ACQUIRE sequence's drain. Hold ``self.lock``.
 
         ``final`` is set by the command notifier: BIRIS has finished the sequence, so whatever
-        ACQ_LINE says, nothing more will complete. It also hands over what a ring's stop
-        accounted for (the command notifier drains so right after :meth:`stop_ring`).
+        ACQ_LINE says, nothing more will complete; ``ran`` False with it when BIRIS refused the
+        BI_ACQUIRE (a bad STATUS), whose frames are then an earlier sequence's. It also hands
+        over what a ring's stop accounted for (the command notifier drains so right after
+        :meth:`stop_ring`).
         """
-        return self._hand(self._drain_sequence(final))
+        return self._hand(self._drain_sequence(final, ran))
 
-    def _drain_sequence(self, final: bool) -> Drained:
+    def _sequence_line(self, final: bool, ran: bool) -> int | None:
+        """ACQ_LINE, if it can be trusted to be this sequence's; None when it cannot.
+
+        BIEXEC_COM is shared by every sequence: from :meth:`begin` until BIRIS sees the new
+        command (at its next vertical sync, up to a field after the write) it still says the
+        previous sequence ended (ACQ_LINE -128), and a data interrupt the host delivers late
+        can wake the reader then. Taken at its word, that -128 would read the previous
+        sequence's frames as this one's, all of them, and end this one before it began. So a
+        -128 is this sequence's end only when it is known to follow this sequence: ACQ_LINE
+        was seen at -1 (BIRIS's start-up) or at an acquisition since the write, or BIRIS has
+        completed the command (COMMAND read back 0 after the write, before ACQ_LINE: the
+        command cannot complete before its sequence ends), or the command notifier says so
+        (``final``). Otherwise the reader waits: the completion will tell. ACQ_LINE -1 or an
+        acquisition index are only ever this sequence's once it has been written (the
+        previous one ended at -128 before its command completed).
+        """
+        if final:
+            if not ran and not self._seen_running:
+                return None  # refused: nothing of this sequence was ever made
+            return self._link.acq_line()
+        if not self._written:
+            return None  # COMMAND not written yet: all of BIEXEC_COM is the previous sequence's
+        if self._seen_running:
+            return self._link.acq_line()
+        completed = self._link.command() == 0
+        line = self._link.acq_line()
+        if line == ACQ_LINE_STARTUP or line >= 0:
+            self._seen_running = True
+            return line
+        if line == ACQ_LINE_END and completed:
+            return line
+        return None
+
+    def _drain_sequence(self, final: bool, ran: bool = True) -> Drained:
         if not self._active or self._addr is None:
             return _NOTHING  # no sequence: a spurious or late wake
-        line = self._link.acq_line()
+        read = self._sequence_line(final, ran)
+        if read is None:
+            if not final:
+                return _NOTHING
+            self._active = False  # refused: nothing was made, nothing is lost
+            return Drained((), 0, True)
+        line = read
+        if line == ACQ_LINE_STARTUP or line >= 0:
+            self._seen_running = True
         now = self._clock()
         if line == ACQ_LINE_END:
             last, ref = self._n - 1, float(self._n)
@@ -461,12 +531,39 @@ class AcquisitionReader:
         lost = max(0, min(oldest, last + 1) - self._next)  # overwritten by a later lap
         self._next += lost
         ring = self._ring
+        first = self._next
         out: list[Acquisition] = []
-        for k in range(self._next, last + 1):
+        for k in range(first, last + 1):
             out.append(self._read(k % ring, self._index, self._time_of(k)))
             self._index += 1
         self._next = max(self._next, last + 1)
+        if out:
+            out, dropped = self._trusted(out, first)
+            lost += dropped
         return out, lost
+
+    def _trusted(self, out: list[Acquisition], first: int) -> tuple[list[Acquisition], int]:
+        """The frames just read (``out``, frame numbers from ``first``) that BIRIS cannot have
+        begun to overwrite while they were read; the number dropped.
+
+        ACQ_LINE is read again after the frames: a ring slot holds frame k until frame k + ring
+        begins in it, so every frame up to ``exposing - ring`` (``exposing`` read after) may
+        have been torn by the next lap while it was read. What ACQ_LINE said before the read
+        bounded what was read; what it says after bounds what can be trusted. (Far behind
+        only: a lap is 34 s at 2 fields an acquisition.) A frame so dropped is lost, and
+        counted as untrusted; the sweep's later frames are kept.
+        """
+        line = self._link.acq_line()
+        if not 0 <= line < self._ring:
+            return out, 0  # BIRIS stopped (-128): nothing more can be written over them
+        now = self._clock()
+        self._exposing = self._advance(line, now)
+        self._observe(now, self._exposing)
+        limit = self._exposing - self._ring  # frames <= this may be torn
+        drop = max(0, min(len(out), limit - first + 1))
+        if drop:
+            self._untrusted += drop
+        return out[drop:], drop
 
     def _cut_short(self, line: int, now: float) -> Drained:
         """ACQ_LINE negative under a sweep: BIRIS stopped (-128), or worse; the sweep ends with

@@ -68,6 +68,7 @@ from biris_hw.server.motor_control import MotorRequests
 from biris_hw.server.scan_assembly import ActiveScan
 from biris_hw.server.scan_timing import ScanTiming, data_rate_mismatch
 from biris_hw.server.scanning import AcquisitionFate, ScanSequencer
+from biris_hw.server.start_schedule import StartSchedule
 from biris_hw.status import ServerState, ServerStatus
 from regs.biexec import BiCommand, BiStatus
 from regs.tech80 import Axis
@@ -75,6 +76,10 @@ from regs.tech80 import Axis
 __all__ = ["Administrator"]
 
 Case = Callable[[Envelope, Any], None]
+
+LAG_NOTE_S = 0.005
+"""Hardware seconds of lag (:attr:`BirisHardware.lag`) beyond which a timeout or motor_stall
+fault's message says the host could not keep up."""
 
 
 class Administrator:
@@ -91,6 +96,8 @@ class Administrator:
         elevation_watchdog: Timer | None = None,
         time_scale: float = 1.0,
         recheck_motion: Callable[[], None] | None = None,
+        recheck_biris: Callable[[], None] | None = None,
+        lag: Callable[[], float] | None = None,
     ) -> None:
         self.record = record
         self._recheck_motion = recheck_motion
@@ -112,8 +119,13 @@ class Administrator:
         self.clients = Connections(clock, self.counters)
         self._init_syncs: list[Envelope] = []
         """The initialiser's InitSync, while the command worker is still writing."""
-        self._held_motion: Motion | None = None
-        """A report-mode scan's trapezoid, until BIRIS has begun its first acquisition."""
+        self._time_scale = time_scale
+        self._recheck_biris = recheck_biris
+        """Asks the level-2 routine to read BIRIS afresh (never blocks); None: a BIRIS timeout
+        that runs out is a fault at once."""
+        self._lag = lag
+        """How far behind its clock the hardware has been running (a simulator on a host that
+        cannot keep up), said in a fault's message; None on the real target."""
         self._handlers = self._cases()
 
     def _cases(self) -> dict[type, Case]:
@@ -131,7 +143,9 @@ class Administrator:
             m.ContinuousLive: self._on_continuous_live,  # CONTINUOUS_LIVE (Appendix D)
             m.SweepDataDone: self._on_sweep_data_done,  # SWEEP_DATA_DONE (Appendix D)
             m.BirisTimeoutErr: self._on_timeout_err,  # BIRIS_TIMEOUT_ERR
-            m.MotorWatchdogErr: self._on_watchdog_err,  # beyond the report, as is the next
+            m.MotorWatchdogErr: self._on_watchdog_err,  # beyond the report, as are the next 3
+            m.MotionRechecked: self._on_motion_rechecked,
+            m.BirisRechecked: self._on_biris_rechecked,
             m.TaskFailed: self._on_task_failed,
             m.BirisBusErr: lambda env, msg: self._task_fault(  # BIRIS_BUS_ERR
                 env, "bus", "bus error on the BIRIS VMEbus"
@@ -205,6 +219,7 @@ class Administrator:
 
     def shutdown(self) -> None:
         """Called by the server after this thread has ended: nobody may stay blocked."""
+        self._cancel_schedule()
         stopped = ConnectionClosed("the BIRIS server has stopped")
         for env in self.life.idle_waiters + self.life.init_waiters:
             fail_quietly(env, stopped)
@@ -326,6 +341,13 @@ class Administrator:
         )
 
     # ============================================================================ scans
+    def _cancel_schedule(self) -> None:
+        """The scan under way is abandoned: a worker waiting to start its trapezoid starts
+        nothing."""
+        scan = self.scans.scan
+        if scan is not None and scan.schedule is not None:
+            scan.schedule.cancel()
+
     def _check_can_scan(self) -> None:
         if self.scans.active():
             raise RequestError("a scan is in progress; stop it or wait for it to end first")
@@ -400,9 +422,14 @@ class Administrator:
             self._start_sweep(dest, after)
             return
         motor = self.az.motor_for_next_move()
-        n = self.scans.timing.acquisitions(dest - self.position, motor)
+        timing = self.scans.timing
+        n = timing.acquisitions(dest - self.position, motor)
         scan = self.scans.open_scan(dest, self.position, self.tilt.elevation, n)
-        scan.start_budget_s = self.scans.timing.start_delay_s
+        scan.start_budget_s = timing.lateness_allowance_s
+        # the trapezoid starts at a hardware time fixed by BI_ACQUIRE's write, whenever the
+        # host sees BIRIS's interrupts (start_schedule); ordered now, it waits in the worker
+        schedule = StartSchedule(timing.startup_lead_s, self.clock, self._time_scale)
+        scan.schedule = schedule
         self._submit_command(
             BirisCommand(
                 int(BiCommand.BI_ACQUIRE),
@@ -411,33 +438,17 @@ class Administrator:
                 n=n,
                 seq_id=scan.seq_id,
                 scan=scan,
+                schedule=schedule,
             )
         )
-        # the trapezoid waits for BIRIS's start-up to end (SEQUENCE_STARTED): scan_timing
-        self._held_motion = Motion(m.MoveOrder(dest), MotionPurpose.SCAN, scan=scan)
+        order = m.MoveOrder(dest, schedule=schedule)
+        self._submit_motion(self.az, Motion(order, MotionPurpose.SCAN, scan=scan))
 
     def _on_sequence_started(self, env: Envelope, msg: m.SequenceStarted) -> None:
-        """BIRIS has begun the first acquisition of a report-mode scan: start its motor now."""
+        """BIRIS has begun the first acquisition of a report-mode scan. Nothing waits for
+        this any more (the motor starts by its schedule, whenever the host sees interrupts);
+        the start-up is learned when the scan completes, from the sequence's tightest bound."""
         env.reply(None)
-        held = self._held_motion
-        if held is None or held.scan is None or held.scan.seq_id != msg.seq_id:
-            return  # a sequence a reset or fault abandoned
-        self._held_motion = None
-        if self.scans.scan is not held.scan:
-            return
-        scan, timing = held.scan, self.scans.timing
-        delay = self.clock() - msg.began
-        timing.note_start_delay(delay)
-        self._submit_motion(self.az, held)
-        late = delay - scan.start_budget_s
-        if late > timing.period_s:  # said, not hidden: the scan's end will lack this much
-            log.warning(
-                "scan %d: BIRIS's start was seen %.0f ms late (interrupts slow or coalesced); "
-                "its acquisitions will end about %d short of the destination",
-                scan.seq_id,
-                late * 1000.0,
-                int(late / timing.period_s),
-            )
 
     def _start_sweep(self, dest: int, after: ActiveScan | None) -> None:
         """A continuous-acquisition scan: only the motor is ordered; the ring supplies data.
@@ -462,6 +473,7 @@ class Administrator:
         scan = self.scans.scan
         self._note_biris_alive()
         self.counters.lost_acquisitions += msg.lost
+        self.counters.untrusted_frames += msg.untrusted
         self.counters.idle_ring_frames += msg.idle
         points = []
         for acq in msg.acquisitions:
@@ -499,10 +511,32 @@ class Administrator:
         if finished:
             self._finish_scan(scan)
 
+    def _learn_timing(self, scan: ActiveScan) -> None:
+        """What a completed report-mode scan tells the next ones' schedules and counts.
+
+        How late its motor started after BIRIS's first acquisition: the later of what the
+        azimuth worker measured against its schedule and what the data say (the acquisitions
+        made with the head still standing at its start: a start the transport delivered late,
+        or a start-up estimated long, shows there and nowhere else). And BIRIS's start-up from
+        BI_ACQUIRE's write to the first acquisition: the reader's tightest bound on it, never
+        early, and as late as the promptest look of the sequence.
+        """
+        schedule = scan.schedule
+        if schedule is None:
+            return
+        timing = self.scans.timing
+        late = schedule.late_s or 0.0
+        timing.note_lateness(max(late, scan.standing_start * timing.period_s))
+        written = schedule.written_at
+        if written is not None and scan.acqs:
+            began = min(acq.t_origin for acq in scan.acqs.values())
+            timing.note_startup(began - written)
+
     def _finish_scan(self, scan: ActiveScan) -> None:
         if scan.status != BiStatus.OK:
             self._fault("protocol", f"BI_ACQUIRE ended with STATUS {scan.status}")
             return
+        self._learn_timing(scan)
         self.clients.deliver(self.scans.complete(scan))
         following = self.scans.following(scan)
         pending = self.tilt.pending
@@ -582,15 +616,38 @@ class Administrator:
             self.commands.note_alive(self._biris_owed())
 
     def _on_timeout_err(self, env: Envelope, msg: m.BirisTimeoutErr) -> None:
+        """_Biris_timeout ran out while BIRIS owed an answer. The countdown ran on the hardware
+        clock from the last evidence of life the *host* saw, so before calling BIRIS hung the
+        level-2 routine reads it afresh (:meth:`_on_biris_rechecked` decides): a host that did
+        not look for 4 s is not a BIRIS that did not progress for 4 s."""
         env.reply(None)
-        if self.commands.timed_out(msg.generation, self._biris_owed()):
-            cmd = self.commands.current
-            waiting = f" to {command_name(cmd.code)}" if cmd is not None else ""
-            self._fault(
-                "timeout",
-                f"BIRIS did not respond{waiting} for {self.commands.timeout_s:g} s of hardware "
-                "time",
-            )
+        if not self.commands.timed_out(msg.generation, self._biris_owed()):
+            return
+        if self._recheck_biris is None:
+            self._biris_timed_out()
+            return
+        if not self.commands.rechecking:
+            log.info("BIRIS timeout ran out; reading BIRIS afresh before calling it hung")
+        self.commands.begin_recheck()
+        self._recheck_biris()
+
+    def _on_biris_rechecked(self, env: Envelope, msg: m.BirisRechecked) -> None:
+        """The level-2 routine has read BIRIS afresh: no acquisition and no completion since
+        the host last saw one, for the timeout's hardware seconds, is a hang (``timeout``);
+        anything new re-arms the countdown (it came in the NEW_POINT or completion ahead)."""
+        env.reply(None)
+        if self.commands.end_recheck(msg.progressed) and self._biris_owed():
+            self._biris_timed_out()
+        elif self.commands.timeout_enabled:
+            self._rearm_timeout()
+
+    def _biris_timed_out(self) -> None:
+        cmd = self.commands.current
+        waiting = f" to {command_name(cmd.code)}" if cmd is not None else ""
+        self._fault(
+            "timeout",
+            f"BIRIS did not respond{waiting} for {self.commands.timeout_s:g} s of hardware time",
+        )
 
     def _on_timeout_enable(self, env: Envelope, msg: p.TimeoutEnable) -> None:
         self._usable_conn(msg.conn)
@@ -697,24 +754,56 @@ class Administrator:
             fail_quietly(job.requester, fault)
 
     def _on_watchdog_err(self, env: Envelope, msg: m.MotorWatchdogErr) -> None:
-        """A move's end was not reported within its bound. Once, the controller is asked
-        whether it had ended (its interrupt lost on the way: the notifier, woken, still
-        verifies the arrival) and the watchdog allows RECHECK_GRACE_S more; then, or with no
-        one to ask, the move is a motor_stall."""
+        """A move's end was not reported within its bound. The controller is asked whether
+        the move had in fact ended (its interrupt lost, or a host that has not run the level-3
+        routine): its answer, :meth:`_on_motion_rechecked`, decides. Until it comes the
+        watchdog only asks again; with no one to ask, the move is a motor_stall at once."""
         env.reply(None)
         axis = self._axis(msg.axis)
         if msg.generation != axis.watchdog_gen or axis.current is None:
             return
-        if not axis.rechecked and self._recheck_motion is not None:
+        if self._recheck_motion is None:
+            self._fault("motor_stall", f"the {axis.name} motor did not reach its destination")
+            return
+        if not axis.rechecked:
             log.warning(
                 "the %s move's end was not reported within its bound; asking the controller",
                 axis.name,
             )
-            axis.grace()
-            self._recheck_motion()
+        axis.grace()
+        self._recheck_motion()
+
+    def _on_motion_rechecked(self, env: Envelope, msg: m.MotionRechecked) -> None:
+        """The controller's answer to a watchdog's question, per axis that asked.
+
+        Ended (latched now, or its end already taken by the notifier, which is verifying the
+        arrival: settling has a bound of its own): the watchdog has done its job. Not ended: a
+        motor_stall if the move has had its time since it *started* -- the worker's own
+        record -- and otherwise
+        (a worker the host ran late, a scan's move waiting for its schedule) the watchdog is
+        armed for what the move still has, from its start: a late host delays the verdict,
+        never invents it.
+        """
+        env.reply(None)
+        for axis in (self.az, self.el):
+            job = axis.current
+            if not axis.rechecked or job is None or not isinstance(job.order, m.MoveOrder):
+                continue
+            if msg.ended & axis.end_bit or msg.noticed.get(axis.axis) == job.order.token:
+                axis.watchdog.disarm()
+                axis.watchdog_gen = -1
+                continue
+            started = msg.started.get(axis.axis)
+            remaining = axis.remaining_s(started, self.clock())
+            if remaining > 0.0:
+                axis.rearm(remaining)
+                continue
+            self._fault(
+                "motor_stall",
+                f"the {axis.name} motor did not reach its destination (asked, the controller "
+                "had not ended the move)",
+            )
             return
-        asked = " (asked, the controller had not ended the move)" if axis.rechecked else ""
-        self._fault("motor_stall", f"the {axis.name} motor did not reach its destination{asked}")
 
     def _on_task_failed(self, env: Envelope, msg: m.TaskFailed) -> None:
         """A task hit a bus error (the target is gone), raised a hardware fault (a CiA 402
@@ -871,7 +960,7 @@ class Administrator:
             if scan is not None and scan.ring and not scan.cmd_done and not scan.at_end:
                 # its data end at the stop, short of the destination: marked now, since the
                 # reader may end the sweep (SWEEP_DATA_DONE) before the stop's completion
-                scan.partial = True
+                scan.mark_partial("STOP_CONTINUOUS stopped its acquisitions under it")
             self._stop_ring()
         env.reply(None)
         self._check_idle_waiters()
@@ -948,7 +1037,17 @@ class Administrator:
         self._fault(kind, text)
 
     def _fault(self, kind: FaultKind, text: str) -> None:
-        """The fault state: everything under way ends; every caller waiting is told."""
+        """The fault state: everything under way ends; every caller waiting is told.
+
+        A fault met while the hardware ran behind its clock (a simulator the host cannot keep
+        up with) says so: its hardware-time bounds were then judged on a late host.
+        """
+        lag = self._lag() if self._lag is not None else 0.0
+        if lag >= LAG_NOTE_S and kind in ("timeout", "motor_stall"):
+            text += (
+                f" (the simulator was running {lag * 1000.0:.0f} ms behind its clock: this host"
+                " cannot keep up with its time scale, which alone can cause this)"
+            )
         fault = self.life.enter_fault(kind, text)
         if fault is None:
             return
@@ -967,7 +1066,7 @@ class Administrator:
 
     def _clear_activity(self) -> None:
         """Forget every scan, tilt and motion under way or waiting (reset, fault)."""
-        self._held_motion = None
+        self._cancel_schedule()
         self.scans.forget()
         self.requests.forget()
         self.tilt.forget()

@@ -33,6 +33,7 @@ from regs.biexec import BiCommand, BiStatus
 if TYPE_CHECKING:
     from biris_hw.server.elevation import Tilt
     from biris_hw.server.scan_assembly import ActiveScan
+    from biris_hw.server.start_schedule import StartSchedule
 
 __all__ = [
     "BirisCommand",
@@ -88,6 +89,8 @@ class BirisCommand:
     """The initialiser's INIT_COMMAND, replied with (STATUS, PARAM)."""
     token: int = 0
     """Which transfer this is, so a late completion of an abandoned one is recognised."""
+    schedule: StartSchedule | None = None
+    """BI_ACQUIRE of a report-mode scan: the schedule its trapezoid starts by."""
 
 
 def command_name(code: int) -> str:
@@ -124,6 +127,9 @@ class CommandChannel:
         self.timeout_enabled = timeout_enabled
         """On unless the init record turns it off; BIRIS_TIMEOUT_ENABLE/DISABLE toggle it."""
         self._timeout_gen = -1
+        self._rechecking = False
+        self._alive = False
+        """BIRIS has shown life since the recheck was asked (an acquisition, a completion)."""
 
     @property
     def timeout_s(self) -> float:
@@ -148,7 +154,7 @@ class CommandChannel:
         env, self._transfer_env = self._transfer_env, None
         self._token += 1
         cmd.token = self._token
-        env.reply(TransferOrder(cmd.code, cmd.param, cmd.seq_id, cmd.n, cmd.token))
+        env.reply(TransferOrder(cmd.code, cmd.param, cmd.seq_id, cmd.n, cmd.token, cmd.schedule))
         return cmd
 
     def worker_ready(self, env: Envelope) -> None:
@@ -213,15 +219,40 @@ class CommandChannel:
 
         Also how life from BIRIS (an acquisition) restarts the countdown.
         """
+        self._alive = True
         if self.timeout_enabled and owed:
             self._timeout_gen = self._timer.arm(self._timeout_s, TIMEOUT_REAL_SLACK_S)
         else:
+            self._rechecking = False
             self._timer.disarm()
 
     def note_alive(self, owed: bool) -> None:
         """BIRIS has shown life: the countdown starts over if it runs (never disarms)."""
+        self._alive = True
         if self.timeout_enabled and owed:
             self._timeout_gen = self._timer.arm(self._timeout_s, TIMEOUT_REAL_SLACK_S)
+
+    # -- the recheck: hardware time in which BIRIS did not progress, not a host that did not look
+    @property
+    def rechecking(self) -> bool:
+        """The timeout ran out and BIRIS is being read afresh; its answer decides."""
+        return self._rechecking
+
+    def begin_recheck(self) -> None:
+        """The timeout ran out: BIRIS is to be read afresh. The countdown runs again meanwhile
+        (only to ask again if the answer is slow in coming: a routine that cannot answer at all
+        is a failed task, which the supervisor reports)."""
+        self._rechecking = True
+        self._alive = False
+        self._timeout_gen = self._timer.arm(self._timeout_s, TIMEOUT_REAL_SLACK_S)
+
+    def end_recheck(self, progressed: bool) -> bool:
+        """The answer to the recheck; True when it proves a hang: BIRIS made no acquisition and
+        completed nothing in the timeout's hardware seconds, however late the host looked."""
+        if not self._rechecking:
+            return False
+        self._rechecking = False
+        return not (progressed or self._alive)
 
     def timed_out(self, generation: int, owed: bool) -> bool:
         """BIRIS_TIMEOUT_ERR: True if it is the latest arming and BIRIS still owes."""
@@ -233,8 +264,10 @@ class CommandChannel:
 
     def disable_timeout(self) -> None:
         self.timeout_enabled = False
+        self._rechecking = False
         self._timer.disarm()
 
     def stop_timer(self) -> None:
         """Disarm without changing whether the timeout is enabled (a fault, a reset)."""
+        self._rechecking = False
         self._timer.disarm()

@@ -65,7 +65,15 @@ class Counters:
     them exactly (from ACQ_LINE, or CURRENT_FRAME once stopped, and the hardware clock)."""
     lost_acquisitions: int = 0
     """Acquisitions known to be gone: overwritten in the ring (or never announced by BIRIS)
-    before the reader could read them. They were made, so the accounts count them."""
+    before the reader could read them, or read but not trusted (``untrusted_frames``). They
+    were made, so the accounts count them."""
+    untrusted_frames: int = 0
+    """Frames the reader read but could not trust to hold the acquisition it wanted (BIRIS was
+    seen overwriting their ring slot while they were read): dropped, and a part of
+    ``lost_acquisitions``."""
+    partial_scans: int = 0
+    """Completed scans marked ``partial`` (short of their span, the first sweep of a continuous
+    scan, a sweep STOP_CONTINUOUS cut): each says why in ``Scan.partial_reason``."""
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)

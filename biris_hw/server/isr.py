@@ -169,6 +169,21 @@ class Level2Demux(Demultiplexer[Logical]):
         self._continuous = False
         self._data_notifier: Callable[[int], bool] | None = None
         self._attach_lock = threading.Lock()
+        self._recheck: Callable[[], bool] | None = None
+
+    def attach_recheck(self, recheck: Callable[[], bool] | None) -> None:
+        """Run ``recheck()`` in this thread when asked (:meth:`~biris_hw.irq.demux.
+        Demultiplexer.recheck`: the BIRIS timeout ran out): it reads BIRIS afresh and reports
+        to the server, and returns True when BIRIS has completed its command, whose BIRIS_CMD
+        is then raised (its interrupt may be the one the host is late with). None detaches."""
+        self._recheck = recheck
+
+    def _look(self) -> None:
+        """The BIRIS timeout ran out: read BIRIS afresh (the attached recheck), and wake the
+        command notifier if BIRIS had completed its command meanwhile."""
+        recheck = self._recheck
+        if recheck is not None and recheck():
+            self._raise(Logical.BIRIS_CMD, counted=False)
 
     def attach_data_notifier(self, notifier: Callable[[int], bool] | None) -> None:
         """Run ``notifier(count)`` in this thread for BIRIS_DATA_DEV instead of raising its line.
@@ -283,6 +298,7 @@ class Level3Demux(Demultiplexer[Logical]):
         if isinstance(controller, BusWindow):  # the Model 7600's window: its board registers
             controller = MotionBoard(controller)
         self._controller: MotionController = controller
+        self._look_report: Callable[[int], None] | None = None
 
     def _service(self, count: int) -> None:
         """Raise a fault the controller holds, else acknowledge and raise each axis that ended.
@@ -300,12 +316,26 @@ class Level3Demux(Demultiplexer[Logical]):
         if not self._raise_ended(None if pre is None else pre[0]):
             self._count_spurious(count)
 
+    def attach_look_report(self, report: Callable[[int], None] | None) -> None:
+        """Call ``report(ended)`` after each look :meth:`_look` makes, with the ended-axes mask
+        it read: the motor watchdog's answer. None detaches."""
+        self._look_report = report
+
     def _look(self) -> None:
         """A motor watchdog ran out (:meth:`~biris_hw.irq.demux.Demultiplexer.recheck`): read
         the controller fresh (never an IRQ stack's old read) and raise each axis whose end is
-        latched there: its interrupt was lost on the way, and the move's notifier, woken now,
-        still verifies the arrival. Said as a warning; nothing latched, nothing raised."""
-        self._raise_ended(None, asked=True)
+        latched there: its interrupt was lost on the way (or the host ran this routine late),
+        and the move's notifier, woken now, still verifies the arrival. Said as a warning;
+        nothing latched, nothing raised. What was read is reported (:meth:`attach_look_report`)
+        so the watchdog decides on what the controller says."""
+        fault = self._controller.take_fault()
+        if fault is not None:
+            raise fault
+        status = self._controller.ended_axes()
+        self._raise_ended(status, asked=True)
+        report = self._look_report
+        if report is not None:
+            report(status)
 
     def _raise_ended(self, status: int | None, *, asked: bool = False) -> bool:
         """Raise a fault the controller holds; else acknowledge and raise each axis that ended

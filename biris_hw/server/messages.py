@@ -12,6 +12,7 @@ read-only.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,6 +20,9 @@ from numpy.typing import NDArray
 from biris_hw.errors import FaultKind
 from biris_hw.records import MotorParams
 from regs.tech80 import Axis
+
+if TYPE_CHECKING:
+    from biris_hw.server.start_schedule import StartSchedule
 
 # --- from internal tasks ---------------------------------------------------------------------
 
@@ -53,6 +57,9 @@ class NewPoint:
     idle: int = 0
     """Continuous acquisition: ring frames BIRIS completed while no sweep wanted them, which the
     reader skipped unread (Drained.idle); counted in idle_ring_frames."""
+    untrusted: int = 0
+    """Frames read but not trusted to be the acquisition they should hold (BIRIS was seen
+    overwriting them while they were read): dropped, counted in untrusted_frames."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,6 +166,31 @@ class MotorWatchdogErr:
 
 
 @dataclass(frozen=True, slots=True)
+class BirisRechecked:
+    """The BIRIS timeout ran out and the level-2 routine, asked, has read BIRIS afresh
+    (beyond the report): ``progressed`` when BIRIS had made acquisitions or completed its
+    command since the host last looked (posted after the NEW_POINT that carries them), so the
+    timeout measured a host that did not look, not a BIRIS that did not progress."""
+
+    progressed: bool
+
+
+@dataclass(frozen=True, slots=True)
+class MotionRechecked:
+    """A motor watchdog ran out and the level-3 routine, asked, has read the controller
+    afresh: ``ended`` is the bitmask of axes whose profile it found ended (their notifiers are
+    woken and verify the arrival as for any move); an axis not in it had not ended its move.
+    ``started`` is, per axis, the (token, hardware time) its worker last started a move at
+    (:class:`~biris_hw.server.tasks.MoveLedger`), so the move is judged from its start;
+    ``noticed`` the token of the move whose end its notifier last woke for (an end the routine
+    acknowledged before the watchdog asked: the notifier is verifying it)."""
+
+    ended: int
+    started: dict[Axis, tuple[int, float] | None]
+    noticed: dict[Axis, int | None]
+
+
+@dataclass(frozen=True, slots=True)
 class BirisBusErr:
     """BIRIS_BUS_ERR from the coupler."""
 
@@ -227,6 +259,10 @@ class TransferOrder:
     n_acquisitions: int
     token: int
     """Names this command; its BIRIS_CMD_COMPLETE carries it back."""
+    schedule: StartSchedule | None = None
+    """BI_ACQUIRE of a report-mode scan: told when COMMAND was written, so that the scan's
+    trapezoid starts at a hardware time fixed by the write
+    (:mod:`~biris_hw.server.start_schedule`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -246,6 +282,9 @@ class MoveOrder:
     """Names this move (the administrator numbers every move it dispatches); the axis notifier
     reports it back in AZ_SCAN_DONE / EL_SCAN_DONE, so the end of a move abandoned by a reset is
     never taken for the end of the next one."""
+    schedule: StartSchedule | None = None
+    """A report-mode scan's move: started when the schedule says (BI_ACQUIRE's write plus the
+    start-up), not at once; nothing starts if the schedule is cancelled meanwhile."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -26,7 +26,7 @@ from biris_hw.ipc import Envelope
 from biris_hw.records import MotorParams
 from biris_hw.server.cmd_transfer import Timer
 from biris_hw.server.messages import MoveOrder, ParamsOrder
-from regs.tech80 import Axis
+from regs.tech80 import Axis, AxisBit
 
 if TYPE_CHECKING:
     from biris_hw.server.elevation import Tilt
@@ -45,9 +45,10 @@ overshoot; 8 leaves room for a softer user filter while any real failure (a lock
 amplifier, a gain of 0) misses by the whole move."""
 
 RECHECK_GRACE_S = SETTLE_LIMIT_S + 0.5
-"""Hardware seconds a watchdog that ran out allows once more, after asking the controller
-whether the move had in fact ended (its interrupt lost): the notifier, woken, settles (up to
-:data:`SETTLE_LIMIT_S`) and reports. Only then is the move a motor_stall."""
+"""Hardware seconds after which a watchdog that ran out and asked the controller whether the
+move had ended asks again, while no answer has come (a host too busy to run the level-3
+routine). The answer decides, not this bound: a move the controller had not ended is a
+motor_stall; one it had ended is verified by its notifier."""
 
 WATCHDOG_REAL_SLACK_S = 0.5
 """Real seconds a motor watchdog allows on top, for notifier threads that a busy machine runs
@@ -101,11 +102,18 @@ class AxisState:
         self.watchdog_gen = -1
         self.rechecked = False
         """The running move's watchdog ran out once and the controller was asked."""
+        self._allowed_s = 0.0
+        """Hardware seconds the running move has, from its start, before it is a stall."""
         self._tokens = 0
 
     @property
     def name(self) -> str:
         return "azimuth" if self.axis is Axis.AZIMUTH else "elevation"
+
+    @property
+    def end_bit(self) -> int:
+        """This axis's bit in the controller's ended-axes mask (:class:`regs.tech80.AxisBit`)."""
+        return int(AxisBit.AZIMUTH if self.axis is Axis.AZIMUTH else AxisBit.ELEVATION)
 
     def busy(self) -> bool:
         """An order runs or waits."""
@@ -144,9 +152,12 @@ class AxisState:
             order = dataclasses.replace(order, destination=dest, token=self._tokens)
             job.order = order  # what the worker got: the clamped destination and the token
             duration = expected_move_s(dest - self.position, self.motor)
+            if order.schedule is not None:  # a scan's move starts BIRIS's start-up later
+                duration += order.schedule.lead_s
             # the notifier's settling may take up to SETTLE_LIMIT_S more, then threads run late
+            self._allowed_s = duration * 1.5 + SETTLE_LIMIT_S + 1.0
             self.watchdog_gen = self.watchdog.arm(
-                duration * 1.5 + SETTLE_LIMIT_S + 1.0, real_slack_s=WATCHDOG_REAL_SLACK_S
+                self._allowed_s, real_slack_s=WATCHDOG_REAL_SLACK_S
             )
             self.rechecked = False
             self.position = dest
@@ -154,10 +165,27 @@ class AxisState:
         return True
 
     def grace(self) -> None:
-        """The watchdog ran out: arm it once more for :data:`RECHECK_GRACE_S` while the
-        controller is asked whether the move had ended."""
+        """The watchdog ran out: the controller is asked whether the move had ended, and the
+        watchdog asks again every :data:`RECHECK_GRACE_S` until the answer comes."""
         self.rechecked = True
         self.watchdog_gen = self.watchdog.arm(RECHECK_GRACE_S, real_slack_s=WATCHDOG_REAL_SLACK_S)
+
+    def remaining_s(self, started: tuple[int, float] | None, now: float) -> float:
+        """How much longer (hardware seconds) the running move may take before its not having
+        ended is a stall, judged from when its worker started it (``started``: the worker's
+        (token, time) record). A move its worker has not started yet has all of its time."""
+        job = self.current
+        if job is None or not isinstance(job.order, MoveOrder):
+            return 0.0
+        allowed = self._allowed_s
+        if started is None or started[0] != job.order.token:
+            return allowed
+        return allowed - (now - started[1])
+
+    def rearm(self, hw_seconds: float) -> None:
+        """Arm the watchdog again for ``hw_seconds`` (a move judged not yet due)."""
+        self.rechecked = False
+        self.watchdog_gen = self.watchdog.arm(hw_seconds, real_slack_s=WATCHDOG_REAL_SLACK_S)
 
     def finish_current(self) -> Motion | None:
         """The running order is over (its end was reported); returns it."""

@@ -14,7 +14,9 @@ import numpy as np
 
 from biris_hw.data import Direction, Point, Scan
 from biris_hw.geometry import Mount
+from biris_hw.scancheck import coverage_shortfall
 from biris_hw.server.messages import Acquisition
+from biris_hw.server.start_schedule import StartSchedule
 
 __all__ = ["STILL_COUNTS", "ActiveScan", "build_scan", "point_of"]
 
@@ -39,7 +41,11 @@ class ActiveScan:
     """Continuous acquisition: the sweep's data come from the ring, not from a BI_ACQUIRE."""
     partial: bool = False
     """A continuous scan's sweep that did not start at the opposite limit (the first one, from
-    wherever the head stood): its data cover only part of the span between the limits."""
+    wherever the head stood), or one whose ring STOP_CONTINUOUS stopped under it: its data
+    cover only part of the span. A scan found short of its span when it completes is partial
+    too (:func:`build_scan`)."""
+    partial_reason: str = ""
+    """Why ``partial``, in words (the scan's :attr:`~biris_hw.data.Scan.partial_reason`)."""
     start: int = 0
     left_start: bool = False
     """Continuous acquisition: an acquisition away from the start has been kept -- or the sweep
@@ -53,10 +59,16 @@ class ActiveScan:
     acqs: dict[int, Acquisition] = field(default_factory=dict)
     lost: int = 0
     start_budget_s: float = 0.0
-    """Report mode: the motor-start delay the scan's acquisition count allowed for."""
+    """Report mode: how late the motor could start (after its schedule) without the scan ending
+    short: the lateness its acquisition count allowed for."""
+    schedule: StartSchedule | None = None
+    """Report mode: when its trapezoid starts (:mod:`~biris_hw.server.start_schedule`)."""
     standing: int = 0
     """Acquisitions made with the head standing at either end: dropped and counted
     (``constant_azimuth``), not lost."""
+    standing_start: int = 0
+    """Of ``standing``: those made before the head left its start (report mode: how late the
+    motor really started after BIRIS's first acquisition, in acquisitions)."""
     az_done: bool = False
     """AZ_SCAN_DONE has arrived: the motor has come to rest at the destination."""
     cmd_done: bool = False
@@ -65,6 +77,13 @@ class ActiveScan:
     completed: bool = False
     """:meth:`~biris_hw.server.scanning.ScanSequencer.complete` has made it a Scan: its kept
     acquisitions are counted in ``acquisitions_in_scans`` (only its tail may still be pending)."""
+
+    def mark_partial(self, reason: str) -> None:
+        """The scan will not cover its span, for ``reason`` (reasons accumulate, first first)."""
+        self.partial = True
+        if reason and reason not in self.partial_reason:
+            joined = f"{self.partial_reason}; {reason}" if self.partial_reason else reason
+            self.partial_reason = joined
 
     @property
     def acquisition(self) -> str:
@@ -140,6 +159,10 @@ def build_scan(scan: ActiveScan, samples: int, seq: int, mount: Mount | None) ->
             scan.direction.name,
             dropped,
         )
+    short = coverage_shortfall(azimuth, scan.start, scan.destination)
+    if short is not None:
+        scan.mark_partial(short + _why_short(scan))
+        log.warning("scan %d (%s): partial: %s", scan.seq_id, scan.direction.name, short)
     return Scan(
         direction=scan.direction,
         seq=seq,
@@ -153,4 +176,26 @@ def build_scan(scan: ActiveScan, samples: int, seq: int, mount: Mount | None) ->
         mount=mount,
         acquisition=scan.acquisition,
         partial=scan.partial,
+        partial_reason=scan.partial_reason,
+        span=(scan.start, scan.destination),
     )
+
+
+def _why_short(scan: ActiveScan) -> str:
+    """What made a report-mode scan short, when the server knows: its motor started later than
+    its acquisition count allowed for (the host woke the azimuth worker late)."""
+    schedule = scan.schedule
+    if schedule is None:
+        return ""
+    worker = schedule.late_s or 0.0
+    if worker > scan.start_budget_s:
+        return (
+            f" (its motor started {worker * 1000.0:.0f} ms after its schedule, "
+            f"{scan.start_budget_s * 1000.0:.0f} ms allowed: the host was late)"
+        )
+    if scan.standing_start:
+        return (
+            f" (the head still stood at its start for {scan.standing_start} acquisitions: "
+            "its start reached the motor late)"
+        )
+    return ""

@@ -3,8 +3,7 @@
 The report: "the number of BIRIS acquisitions for each scan is adjusted automatically to match
 the given scan length". Its own formula (scan length / ``_Get_acq_rate()``, with BIRIS_DATA_RATE
 as the acquisition period) ignores two things the hardware does, and the scan it gives misses
-its start and stands at its end (issue 12: ``--to 90`` gave a first acquisition at ~33 degrees
-and 11 of 25 taken standing at 90):
+its start and stands at its end:
 
 * each BI_ACQUIRE sequence first spends BIRIS's start-up (240 ms, ACQ_LINE = -1) acquiring
   nothing, so a motor started with it has covered a third of a 90 degree scan by the first
@@ -12,14 +11,22 @@ and 11 of 25 taken standing at 90):
 * the real acquisition period is whole video fields (2 fields, 33.4 ms, at 64 samples; 3 at
   128), not BIRIS_DATA_RATE's 30 ms.
 
-So the server writes BI_ACQUIRE first and starts the trapezoid when BIRIS signals that the
-start-up is over (the first data interrupt of the sequence, ACQ_LINE >= 0: SEQUENCE_STARTED), and
-asks for as many acquisitions as the trapezoid lasts in real acquisition periods -- ramps
-included -- plus the time it takes the server to start the motor once told (learned, scan after
-scan), plus one to stand at the destination and one spare. An acquisition taken with the head
-still standing at either end is discarded and counted (``constant_azimuth``), as in continuous
-acquisition, so a scan's data span its length: the first kept acquisition within one period of
-the motion's start, the last at the destination.
+So the server writes BI_ACQUIRE first and starts the trapezoid one start-up later, at a
+hardware time fixed by the write (:mod:`~biris_hw.server.start_schedule`): whenever the host
+sees BIRIS's interrupts, the motion begins as BIRIS's first acquisition does. The start-up is
+learned (:meth:`ScanTiming.note_startup`: from BI_ACQUIRE's write to the first acquisition,
+the smallest of the recent ones, since the reader's bound on a start is never early), and the
+motor is started a quarter of a video field after it (:data:`START_AFTER_S`): BIRIS sees a
+command at the next vertical sync, so its start-up begins up to a field after the write, and
+the first acquisition is then exposed with the head just under way.
+
+The count is as many acquisitions as the trapezoid lasts in real acquisition periods -- ramps
+included -- from that start, plus how late the host has started motors on recent scans (the
+one thing left to its timing: one timed wake of the azimuth worker), plus one to stand at the
+destination and one spare. An acquisition taken with the head still standing at either end is
+discarded and counted (``constant_azimuth``), as in continuous acquisition, so a scan's data
+span its length. A start later than the count allowed for leaves the scan short of its
+destination: the scan says so (``partial`` with its reason), never silently.
 """
 
 from __future__ import annotations
@@ -32,7 +39,9 @@ from regs.layout import SAMPLES_CHOICES, acquisition_period_s
 
 __all__ = [
     "DATA_RATE_TOLERANCE",
+    "FIELD_S",
     "HOST_LATENCY_S",
+    "STARTUP_S",
     "ScanTiming",
     "data_rate_mismatch",
     "trapezoid_s",
@@ -42,19 +51,40 @@ DATA_RATE_TOLERANCE = 0.05
 """BIRIS_DATA_RATE may differ from the real acquisition period by this fraction before the
 server says so (it always counts with the real period)."""
 
-START_DELAYS_KEPT = 8
-"""How many recent motor-start delays the estimate looks at (the largest counts)."""
+RECENT_KEPT = 8
+"""How many recent start-ups and start latenesses the estimates look at."""
 
-MAX_START_DELAY_S = 0.5
-"""A start delay beyond this (hardware seconds) is taken as this: a server that slow has other
-problems, and a scan must not ask for seconds of acquisitions standing at its end."""
+MAX_LATENESS_S = 0.5
+"""A motor-start lateness beyond this (hardware seconds) is taken as this: a server that slow
+has other problems, and a scan must not ask for seconds of acquisitions standing at its end."""
 
-HOST_LATENCY_S = 0.003
-"""Host seconds a loaded host may take between BIRIS's first data interrupt and the trapezoid's
-hand-over (a notifier's wake-up, the administrator's inbox, the worker's). On the real head it is
-a tenth of a period; a simulator run at ``time_scale`` 30 turns it into 90 ms of hardware time,
-nearly three periods, which the first scan (before any delay is learned) must allow for or end
-short of its destination."""
+HOST_LATENCY_S = 0.010
+"""Host seconds a loaded host may take to wake the azimuth worker at its scheduled start and
+hand the start to the motor, always allowed for (more once more has been measured). On the real
+head it is a third of a period, at most one more acquisition standing at the destination (dropped,
+counted); a simulator run at ``time_scale`` 30 turns it into 300 ms of hardware time, nine
+periods, which a host sharing its interpreter with the simulator (a 5 ms GIL hand-over is
+150 ms there) needs."""
+
+STARTUP_S = 0.240
+"""The report's start-up of an acquisition sequence (hardware seconds), until one is measured."""
+
+FIELD_S = 1.0 / 59.94
+"""One RS-170 video field: BIRIS sees a command at the vertical sync after its write."""
+
+START_AFTER_S = FIELD_S / 4.0
+"""How long after the measured start-up (the shortest seen: BIRIS saw its command at once) the
+motor starts. BIRIS sees a command up to a field after its write, so its first acquisition
+begins 0 to 1 field after the shortest start-up, and is exposed around half a period later.
+The head follows its command a few milliseconds late (the servo's lag), so a motor started a
+quarter field after the shortest start-up has left its start by that exposure in every case,
+and has not gone a whole acquisition's travel by it in any."""
+
+STARTUP_MAX_S = math.ceil(STARTUP_S / FIELD_S - 1e-9) * FIELD_S + FIELD_S
+"""The longest start-up the report's BIRIS can take from BI_ACQUIRE's write (hardware seconds):
+its 240 ms in whole fields, after up to a field before it sees the command (interpretation:
+the start-up counts from that vertical sync, as the simulator does). A measured start-up above
+it is a bound made loose by a host that looked late, and is taken as this."""
 
 SETTLE_PERIODS = 0.25
 """Periods allowed after the trapezoid's last setpoint for the head to be within a count or
@@ -92,56 +122,77 @@ def data_rate_mismatch(data_rate_ms: int, period_s: float) -> str | None:
 
 
 class ScanTiming:
-    """The acquisition period and the motor-start delay a report-mode scan is counted with.
+    """The acquisition period, BIRIS's start-up and the motor-start lateness a report-mode scan
+    is counted and scheduled with.
 
     ``period_s`` is learned at initialisation (the frame size BIRIS reports gives the samples
-    per acquisition, hence the fields per acquisition). The start delay is learned from every
-    scan: from the moment BIRIS began the first acquisition (the reader's bound) to the moment
-    the administrator handed the trapezoid to the azimuth worker. The largest of the recent
-    ones counts, so a server that was slow once asks for a spare acquisition rather than ends
-    a scan short of its destination.
+    per acquisition, hence the fields per acquisition). The start-up is learned from every
+    scan (:meth:`note_startup`), and so is how late the azimuth worker started the motor after
+    its scheduled time (:meth:`note_lateness`): the largest of the recent ones counts, so a
+    server that was slow once asks for a spare acquisition rather than ends a scan short.
 
-    ``time_scale`` is the hardware's (hardware seconds per host second): before any delay is
-    learned the estimate allows :data:`HOST_LATENCY_S` of host time in hardware seconds.
+    ``time_scale`` is the hardware's (hardware seconds per host second): before any lateness is
+    measured the count allows :data:`HOST_LATENCY_S` of host time in hardware seconds.
     """
 
     def __init__(self, period_s: float = 0.0, time_scale: float = 1.0) -> None:
         self.period_s = period_s
         self.host_latency_s = HOST_LATENCY_S * max(time_scale, 0.0)
         """:data:`HOST_LATENCY_S` in hardware seconds."""
-        self._delays: deque[float] = deque(maxlen=START_DELAYS_KEPT)
+        self._startups: deque[float] = deque(maxlen=RECENT_KEPT)
+        self._lateness: deque[float] = deque(maxlen=RECENT_KEPT)
 
     @property
-    def start_delay_s(self) -> float:
-        """The motor-start delay the next scan is counted with (hardware seconds): the largest
-        of the recent ones; before any has been seen, one acquisition period plus the host's
-        latency in hardware time (a driver in another process than its simulator, or a loaded
-        host, starts a period or two late, and a scan that ends short of its destination is
-        worse than a few more standing at it, which are dropped and counted)."""
-        if not self._delays:
-            return min(self.period_s + self.host_latency_s, MAX_START_DELAY_S)
-        return max(self._delays)
+    def startup_s(self) -> float:
+        """BIRIS's start-up from BI_ACQUIRE's write to its first acquisition (hardware seconds):
+        the smallest recently measured, else the report's 240 ms plus the field BIRIS may take
+        to see the command."""
+        if not self._startups:
+            return STARTUP_S + FIELD_S
+        return min(min(self._startups), STARTUP_MAX_S)
 
-    def note_start_delay(self, delay_s: float) -> None:
-        """The trapezoid of a scan was handed over ``delay_s`` after its first acquisition
-        began."""
-        if math.isfinite(delay_s):
-            self._delays.append(min(max(delay_s, 0.0), MAX_START_DELAY_S))
+    @property
+    def startup_lead_s(self) -> float:
+        """From BI_ACQUIRE's write to the trapezoid's start (hardware seconds): the start-up,
+        plus a quarter of a field once it is measured (module notes)."""
+        if not self._startups:
+            return self.startup_s
+        return self.startup_s + START_AFTER_S
+
+    @property
+    def lateness_allowance_s(self) -> float:
+        """How late after its schedule the next scan's motor may start without the scan ending
+        short (hardware seconds): the largest recent lateness, at least the host's latency."""
+        seen = max(self._lateness) if self._lateness else 0.0
+        return min(max(seen, self.host_latency_s), MAX_LATENESS_S)
+
+    def note_startup(self, startup_s: float) -> None:
+        """A sequence's first acquisition began ``startup_s`` after BI_ACQUIRE's write (the
+        reader's bound, never early). Implausible values (negative, or beyond a second) are
+        ignored: a bound from a host that looked very late says nothing about BIRIS."""
+        if math.isfinite(startup_s) and 0.0 < startup_s < 1.0:
+            self._startups.append(startup_s)
+
+    def note_lateness(self, late_s: float) -> None:
+        """A scan's trapezoid started ``late_s`` after its schedule."""
+        if math.isfinite(late_s):
+            self._lateness.append(min(max(late_s, 0.0), MAX_LATENESS_S))
 
     def acquisitions(self, distance: int, params: MotorParams) -> int:
         """BI_ACQUIRE's count for a scan of ``distance`` counts at ``params``.
 
-        Acquisition k is exposed around (k + 1/2) periods after the first began; the head
-        arrives ``start delay + trapezoid + settling`` after that. The count reaches the first
-        acquisition made at or after the arrival (it is kept: the scan's last point, at the
-        destination), plus one spare against a start later than any seen so far (discarded,
-        counted, as standing). At least 2 for any scan that moves.
+        Acquisition k is exposed around (k + 1/2) periods after the first began; the motor
+        starts at most a quarter field after that beginning, plus the lateness allowed for, and the
+        head arrives a trapezoid and a settling later. The count reaches the first acquisition
+        made at or after the arrival (it is kept: the scan's last point, at the destination),
+        plus one spare (discarded, counted, as standing). At least 2 for any scan that moves.
         """
         if distance == 0:
             return 0
         period = self.period_s
         if period <= 0.0:  # not initialised: nothing can acquire; keep the arithmetic sane
             period = acquisition_period_s(SAMPLES_CHOICES[0])
-        arrival = self.start_delay_s + trapezoid_s(distance, params) + SETTLE_PERIODS * period
+        start = START_AFTER_S + self.lateness_allowance_s
+        arrival = start + trapezoid_s(distance, params) + SETTLE_PERIODS * period
         last = max(0, math.ceil(arrival / period - 0.5))  # the first exposed at the arrival
         return last + 2

@@ -45,7 +45,10 @@ from biris_hw.server.messages import Acquisition
 from biris_hw.server.scan_assembly import ActiveScan, build_scan, point_of
 from biris_hw.server.scan_timing import ScanTiming
 
-__all__ = ["AcquisitionFate", "DeferredScan", "ScanSequencer"]
+__all__ = ["FIRST_SWEEP", "AcquisitionFate", "DeferredScan", "ScanSequencer"]
+
+FIRST_SWEEP = "the first sweep of a continuous scan, from where the head stood, not from a limit"
+"""Why a continuous scan's first sweep is partial."""
 
 
 @dataclass(frozen=True)
@@ -140,6 +143,7 @@ class ScanSequencer:
             elevation=elevation,
             ring=ring,
             partial=self._partial(dest, position),
+            partial_reason=FIRST_SWEEP if self._partial(dest, position) else "",
             start=position,
             left_start=follows,  # the turn-around's acquisitions begin it
         )
@@ -182,6 +186,7 @@ class ScanSequencer:
                 scan.tail.append(acq)
                 return AcquisitionFate.TAIL
             scan.standing += 1
+            scan.standing_start += int(not scan.left_start)
             return AcquisitionFate.STANDING
         return AcquisitionFate.KEPT
 
@@ -266,6 +271,7 @@ class ScanSequencer:
         self.buffers[scan.direction] = result
         self._seq[scan.direction] += 1
         self._counters.scans += 1
+        self._counters.partial_scans += int(result.partial)
         self._counters.dropped_acquisitions += result.dropped
         self._counters.acquisitions_in_scans += len(scan.acqs)
         scan.completed = True

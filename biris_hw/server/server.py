@@ -27,7 +27,7 @@ from biris_hw.client import Connection
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
 from biris_hw.hardware import BirisHardware
-from biris_hw.ipc import Mailbox
+from biris_hw.ipc import Mailbox, TaskStopped
 from biris_hw.protocol import OpenRequest, ResetRequest, StatusRequest
 from biris_hw.records import BirisInitRecord
 from biris_hw.server import tasks
@@ -36,7 +36,12 @@ from biris_hw.server.admin import Administrator
 from biris_hw.server.crate_watch import CrateWatch
 from biris_hw.server.initialiser import Initialiser, InitResult, run_initialiser
 from biris_hw.server.isr import Level2Demux, Level3Demux, Logical
-from biris_hw.server.messages import BirisTimeoutErr, InitDone, MotorWatchdogErr
+from biris_hw.server.messages import (
+    BirisTimeoutErr,
+    InitDone,
+    MotionRechecked,
+    MotorWatchdogErr,
+)
 from biris_hw.server.task_table import TASKS, Starts, TaskSpec, task
 from biris_hw.status import ServerState, ServerStatus
 from regs.tech80 import Axis
@@ -75,8 +80,8 @@ class BirisServer:
         self.coupler = self.devices.coupler
         self.reader = AcquisitionReader(hw.biris, self.link, hw.clock, self.record.max_range)
         self.ledger = tasks.CommandLedger()
-        self.az_moves = tasks.MoveLedger()
-        self.el_moves = tasks.MoveLedger()
+        self.az_moves = tasks.MoveLedger(hw.clock)
+        self.el_moves = tasks.MoveLedger(hw.clock)
         self.supervisor = tasks.Supervisor(self.inbox)
         self.level2 = Level2Demux(hw.level2, hw.coupler, hw.biris, hw.biexec_offset)
         self.level3 = Level3Demux(hw.level3, self.devices.board)
@@ -103,7 +108,13 @@ class BirisServer:
             self.elevation_watchdog,
             hw.time_scale,
             self.level3.recheck,
+            self.level2.recheck,
+            hw.lag,
         )
+        self.level2.attach_recheck(
+            tasks.BirisRecheck(self.inbox, self.reader, self.link, self.ledger)
+        )
+        self.level3.attach_look_report(self._report_motion_look)
         self.crate_watch: CrateWatch | None = None
         """The crate monitor's poller (``hardware.crate``), or None without one."""
         try:
@@ -115,6 +126,15 @@ class BirisServer:
         except BaseException:
             self.close()
             raise
+
+    def _report_motion_look(self, ended: int) -> None:
+        """The level-3 routine's answer to a motor watchdog (in its thread): what the
+        controller said, and when each axis's worker last started a move."""
+        az, el = self.az_moves, self.el_moves
+        started = {Axis.AZIMUTH: az.started, Axis.ELEVATION: el.started}
+        noticed = {Axis.AZIMUTH: az.noticed, Axis.ELEVATION: el.noticed}
+        with contextlib.suppress(TaskStopped):
+            self.inbox.post_oneway(MotionRechecked(ended, started, noticed))
 
     # -- task creation ---------------------------------------------------------------------
     def _spawn(self, spec: TaskSpec, body: Callable[[], None]) -> None:

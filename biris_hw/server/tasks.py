@@ -56,6 +56,7 @@ from biris_hw.server.messages import (
     BirisBusErr,
     BirisCmdComplete,
     BirisParityErr,
+    BirisRechecked,
     CmdTransferRdy,
     ContinuousLive,
     ElReady,
@@ -73,6 +74,7 @@ from regs.biexec import BiCommand, BiStatus
 
 __all__ = [
     "BirisDataNotifier",
+    "BirisRecheck",
     "CommandLedger",
     "DeadlineTimer",
     "MoveLedger",
@@ -345,9 +347,26 @@ class MoveLedger:
     then names a move that has already ended, and the administrator ignores it.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] | None = None) -> None:
         self.token: int | None = None
         """The token of the move last started; None before the first (plain stores: atomic)."""
+        self._clock = clock
+        self.started: tuple[int, float] | None = None
+        """(token, hardware time) of the move last started, recorded just before its trapezoid
+        was (one tuple: a single atomic store). A watchdog that runs out judges the move from
+        when it started, not from when it was ordered: a worker the host ran late has not
+        started a move that could have ended."""
+
+    noticed: int | None = None
+    """The token of the move whose end the notifier last woke for (it then verifies the
+    arrival, however long settling takes): a watchdog asking the controller finds that end
+    acknowledged already, and must not take the move for one that never ended."""
+
+    def note_start(self, token: int) -> None:
+        """The move ``token`` starts now."""
+        self.token = token
+        if self._clock is not None:
+            self.started = (token, self._clock())
 
 
 def _post_drained(admin: Mailbox, drained: Drained) -> None:
@@ -359,7 +378,9 @@ def _post_drained(admin: Mailbox, drained: Drained) -> None:
     if drained.started:  # first: the motor waits for it
         admin.post_oneway(SequenceStarted(drained.started, drained.started_at))
     if drained.acquisitions or drained.lost or drained.idle:
-        admin.post_oneway(NewPoint(drained.acquisitions, drained.lost, drained.idle))
+        admin.post_oneway(
+            NewPoint(drained.acquisitions, drained.lost, drained.idle, drained.untrusted)
+        )
     if drained.live:
         admin.post_oneway(ContinuousLive())
     if drained.sweep_done:
@@ -398,8 +419,9 @@ def biris_cmd_notifier(
             elif order.code in (BiCommand.BI_START_CONTINUOUS, BiCommand.BI_STOP_CONTINUOUS):
                 reader.stop_ring()
                 set_continuous(False)
-            with reader.lock:
-                _post_drained(admin, reader.drain_sequence(final=True))
+            ran = order.code != BiCommand.BI_ACQUIRE or status == BiStatus.OK
+            with reader.lock:  # a refused BI_ACQUIRE made nothing: its frames are old ones
+                _post_drained(admin, reader.drain_sequence(final=True, ran=ran))
             _tell(admin, BirisCmdComplete(status, param, order.token))
         except TaskStopped:
             return
@@ -454,6 +476,51 @@ class BirisDataNotifier:
         return True
 
 
+class BirisRecheck:
+    """The BIRIS timeout's question, answered in the level-2 routine's thread: has BIRIS
+    progressed since the host last looked? (:meth:`~biris_hw.server.isr.Level2Demux.
+    attach_recheck`.)
+
+    It drains the reader as a data interrupt would (posting NEW_POINT for whatever BIRIS made
+    meanwhile, which is life), reads COMMAND for a completion not yet serviced, and posts
+    BIRIS_RECHECKED after them (one-way, FIFO: the administrator sees the evidence first).
+    Returns True when BIRIS has completed the outstanding command, so the routine wakes the
+    command notifier. A BusError propagates: a BIRIS that cannot be read is a ``bus`` fault.
+    """
+
+    def __init__(
+        self, admin: Mailbox, reader: AcquisitionReader, link: BirisLink, ledger: CommandLedger
+    ) -> None:
+        self._admin = admin
+        self._reader = reader
+        self._link = link
+        self._ledger = ledger
+
+    def __call__(self) -> bool:
+        with self._reader.lock:
+            drained = self._reader.drain()
+            progressed = bool(
+                drained.acquisitions
+                or drained.lost
+                or drained.idle
+                or drained.live
+                or drained.sweep_done
+                or drained.started
+                or drained.finished
+            )
+            try:
+                _post_drained(self._admin, drained)
+            except TaskStopped:
+                return False
+        with self._ledger.lock:
+            completed = self._ledger.outstanding is not None and self._link.command() == 0
+        try:
+            self._admin.post_oneway(BirisRechecked(progressed or completed))
+        except TaskStopped:
+            return False
+        return completed
+
+
 def _axis_notifier(
     line: InterruptLine,
     admin: Mailbox,
@@ -476,6 +543,8 @@ def _axis_notifier(
     while _await(line) is not None:
         try:
             token = moves.token if moves is not None else None  # before settling: see MoveLedger
+            if moves is not None:
+                moves.noticed = token
             settled = axis.wait_settled(stop)
             if stop.is_set():
                 return  # the server is closing: nobody wants the report
@@ -580,6 +649,10 @@ def biris_cmd_transfer(
             except BaseException:
                 ledger.outstanding = None
                 raise
+        if order.code == BiCommand.BI_ACQUIRE:
+            written = reader.written()
+            if order.schedule is not None:  # the scan's trapezoid starts a start-up from now
+                order.schedule.written(written)
 
 
 def _axis_worker(
@@ -604,6 +677,11 @@ def _axis_worker(
             return
         try:
             if isinstance(order, MoveOrder):
+                if order.schedule is not None:
+                    axis.prepare_trapezoid(order.destination)  # the journal's write, ahead
+                    if not order.schedule.wait_start():
+                        ready = make_ready(None, None)  # the scan was abandoned: nothing starts
+                        continue
                 if order.sweep and reader is not None:
                     # just before the motor starts, so that a worker the machine runs late
                     # cannot cost the sweep its beginning; what is read before the head
@@ -627,7 +705,8 @@ def _start_move(axis: MotionAxis, order: MoveOrder, moves: MoveLedger | None) ->
     if moves is None:
         axis.start_trapezoid(order.destination)
         return
-    previous, moves.token = moves.token, order.token
+    previous = moves.token
+    moves.note_start(order.token)
     try:
         axis.start_trapezoid(order.destination)
     except BaseException:
