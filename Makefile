@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 LINT_DIRS := biris_hw regs sim benchmarks tests $(wildcard tools)
 
-.PHONY: test test-slow demo lint bench clean
+.PHONY: test test-slow test-under-load demo lint bench clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -18,6 +18,10 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow -q
+
+# The fast tier with three CPU-bound processes beside it (sim.hostload), as on a shared machine.
+test-under-load: $(STAMP)
+	$(PY) tools/under_load.py --processes 3 -- $(PY) -m pytest -m "not slow" -q
 
 demo: $(STAMP)
 	$(VENV)/bin/biris demo

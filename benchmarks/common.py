@@ -9,7 +9,10 @@ harmlessly. Everything here is about measuring *honestly* in one process:
   threads, the simulator's and the rest (clients), per thread from ``/proc``;
 * latencies start at the moment the simulated hardware raised its interrupt
   (:class:`IrqRecorder`, through :attr:`sim.irqgate.InterruptGate.on_raise`), not at some point
-  inside the driver, so the whole driver path is inside the figure.
+  inside the driver, so the whole driver path is inside the figure;
+* a ``_contended`` figure repeats a measurement with CPU-bound processes beside the server
+  (:func:`contended`, :mod:`sim.hostload`) and says how busy the machine was, because a robot's
+  computer is rarely idle and a quiet figure alone cannot tell how the driver shares it.
 
 Only the public API is used (``biris_hw``, ``sim``, ``regs``), so the server's internals can
 change under the benchmarks.
@@ -18,31 +21,43 @@ change under the benchmarks.
 from __future__ import annotations
 
 import bisect
+import math
 import os
 import queue
 import threading
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from benchmarks.harness import Figure, Target
 from biris_hw import BirisInitRecord, BirisServer
 from regs.biexec import ACQ_LINE_END, OFF_ACQ_LINE
 from sim import Scene, SimulatedBiris
 from sim.clock import FIELD_PERIOD
+from sim.hostload import busy_processes
 
 __all__ = [
+    "CONTENDING_PROCESSES",
     "HOME_NEAR_COUNTS",
     "Bench",
+    "Contention",
     "CpuMeter",
     "DataRaise",
     "IrqRecorder",
     "acquisition_period_s",
+    "against_quiet",
+    "contended",
+    "load_average",
     "not_measured",
     "running_server",
     "snap_to",
 ]
+
+CONTENDING_PROCESSES = 2
+"""CPU-bound processes beside the server in a ``_contended`` figure: one per core of the 2-core
+machines the figures are taken on, so the server's threads must take turns with a neighbour on
+every CPU, as they would beside a planner or a build on a robot's computer."""
 
 HOME_NEAR_COUNTS = -200.0
 """Where the head stands at power-up in the benchmarks: near the zero index, so homing takes
@@ -295,3 +310,84 @@ class CpuMeter:
                 used = (_thread_cpu_ns(threads) - self._thread0[name]) / _NANO
                 self.values[f"{name}_cpu_percent"] = 100.0 * used / wall if wall > 0 else 0.0
         self.values["wall_s"] = wall
+
+
+# -- contention ----------------------------------------------------------------------------------
+
+
+def load_average() -> float:
+    """The machine's 1-minute load average (NaN where the platform has none).
+
+    Written beside quiet and contended figures alike: other people's work on a shared machine
+    moves every figure, and without the load a quiet figure cannot be told from a contended one.
+    """
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return math.nan
+
+
+def _process_cpu_s(pid: int) -> float:
+    """User + system CPU seconds a process has used, from /proc (0 where unavailable)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@dataclass
+class Contention:
+    """What ran beside a contended measurement, for its figure: filled in by :func:`contended`."""
+
+    processes: int
+    load_cpu_percent: float = math.nan
+    """CPU the load processes got together, % of one core, over the block (from /proc)."""
+    loadavg_before: float = math.nan
+    loadavg_after: float = math.nan
+    values: dict[str, float] = field(default_factory=dict)
+    """The above as a figure's values (``load_processes``, ``load_cpu_percent``, ...)."""
+
+    def describe(self) -> str:
+        """One sentence for a figure's method."""
+        return (
+            f"{self.processes} CPU-bound processes (sim.hostload.busy_processes: a pure-Python "
+            "loop each, nice 0) ran beside the server for the whole measurement; together they "
+            f"got {self.load_cpu_percent:.0f} % of one core, and the 1-minute load average went "
+            f"from {self.loadavg_before:.2f} to {self.loadavg_after:.2f}."
+        )
+
+
+@contextmanager
+def contended(processes: int = CONTENDING_PROCESSES) -> Iterator[Contention]:
+    """CPU-bound processes beside the block (spinning from its first line, reaped after it),
+    and how much CPU they got: the load that makes a figure ``_contended``."""
+    contention = Contention(processes)
+    with busy_processes(processes) as load:
+        contention.loadavg_before = load_average()
+        cpu0 = sum(_process_cpu_s(pid) for pid in load.pids)
+        wall0 = time.perf_counter()
+        yield contention
+        wall = time.perf_counter() - wall0
+        cpu = sum(_process_cpu_s(pid) for pid in load.pids) - cpu0
+        contention.loadavg_after = load_average()
+    contention.load_cpu_percent = 100.0 * cpu / wall if wall > 0 else math.nan
+    contention.values = {
+        "load_processes": float(processes),
+        "load_cpu_percent": contention.load_cpu_percent,
+        "loadavg_before": contention.loadavg_before,
+        "loadavg_after": contention.loadavg_after,
+    }
+
+
+def against_quiet(
+    contended_values: Mapping[str, float], quiet_values: Mapping[str, float]
+) -> dict[str, float]:
+    """The quiet figure's p50 and p99 beside the contended one's, and contended / quiet."""
+    out: dict[str, float] = {}
+    for key in ("p50", "p99"):
+        quiet = quiet_values[key]
+        out[f"quiet_{key}"] = quiet
+        out[f"ratio_{key}"] = contended_values[key] / quiet if quiet > 0 else math.nan
+    return out

@@ -12,6 +12,10 @@ Two ways of holding an acquisition are timed, one after the other during the sam
 * **every_acquisition** - a DATA connection with DeliveryPolicy.EVERY_ACQUISITION, whose client
   thread is blocked in ready_for_data; latency = its return minus the raise of the interrupt that
   announced that acquisition. No load but the client itself.
+* **every_acquisition_contended** - the same, right after it on the same server and scan, with
+  two CPU-bound processes beside the process (:func:`benchmarks.common.contended`): what a busy
+  neighbour on the robot's computer costs the data path. Reported with the quiet figure's p50
+  and p99 and the ratios contended / quiet.
 * **request_point** - REQUEST_POINT has nothing to wait on, so the client must ask. On each raise
   (woken by the hook) a client thread calls request_point until it returns the acquisition just
   announced; latency = that return minus the raise, and the number of calls it took is reported.
@@ -30,15 +34,22 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import dataclasses
 import math
 import queue
 import time
+from collections.abc import Mapping
+from dataclasses import dataclass
 
 from benchmarks.common import (
     Bench,
+    Contention,
     DataRaise,
     IrqRecorder,
     acquisition_period_s,
+    against_quiet,
+    contended,
+    load_average,
     not_measured,
     running_server,
 )
@@ -66,8 +77,9 @@ POLL_GIVE_UP_NS = 100_000_000
 def latency(ctx: BenchContext) -> list[Figure]:
     """Interrupt raise to DATA delivery (EVERY_ACQUISITION) and to request_point, time_scale 1.
 
-    Then the bare hand-over floor and the server's cost over it (``floor``,
-    ``server_over_floor``). Then the first two again with the opt-in of
+    The first again with CPU-bound processes beside the server (``_contended``). Then the bare
+    hand-over floor and the server's cost over it (``floor``, ``server_over_floor``). Then the
+    first two again with the opt-in of
     :mod:`biris_hw.affinity` (``_pinned`` figures): the server's threads, the client's and the
     simulator's (the interrupt's source) on one CPU.
     """
@@ -108,7 +120,11 @@ def _measure(ctx: BenchContext, seconds: float, suffix: str, cpu: int | None) ->
         conn.continuous_scan(-SWEEP_DEG, SWEEP_DEG)
         try:
             ctx.log(f"bench: latency_us.every_acquisition{suffix}")
-            figures += _every_acquisition(bench, irq, seconds, suffix, note)
+            quiet = _every_acquisition(bench, irq, seconds, suffix, note)
+            figures += quiet
+            if cpu is None:
+                ctx.log("bench: latency_us.every_acquisition_contended")
+                figures += _every_acquisition_contended(bench, irq, seconds, quiet)
             ctx.log(f"bench: latency_us.request_point{suffix}")
             figures += _request_point(bench, irq, seconds, suffix, note)
         finally:
@@ -130,9 +146,107 @@ def _pinned_note(cpu: int) -> str:
 def _every_acquisition(
     bench: Bench, irq: IrqRecorder, seconds: float, suffix: str = "", note: str = ""
 ) -> list[Figure]:
+    run = _deliveries(bench, irq, seconds)
+    extra = {**run.values(), "loadavg_1min": run.loadavg}
+    return _pair(f"every_acquisition{suffix}", run.samples, run.method(seconds) + note, extra)
+
+
+def _every_acquisition_contended(
+    bench: Bench, irq: IrqRecorder, seconds: float, quiet: list[Figure]
+) -> list[Figure]:
+    """every_acquisition again with :data:`~benchmarks.common.CONTENDING_PROCESSES` CPU-bound
+    processes beside the server; its rows carry the quiet ones' p50 / p99 and the ratios."""
+    with contended() as load:
+        run = _deliveries(bench, irq, seconds)
+    figures = _pair(
+        "every_acquisition_contended",
+        run.samples,
+        f"{run.method(seconds)} {load.describe()} Measured right after "
+        "latency_us.every_acquisition on the same server and scan.",
+        {**run.values(), **load.values},
+    )
+    quiet_main = next(fig for fig in quiet if fig.name == "every_acquisition")
+    ratios = against_quiet(figures[0].values, quiet_main.values)
+    main, tail = (dataclasses.replace(fig, values={**fig.values, **ratios}) for fig in figures)
+    return [dataclasses.replace(main, note=_contended_note(main.values, load)), tail]
+
+
+def _contended_note(values: Mapping[str, float], load: Contention) -> str:
+    return (
+        f"Contended ({load.processes} CPU-bound processes beside the server): "
+        f"every_acquisition p50 {values['p50']:.0f} us, p99 {values['p99']:.0f} us, "
+        f"{values['ratio_p50']:.2f}x / {values['ratio_p99']:.2f}x the quiet p50 / p99 "
+        "measured just before it (latency_us.every_acquisition_contended)."
+    )
+
+
+class _Raises:
+    """The data interrupts that announced an acquisition, looked up by the acquisition's time.
+
+    The interrupt announcing acquisition k is raised as its exposure ends, half a period after
+    its mid-exposure time (``Point.t``, the server's estimate, within a millisecond or so of the
+    simulator's): the announcing raise nearest that moment in hardware time, within half a
+    period, is the one. Matching by time needs no acquisition number, so it holds however the
+    server numbers a scan's rows.
+    """
+
+    def __init__(self, data: list[DataRaise], period: float) -> None:
+        raises = sorted((e.t_hw, e.t_ns) for e in data if e.announces >= 0)
+        self._t_hw = [t_hw for t_hw, _ in raises]
+        self._t_ns = [t_ns for _, t_ns in raises]
+        self._period = period
+
+    def announcing(self, t_mid: float) -> int | None:
+        """perf_counter_ns of the raise announcing the acquisition exposed around ``t_mid``."""
+        due = t_mid + self._period / 2.0
+        i = bisect.bisect_left(self._t_hw, due)
+        near = [j for j in (i - 1, i) if 0 <= j < len(self._t_hw)]
+        if not near:
+            return None
+        best = min(near, key=lambda j: abs(self._t_hw[j] - due))
+        return self._t_ns[best] if abs(self._t_hw[best] - due) <= self._period / 2.0 else None
+
+
+@dataclass
+class _Deliveries:
+    """One every_acquisition measurement: latencies and what was left out, and why."""
+
+    samples: list[float]
+    unmatched: int
+    not_waiting: int
+    lost: int
+    """Points the connection missed (its ``dropped``: pushed out of its queue or lost by the
+    server), as of the client's last ready_for_data."""
+    loadavg: float
+
+    def values(self) -> dict[str, float]:
+        return {
+            "unmatched": float(self.unmatched),
+            "not_waiting": float(self.not_waiting),
+            "lost": float(self.lost),
+        }
+
+    def method(self, seconds: float) -> str:
+        return (
+            f"{_setting(seconds)} A client thread blocked in ready_for_data on a DATA connection "
+            "opened with DeliveryPolicy.EVERY_ACQUISITION; latency = perf_counter_ns when it "
+            "returns minus perf_counter_ns taken by the simulator as it raised the data "
+            "interrupt announcing that acquisition (matched by time: the raise whose hardware "
+            "time is nearest the end of the Point's exposure, Point.t + period/2, within half a "
+            "period, and before the return; not by Point.acq, which numbers the scan's rows and "
+            "skips acquisitions made with the head standing; "
+            f"{self.unmatched} unmatched; "
+            f"{self.not_waiting} raised before the client was back in ready_for_data, left out "
+            f"as the client's delay); lost = points the connection missed ({self.lost}). "
+            f"1-minute load average {self.loadavg:.2f} at the start."
+        )
+
+
+def _deliveries(bench: Bench, irq: IrqRecorder, seconds: float) -> _Deliveries:
     irq.clear()
+    loadavg = load_average()
     data = bench.server.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_ACQUISITION)
-    returns: list[tuple[int, int, int]] = []  # (entered ready_for_data, returned, acq)
+    returns: list[tuple[int, int, float]] = []  # (entered ready_for_data, returned, Point.t)
     try:
         end = time.perf_counter() + seconds
         while time.perf_counter() < end:
@@ -141,34 +255,25 @@ def _every_acquisition(
                 point = data.ready_for_data(timeout=2.0)
             except TimeoutError:
                 continue
-            returns.append((called, time.perf_counter_ns(), point.acq))
+            returns.append((called, time.perf_counter_ns(), point.t))
+        lost = data.dropped
     finally:
         data.close()
-    raised = irq.announcing()
+    raises = _Raises(irq.data, acquisition_period_s(SAMPLES))
     samples: list[float] = []
     unmatched = not_waiting = 0
-    for t_call, t_ret, acq in returns:
-        times = raised.get(acq, [])
-        i = bisect.bisect_right(times, t_ret) - 1
-        if i < 0 or t_ret - times[i] > MATCH_WINDOW_NS:
+    for t_call, t_ret, t_point in returns:
+        raised = raises.announcing(t_point)
+        if raised is None or raised > t_ret or t_ret - raised > MATCH_WINDOW_NS:
             unmatched += 1
             continue
-        if times[i] < t_call:
+        if raised < t_call:
             not_waiting += 1  # queued while the client was away: its delay, not the server's
             continue
-        samples.append((t_ret - times[i]) / 1000.0)
+        samples.append((t_ret - raised) / 1000.0)
     if not samples:
         raise RuntimeError("no EVERY_ACQUISITION delivery could be matched to its interrupt")
-    method = (
-        f"{_setting(seconds)} A client thread blocked in ready_for_data on a DATA connection "
-        "opened with DeliveryPolicy.EVERY_ACQUISITION; latency = perf_counter_ns when it returns "
-        "minus perf_counter_ns taken by the simulator as it raised the data interrupt announcing "
-        "that acquisition (matched by the Point's acq index to the latest such raise before the "
-        f"return; {unmatched} unmatched; {not_waiting} raised before the client was back in "
-        "ready_for_data, left out as the client's delay)."
-    )
-    extra = {"unmatched": float(unmatched), "not_waiting": float(not_waiting)}
-    return _pair(f"every_acquisition{suffix}", samples, method + note, extra)
+    return _Deliveries(samples, unmatched, not_waiting, lost, loadavg)
 
 
 def _request_point(
@@ -199,7 +304,7 @@ def _request_point(
                 now = time.perf_counter_ns()
                 n += 1
                 if point is not None:
-                    if point.acq == event.announces and abs(point.t - expected_t) < period / 2.0:
+                    if abs(point.t - expected_t) < period / 2.0:  # by time (see _Raises)
                         samples.append((now - event.t_ns) / 1000.0)
                         polls.append(float(n))
                         break
@@ -217,7 +322,7 @@ def _request_point(
     method = (
         f"{_setting(seconds)} On each data interrupt (the simulator's hook wakes a client "
         "thread), the client calls request_point in a loop until it returns the acquisition "
-        "that interrupt announced (acq index, and Point.t within half a period of its "
+        "that interrupt announced (Point.t within half a period of its "
         "mid-exposure); latency = the return of that call minus the raise, both "
         "perf_counter_ns. An upper bound on when the administrator had it: it includes one "
         "round trip and the polling loads the administrator. polls = calls per acquisition; "

@@ -13,6 +13,12 @@ continuous 90 degree scan at time_scale 1, by three clients at once:
 * **streaming** - a DATA connection with EVERY_ACQUISITION: now minus the acquisition's time at
   each delivery.
 
+Then the same three clients again, on the same server, with two CPU-bound processes beside it
+(:func:`benchmarks.common.contended`): **streaming_contended**, whose target is what a client
+streaming on a busy robot's computer needs (p99 within two acquisition periods), and
+**streaming_contended_lost**, what the streaming client missed meanwhile (target: nothing). Both
+carry the quiet figure's p50 / p99 and the ratios contended / quiet.
+
 Ages are hardware seconds, shown in ms (time_scale 1, so hardware and wall time agree). The
 acquisition's time is its true mid-exposure from the simulator (the server's estimate is snapped
 to the nearest one): the server's estimate is made when it reads the frame, so any delay in
@@ -26,7 +32,16 @@ import threading
 import time
 from collections.abc import Callable
 
-from benchmarks.common import Bench, acquisition_period_s, running_server, snap_to
+from benchmarks.common import (
+    Bench,
+    Contention,
+    acquisition_period_s,
+    against_quiet,
+    contended,
+    load_average,
+    running_server,
+    snap_to,
+)
 from benchmarks.harness import BenchContext, Figure, Target, benchmark, percentile, summarise
 from biris_hw import ConnectionKind, DeliveryPolicy, Direction, Scan
 from biris_hw.client import Connection
@@ -47,6 +62,10 @@ def presentation(ctx: BenchContext) -> list[Figure]:
     with running_server(samples=SAMPLES, time_scale=TIME_SCALE) as bench:
         run = _Run(bench, seconds)
         run.measure()
+        ctx.log("bench: presentation_ms.streaming_contended")
+        with contended() as load:
+            busy = _Run(bench, seconds)
+            busy.measure()
     times = bench.rig.supervisor.acquisition_times
     tolerance = period / 2.0
     report_ages, report_unsnapped = _ages(run.sampled, times, tolerance)
@@ -78,26 +97,92 @@ def presentation(ctx: BenchContext) -> list[Figure]:
             ),
         )
     ]
-    stream_ages, stream_unsnapped = _ages(run.stream_deliveries, times, tolerance)
-    if not stream_ages:
-        raise RuntimeError("the EVERY_ACQUISITION connection delivered nothing")
-    values = summarise(stream_ages)
-    values["unsnapped"] = float(stream_unsnapped)
+    streaming_method = (
+        f"{setting} A client thread blocked in ready_for_data on an EVERY_ACQUISITION DATA "
+        "connection; age = hardware time when it returns - the Point's acquisition time. The "
+        "acquisition exists half a period after its mid-exposure, so about period/2 is the "
+        "floor. lost = points the connection missed (its dropped count: pushed out of its "
+        "queue or lost by the server)."
+    )
+    quiet = _streaming(run, times, tolerance)
     figures.append(
         Figure(
             key="presentation_ms.streaming",
-            values=values,
+            values=quiet,
             unit="ms",
             target=streaming_target,
-            method=(
-                f"{setting} A client thread blocked in ready_for_data on an "
-                "EVERY_ACQUISITION DATA connection; age = hardware time when it returns - "
-                "the Point's acquisition time. The acquisition exists half a period after "
-                "its mid-exposure, so about period/2 is the floor."
-            ),
+            method=f"{streaming_method} 1-minute load average {run.loadavg:.2f} at the start.",
         )
     )
+    figures += _streaming_contended(busy, times, tolerance, quiet, load, streaming_method)
     return figures
+
+
+def _streaming(run: _Run, times: list[float], tolerance: float) -> dict[str, float]:
+    """The streaming client's ages, summarised, with what it missed and the machine's load."""
+    ages, unsnapped = _ages(run.stream_deliveries, times, tolerance)
+    if not ages:
+        raise RuntimeError("the EVERY_ACQUISITION connection delivered nothing")
+    values = summarise(ages)
+    values["unsnapped"] = float(unsnapped)
+    values["lost"] = float(run.stream_lost)
+    values["loadavg_1min"] = run.loadavg
+    return values
+
+
+def _streaming_contended(
+    busy: _Run,
+    times: list[float],
+    tolerance: float,
+    quiet: dict[str, float],
+    load: Contention,
+    streaming_method: str,
+) -> list[Figure]:
+    """presentation_ms.streaming measured with load beside the server: the age (target: p99
+    within two periods) and what was lost (target: nothing), each beside the quiet figure."""
+    period_ms = acquisition_period_s(SAMPLES) * 1e3
+    values = _streaming(busy, times, tolerance)
+    del values["loadavg_1min"]  # the load's own figures say how busy the machine was
+    values |= load.values
+    values |= against_quiet(values, quiet)
+    method = (
+        f"{streaming_method} {load.describe()} The same three clients as the quiet figures, "
+        "on the same server, right after them. Target: p99 within two acquisition periods "
+        f"({2 * period_ms:.1f} ms)."
+    )
+    lost_values = {
+        key: values[key]
+        for key in ("lost", "n", "p50", "p99", "max", "load_processes", "load_cpu_percent")
+    }
+    lost_values["quiet_lost"] = quiet["lost"]
+    note = (
+        f"Contended ({load.processes} CPU-bound processes beside the server): streaming p50 "
+        f"{values['p50']:.1f} ms, p99 {values['p99']:.1f} ms ({values['ratio_p50']:.2f}x / "
+        f"{values['ratio_p99']:.2f}x the quiet p50 / p99), {int(values['lost'])} lost "
+        "(presentation_ms.streaming_contended)."
+    )
+    return [
+        Figure(
+            key="presentation_ms.streaming_contended",
+            values=values,
+            unit="ms",
+            target=Target("<=", round(2 * period_ms, 1), on="p99"),
+            method=method,
+            note=note,
+        ),
+        Figure(
+            key="presentation_ms.streaming_contended_lost",
+            values=lost_values,
+            unit="ms",
+            target=Target("==", 0.0, on="lost"),
+            method=(
+                "What the streaming client of presentation_ms.streaming_contended missed while "
+                "the load ran (lost: its connection's dropped count, which includes points the "
+                "server lost), beside its ages (ms) and the quiet run's lost. Target: nothing "
+                "lost."
+            ),
+        ),
+    ]
 
 
 class _Run:
@@ -112,6 +197,9 @@ class _Run:
         """(now, estimated time of the newest acquisition in the latest complete scan)."""
         self.scan_deliveries: list[tuple[float, float]] = []
         self.stream_deliveries: list[tuple[float, float]] = []
+        self.stream_lost = 0
+        """Points the streaming connection missed (its ``dropped``), at its last delivery."""
+        self.loadavg = load_average()
         self.errors: list[BaseException] = []
 
     def measure(self) -> None:
@@ -180,6 +268,7 @@ class _Run:
                 except TimeoutError:
                     continue
                 self.stream_deliveries.append((self.clock(), point.t))
+                self.stream_lost = data.dropped
         finally:
             data.close()
 

@@ -14,8 +14,8 @@ on exit, whatever ends the block. A process the context manager could not stop (
 killed with SIGKILL, say) stops by itself: it checks every millisecond or so whether its parent
 is still the one that started it (``os.getppid``), and it never runs longer than ``max_s``.
 
-The processes are forked (multiprocessing's ``fork`` start method). ``spawn`` would cost a
-Python start-up per process, run the parent's main script again in each, and start
+The processes are forked (multiprocessing's ``fork`` start method; POSIX only). ``spawn``
+would cost a Python start-up per process, run the parent's main script again in each, and start
 multiprocessing's resource tracker, a process of its own whose pipe a test's leak check then
 finds open. Forking a parent whose threads run (a server, a simulator) is safe only for a child
 that touches nothing those threads might have held at that instant, so the child is written for

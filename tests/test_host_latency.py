@@ -139,7 +139,14 @@ def test_late_interrupts_and_slow_reads_give_whole_or_marked_scans_and_no_fault(
 
 @pytest.mark.slow
 @pytest.mark.parametrize("latency", sorted(LATENCIES))
-def test_the_same_through_the_simulated_vmusb(make_rig: RigFactory, latency: str) -> None:
+def test_the_same_through_the_simulated_vmusb(
+    make_rig: RigFactory, time_scale: float, latency: str
+) -> None:
+    if time_scale > 10.0:
+        pytest.skip(
+            "the simulated VM-USB models USB time: at x30 Appendix D's ring outruns every "
+            "list the bridge can carry, with no latency injected as with any"
+        )
     rig = make_rig(scene=Scene.room(), transport="vmusb")
     _matrix(rig, latency, (10.0, 90.0, 360.0))
 

@@ -30,12 +30,13 @@ from biris_hw import protocol as p
 from biris_hw.angles import counts_to_deg, deg_to_counts, destination_counts
 from biris_hw.client import Connection
 from biris_hw.data import Point
-from biris_hw.errors import RequestError
+from biris_hw.errors import HardwareFault, RequestError
 from biris_hw.ipc import Mailbox
 from biris_hw.server.connections import Connections
 from biris_hw.server.counters import Counters
 from regs.hctl1000 import MOTION_LIMIT_COUNTS
 from sim import Scene, SimulatedBiris
+from tests.conftest import until
 
 WAIT = 5.0
 """Timeout for what should happen almost at once; only reached when a test fails."""
@@ -162,16 +163,37 @@ def shared() -> Iterator[Bench]:
         bench.data.close()
 
 
+def _recover(shared: Bench) -> str | None:
+    """Reset the shared server if it is in a fault; the fault's message, or None. A fault is
+    one test's failure: reset here, it is not carried into the rest of the module."""
+    fault = shared.server.status().fault
+    if fault is None:
+        return None
+    try:
+        shared.conn.wait_idle(timeout=0)  # raises the fault, with the server's own message
+    except HardwareFault as exc:
+        said = str(exc)
+    else:  # pragma: no cover - a fault state always refuses
+        said = str(fault)
+    shared.conn.reset()
+    shared.conn.wait_idle(timeout=WAIT)
+    shared.drain()
+    return said
+
+
 @pytest.fixture
 def bench(shared: Bench) -> Iterator[Bench]:
-    """The shared bench, idle and drained before the test; idle and clean after it."""
+    """The shared bench, idle and drained before the test; idle and clean after it. A test
+    that leaves the server in a fault fails with it, and the server is reset for the next."""
+    _recover(shared)  # a test that errored before its teardown could check
     shared.conn.wait_idle(timeout=WAIT)
     shared.drain()
     yield shared
+    left = _recover(shared)
+    assert left is None, f"the test left the shared server in a fault: {left}"
     shared.conn.stop_scan()
     shared.conn.wait_idle(timeout=WAIT)
     shared.drain()
-    assert shared.server.status().fault is None
     assert shared.rig.audit.violations == []
 
 
@@ -525,3 +547,18 @@ def test_a_poll_that_finds_nothing_leaves_a_parked_request_alone() -> None:
     clients.deliver_points([_point(7)], lost=0)
     point, dropped = cast(tuple[Point, int], parked.wait(0))
     assert point.acq == 7 and dropped == 0
+
+
+def test_a_fault_on_the_shared_server_is_reset_not_carried_on(shared: Bench) -> None:
+    """The module's tests share one server: a fault one of them leaves is reported in that
+    test (the bench's teardown) and reset there, so the next test starts from an idle server
+    instead of failing on the same fault."""
+    shared.conn.wait_idle(timeout=WAIT)
+    shared.rig.faults.parity_error()
+    until(lambda: shared.server.status().fault is not None, WAIT)
+    said = _recover(shared)
+    assert said is not None and "parity" in said
+    assert shared.server.status().fault is None
+    assert _recover(shared) is None  # nothing to do on a healthy server
+    shared.rig.faults.clear_all()
+    shared.normal_scan()

@@ -27,6 +27,7 @@ from biris_hw.server.scan_timing import (
     MAX_LATENESS_S,
     RECENT_KEPT,
     START_AFTER_S,
+    STARTUP_FIELDS_S,
     STARTUP_MAX_S,
     STARTUP_S,
     ScanTiming,
@@ -73,8 +74,8 @@ def test_the_count_covers_the_motion_with_the_arrival_and_one_spare() -> None:
         assert n - 2 <= moving + 1.5
     # the report's BIRIS_DATA_RATE (30 ms) and start-up-blind count asked for more, of which
     # ~44 % stood at the destination of a 90 degree scan; this is the motion in real periods,
-    # from a start a quarter field after BIRIS's first acquisition, the host's latency allowed
-    start = START_AFTER_S + HOST_LATENCY_S
+    # from a start about as BIRIS's first acquisition begins, the host's latency allowed
+    start = max(START_AFTER_S, 0.0) + HOST_LATENCY_S
     assert (
         timing.acquisitions(1024, DEFAULT)
         == math.ceil((start + trapezoid_s(1024, DEFAULT)) / PERIOD + 0.25 - 0.5) + 2
@@ -100,8 +101,9 @@ def test_the_motor_start_lateness_is_learned_from_recent_scans_and_bounded() -> 
 
 def test_the_start_up_is_learned_as_the_smallest_bound_and_capped_by_the_reports() -> None:
     timing = ScanTiming(PERIOD)
-    # before any scan: the report's 240 ms plus the field BIRIS may take to see the command
-    assert timing.startup_lead_s == pytest.approx(STARTUP_S + FIELD_S)
+    # before any scan: the report's 240 ms in whole fields, less a quarter field
+    assert timing.startup_lead_s == pytest.approx(STARTUP_FIELDS_S + START_AFTER_S)
+    assert STARTUP_S < STARTUP_FIELDS_S < STARTUP_S + FIELD_S
     timing.note_startup(0.262)
     timing.note_startup(0.251)  # a prompter look: a tighter bound
     timing.note_startup(0.290)

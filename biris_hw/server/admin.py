@@ -794,7 +794,10 @@ class Administrator:
                 axis.watchdog_gen = -1
                 continue
             started = msg.started.get(axis.axis)
-            remaining = axis.remaining_s(started, self.clock())
+            # judged on the hardware's own progress: a simulator running behind its clock has
+            # not yet had the time the clock says (the real target's lag is 0)
+            lag = self._lag() if self._lag is not None else 0.0
+            remaining = axis.remaining_s(started, self.clock() - 2.0 * lag)
             if remaining > 0.0:
                 axis.rearm(remaining)
                 continue

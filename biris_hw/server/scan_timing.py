@@ -16,9 +16,9 @@ hardware time fixed by the write (:mod:`~biris_hw.server.start_schedule`): whene
 sees BIRIS's interrupts, the motion begins as BIRIS's first acquisition does. The start-up is
 learned (:meth:`ScanTiming.note_startup`: from BI_ACQUIRE's write to the first acquisition,
 the smallest of the recent ones, since the reader's bound on a start is never early), and the
-motor is started a quarter of a video field after it (:data:`START_AFTER_S`): BIRIS sees a
-command at the next vertical sync, so its start-up begins up to a field after the write, and
-the first acquisition is then exposed with the head just under way.
+motor is started a quarter of a video field before it (:data:`START_AFTER_S`): BIRIS sees a
+command at the next vertical sync, so its start-up ends up to a field later, and the first
+acquisition is then exposed with the head just under way.
 
 The count is as many acquisitions as the trapezoid lasts in real acquisition periods -- ramps
 included -- from that start, plus how late the host has started motors on recent scans (the
@@ -41,6 +41,7 @@ __all__ = [
     "DATA_RATE_TOLERANCE",
     "FIELD_S",
     "HOST_LATENCY_S",
+    "STARTUP_FIELDS_S",
     "STARTUP_S",
     "ScanTiming",
     "data_rate_mismatch",
@@ -72,15 +73,21 @@ STARTUP_S = 0.240
 FIELD_S = 1.0 / 59.94
 """One RS-170 video field: BIRIS sees a command at the vertical sync after its write."""
 
-START_AFTER_S = FIELD_S / 4.0
-"""How long after the measured start-up (the shortest seen: BIRIS saw its command at once) the
-motor starts. BIRIS sees a command up to a field after its write, so its first acquisition
-begins 0 to 1 field after the shortest start-up, and is exposed around half a period later.
-The head follows its command a few milliseconds late (the servo's lag), so a motor started a
-quarter field after the shortest start-up has left its start by that exposure in every case,
-and has not gone a whole acquisition's travel by it in any."""
+START_AFTER_S = -FIELD_S / 4.0
+"""When the motor starts relative to the shortest start-up measured (hardware seconds; negative:
+before it). BIRIS sees a command up to a field after its write, so its first acquisition begins
+0 to 1 field after the shortest start-up and is exposed half a period later; the head follows
+its command about 11 ms late at Appendix B's gains (measured on the simulated plant: 0.9 counts
+8.6 ms after F0, 4.3 counts at 15 ms). Started a quarter field early, the head has left its
+start by the first exposure when BIRIS saw the command at once (or that acquisition is standing
+and the next is under one acquisition's travel from the start), and has not gone one
+acquisition's travel by it when BIRIS saw the command a field late."""
 
-STARTUP_MAX_S = math.ceil(STARTUP_S / FIELD_S - 1e-9) * FIELD_S + FIELD_S
+STARTUP_FIELDS_S = math.ceil(STARTUP_S / FIELD_S - 1e-9) * FIELD_S
+"""The report's start-up in whole video fields (15, 250.25 ms): the shortest BIRIS takes from a
+command it sees at once, and the estimate until one is measured (interpretation)."""
+
+STARTUP_MAX_S = STARTUP_FIELDS_S + FIELD_S
 """The longest start-up the report's BIRIS can take from BI_ACQUIRE's write (hardware seconds):
 its 240 ms in whole fields, after up to a field before it sees the command (interpretation:
 the start-up counts from that vertical sync, as the simulator does). A measured start-up above
@@ -144,19 +151,16 @@ class ScanTiming:
 
     @property
     def startup_s(self) -> float:
-        """BIRIS's start-up from BI_ACQUIRE's write to its first acquisition (hardware seconds):
-        the smallest recently measured, else the report's 240 ms plus the field BIRIS may take
-        to see the command."""
+        """BIRIS's shortest start-up from BI_ACQUIRE's write to its first acquisition (hardware
+        seconds): the smallest recently measured, else the report's 240 ms in whole fields."""
         if not self._startups:
-            return STARTUP_S + FIELD_S
+            return STARTUP_FIELDS_S
         return min(min(self._startups), STARTUP_MAX_S)
 
     @property
     def startup_lead_s(self) -> float:
-        """From BI_ACQUIRE's write to the trapezoid's start (hardware seconds): the start-up,
-        plus a quarter of a field once it is measured (module notes)."""
-        if not self._startups:
-            return self.startup_s
+        """From BI_ACQUIRE's write to the trapezoid's start (hardware seconds): the shortest
+        start-up less a quarter of a field (:data:`START_AFTER_S`)."""
         return self.startup_s + START_AFTER_S
 
     @property
@@ -182,7 +186,7 @@ class ScanTiming:
         """BI_ACQUIRE's count for a scan of ``distance`` counts at ``params``.
 
         Acquisition k is exposed around (k + 1/2) periods after the first began; the motor
-        starts at most a quarter field after that beginning, plus the lateness allowed for, and the
+        starts about then (:data:`START_AFTER_S`), plus the lateness allowed for, and the
         head arrives a trapezoid and a settling later. The count reaches the first acquisition
         made at or after the arrival (it is kept: the scan's last point, at the destination),
         plus one spare (discarded, counted, as standing). At least 2 for any scan that moves.
@@ -192,7 +196,7 @@ class ScanTiming:
         period = self.period_s
         if period <= 0.0:  # not initialised: nothing can acquire; keep the arithmetic sane
             period = acquisition_period_s(SAMPLES_CHOICES[0])
-        start = START_AFTER_S + self.lateness_allowance_s
+        start = max(START_AFTER_S, 0.0) + self.lateness_allowance_s
         arrival = start + trapezoid_s(distance, params) + SETTLE_PERIODS * period
         last = max(0, math.ceil(arrival / period - 0.5))  # the first exposed at the arrival
         return last + 2
