@@ -20,10 +20,18 @@ almost nothing; what is built is built in batches, in the feed's one thread and 
 with the acquisitions (:class:`~biris_hw.ros2.SensorFeed`), so a watched live view adds little
 to the moment an acquisition reaches the sensor's other clients. ``docs/foxglove-layout.json``
 opens the panels.
+
+A sensor in a fault keeps the view up: the WebSocket stays open, ``/diagnostics`` says ERROR
+with the fault's kind and the server's message (at once when the fault is met, then at the
+status period), and the data come back by themselves once the sensor has been reset. Meanwhile
+the sensor is asked for data only every :data:`FAULT_POLL_S` (each ask would only hear the
+fault again), not at the batch rate (twenty times a second on each of its two connections),
+which would load a sensor reached over the network for nothing.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Mapping
@@ -31,13 +39,19 @@ from types import TracebackType
 from typing import Any
 
 from biris_hw import ros2
-from biris_hw.data import Point, Scan
+from biris_hw.data import ConnectionKind, Point, Scan
+from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
 from biris_hw.geometry import Frame, Mount
 
-__all__ = ["DEFAULT_PORT", "LiveView", "viewer_urls"]
+__all__ = ["DEFAULT_PORT", "FAULT_POLL_S", "LiveView", "viewer_urls"]
+
+log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 8765
 """Foxglove's usual WebSocket port."""
+
+FAULT_POLL_S = 0.5
+"""While the sensor is in a fault, the pause between two asks for data (real seconds)."""
 
 
 def viewer_urls(host: str, port: int) -> dict[str, str]:
@@ -85,6 +99,7 @@ class LiveView:
             on_points=self._points,
             on_scans=self._scans,
             on_status=self._status,
+            on_fault=self._fault_met,
             status_period_s=status_period_s,
             batch_s=batch_s,
             point_depth=1024,
@@ -102,6 +117,14 @@ class LiveView:
         self._sweep_sent = 0.0
         self.published: dict[str, int] = {}
         """Messages published per topic (to at least one subscriber)."""
+        self._closing = threading.Event()
+        """Set by :meth:`close`: ends the pause between two asks for data during a fault."""
+        self._fault: HardwareFault | None = None
+        """The fault the sensor is in, as the feed last met it; None outside a fault."""
+        self._fault_asked = -float("inf")
+        """When the feed last asked for data and met the fault (monotonic seconds)."""
+        self.faults_met = 0
+        """Asks for data that met a fault (each pauses the feed: :data:`FAULT_POLL_S`)."""
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> LiveView:
@@ -149,6 +172,7 @@ class LiveView:
 
     def close(self) -> None:
         """Stop reading and publishing, close the server. Idempotent."""
+        self._closing.set()  # first: the feed may be pausing in a fault
         self._feed.stop()
         if self._server is not None:
             self._send_sweep()  # the last acquisitions the feed handed over
@@ -211,8 +235,62 @@ class LiveView:
             if self._wanted("/biris/points"):
                 self._publish(ros2.scan_cloud(scan, self.frame))
 
+    def _fault_met(self, exc: BaseException) -> None:
+        """The feed asked for data and met a fault (it goes on reading, see SensorFeed).
+
+        The first time, the fault is put on ``/diagnostics`` at once rather than at the next
+        status period; every time, the feed's thread pauses until :data:`FAULT_POLL_S` has
+        passed since its previous ask, since nothing but the fault will come until a reset.
+        """
+        self.faults_met += 1
+        if isinstance(exc, HardwareFault) and self._learn(exc):
+            try:
+                self._status(self.source.status(), None)
+            except ConnectionClosed:
+                pass
+            except BirisError as failure:
+                self._status(None, str(failure))
+        pause = self._fault_asked + FAULT_POLL_S - time.monotonic()
+        if pause > 0:
+            self._closing.wait(pause)
+        self._fault_asked = time.monotonic()
+
+    def _learn(self, fault: HardwareFault) -> bool:
+        """Keep ``fault`` as the one the sensor is in; True (and logged) if it is news."""
+        news = self._fault is None or self._fault.kind != fault.kind
+        self._fault = fault
+        if news:
+            log.warning("live view: the sensor is in a fault (%s): shown on /diagnostics", fault)
+        return news
+
+    def _ask_fault(self) -> HardwareFault | None:
+        """The fault the sensor is in, with its message, when the status names one the feed
+        has not met yet (the status may come first): a poll on a connection of our own raises
+        it. None if the sensor cannot say."""
+        try:
+            with self.source.open(ConnectionKind.NORMAL) as conn:
+                conn.wait_idle(timeout=0)
+        except HardwareFault as exc:
+            return exc
+        except (BirisError, TimeoutError):
+            pass
+        return None
+
     def _status(self, status: Mapping[str, Any] | None, error: str | None) -> None:
         self._send_sweep(when_due=True)  # what waited for the period, if no data came since
+        if status is not None:
+            state = str(status["state"])
+            fault = self._fault
+            if not state.startswith("fault"):
+                self._fault = None  # left (a reset): the next fault is met afresh
+            elif error is None:  # the kind alone says little: the server's own words too
+                if fault is None or state != f"fault:{fault.kind}":
+                    asked = self._ask_fault()
+                    if asked is not None:
+                        self._learn(asked)
+                        fault = asked
+                if fault is not None and state == f"fault:{fault.kind}":
+                    error = fault.message
         t = ros2.sensor_time(self.source, self._now)
         if self._wanted("/tf_static"):
             self._publish(ros2.static_transforms(self._mount, t))

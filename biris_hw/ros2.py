@@ -67,7 +67,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
-from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
+from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault, RequestError
 from biris_hw.geometry import DEFAULT_MOUNT, Frame, Mount, project_profiles
 from regs.wiener_crate import CrateReading
 
@@ -664,7 +664,8 @@ class SensorFeed:
     too). :meth:`stop` wakes the thread at once (an event), which collects what is already
     queued, hands it over and closes the connections. A callback that raises stops the feed;
     the error is kept in :attr:`error`. A hardware fault is handed to ``on_fault`` and reading
-    goes on (a reset may clear it).
+    goes on (a reset may clear it); while a reset initialises the sensor, nothing comes and
+    reading goes on too.
     """
 
     def __init__(
@@ -798,8 +799,9 @@ class SensorFeed:
     def _drain(self, conn: Any) -> tuple[list[Any], bool]:
         """What waits on ``conn`` (at most DRAIN_MAX), and whether the source has ended
         (closed: nothing more will come). A fault goes to ``on_fault``; the next batch tries
-        again. Any other error of the source (a replay's ReplayError) stops the feed: it is
-        kept in :attr:`error` and :attr:`failed` is set."""
+        again, as it does while the sensor initialises (a reset). Any other error of the
+        source (a replay's ReplayError) stops the feed: it is kept in :attr:`error` and
+        :attr:`failed` is set."""
         got: list[Any] = []
         while len(got) < DRAIN_MAX:
             try:
@@ -812,6 +814,8 @@ class SensorFeed:
                 if self._on_fault is not None:
                     self._on_fault(exc)
                 return got, False
+            except RequestError:  # the sensor is initialising (a reset): its data come back
+                return got, False  # when it is done, on these same connections
             except BirisError as exc:  # the source cannot go on (a damaged recording): what
                 # came before is handed over, the error kept for the owner to report
                 log.info("sensor feed stopped: %s", exc)

@@ -11,6 +11,8 @@ signal: the same exception, at a known moment.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import logging
 import os
 import re
@@ -489,29 +491,106 @@ def test_ctrl_c_in_the_demo_draws_what_it_has(
     assert sorted(s.direction.name for s in scans) == ["CCW", "CW"]
 
 
-# -- 7. watch gives up on a fault ------------------------------------------------------------------
+# -- 7. watch goes on through a fault -------------------------------------------------------------
 
 
-def test_watch_gives_up_on_a_fault_the_server_cannot_leave(
-    biris: Run, rigs: list[SimulatedBiris], monkeypatch: pytest.MonkeyPatch
+def _watch_args(*argv: str) -> argparse.Namespace:
+    return build_parser("watch").parse_args(["watch", *argv])
+
+
+def test_watch_goes_on_through_a_fault_and_says_it_once(
+    rigs: list[SimulatedBiris],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    no_leaks: None,
 ) -> None:
+    """A fault nobody resets: watch keeps refreshing (the fault in every status line), says
+    once what the fault is and how to recover, and its exit status says the server was still
+    in the fault at the end."""
     update = watch._Lines.update
     shown: list[str] = []
+    stop = threading.Event()
 
-    def update_then_break(self: watch._Lines, status: Any, elapsed: float) -> None:
+    def update_and_break(self: watch._Lines, status: Any, elapsed: float) -> None:
         update(self, status, elapsed)
         shown.append(str(status["state"]))
         if len(shown) == 2:
             rigs[-1].faults.parity_error()
+        if shown.count("fault:parity") == 4:
+            stop.set()  # four looks at the fault: watch did not stop at the first
 
-    monkeypatch.setattr(watch._Lines, "update", update_then_break)
-    code, out, err = biris("watch", "--interval", "0.02", "--duration", "30", *SIM)
+    monkeypatch.setattr(watch._Lines, "update", update_and_break)
+    out = io.StringIO()
+    args = _watch_args("--interval", "0.02", "--duration", "30", *SIM)
+    code = watch.run(args, out, stop=stop)
     assert code == 1
-    (line,) = _lines(err)
-    assert line.startswith("biris watch: hardware fault (parity): ")
-    assert "the server stays in this fault until it is reset, so watch gives up" in line
-    assert shown[-1] == "fault:parity" and shown.count("fault:parity") == 1  # shown, then left
-    assert "state=fault:parity" in out.splitlines()[-1]
+    assert "fault:parity" not in shown[:2] and shown.count("fault:parity") == 4
+    assert shown[-4:] == ["fault:parity"] * 4
+    lines = out.getvalue().splitlines()
+    assert len(lines) == len(shown) and "state=fault:parity" in lines[-1]
+    said = _said(capsys.readouterr().err)
+    assert len(said) == 2, said
+    assert said[0].startswith("biris watch: hardware fault (parity): parity error on the coupler; ")
+    assert "reset the server (conn.reset() or restart the command)" in said[0]
+    assert said[0].endswith("watch goes on showing the status")
+    assert said[1] == "biris watch: ended with the server still in the fault (parity)"
+
+
+def test_watch_shows_the_server_again_once_it_is_reset(
+    rigs: list[SimulatedBiris],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    no_leaks: None,
+) -> None:
+    """A fault in the middle of ``watch --cw --ccw``, then a reset from another thread (as a
+    controller elsewhere would): watch shows the fault, then the server again, sweeps again
+    once it is idle, and ends with status 0."""
+    sessions: list[common.Session] = []
+    open_session = common.open_session
+
+    @contextlib.contextmanager
+    def keep(args: argparse.Namespace) -> Iterator[common.Session]:
+        with open_session(args) as session:
+            sessions.append(session)
+            yield session
+
+    monkeypatch.setattr(watch, "open_session", keep)
+    update = watch._Lines.update
+    shown: list[str] = []
+    stop = threading.Event()
+    resets: list[threading.Thread] = []
+
+    def update_and_act(self: watch._Lines, status: Any, elapsed: float) -> None:
+        update(self, status, elapsed)
+        state = str(status["state"])
+        shown.append(state)
+        if len(shown) == 3:
+            rigs[-1].faults.parity_error()
+        elif state.startswith("fault") and not resets:
+            server = sessions[-1].server
+            assert isinstance(server, BirisServer)
+            resets.append(threading.Thread(target=server.reset))
+            resets[0].start()
+        elif resets and state == "scanning":
+            stop.set()  # sweeping again after the reset
+
+    monkeypatch.setattr(watch._Lines, "update", update_and_act)
+    out = io.StringIO()
+    args = _watch_args("--interval", "0.02", "--duration", "30", "--cw", "-20", "--ccw", "20", *SIM)
+    try:
+        code = watch.run(args, out, stop=stop)
+    finally:
+        for thread in resets:
+            thread.join()
+    assert code == 0
+    fault = shown.index("fault:parity")
+    assert "scanning" in shown[:fault] and shown[-1] == "scanning"
+    assert "idle" in shown[fault:]  # after the reset, before the new sweep
+    said = _said(capsys.readouterr().err)
+    assert len(said) == 3, said
+    assert said[0].startswith("biris watch: hardware fault (parity): ")
+    assert said[1].startswith("biris watch: the server has left the fault (state ")
+    assert said[2] == "biris watch: sweeping again"
 
 
 # -- 8. a time scale the host cannot keep up with --------------------------------------------------

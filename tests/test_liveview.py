@@ -1,25 +1,49 @@
 """The live view, checked from the other end: a real WebSocket client (``websockets``) speaking
-the Foxglove protocol sees the channels advertised and receives messages that decode."""
+the Foxglove protocol sees the channels advertised and receives messages that decode; through a
+fault it stays open, says ERROR on /diagnostics and gets data again after a reset. ``biris
+view`` itself is run in-process through a fault and a reset from another thread."""
 
 from __future__ import annotations
 
+import argparse
+import io
 import json
 import struct
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from rosbags.typesys import Stores, get_typestore
 from websockets.sync.client import connect
 
-from biris_hw import ros2
-from biris_hw.liveview import LiveView
+from biris_hw import BirisServer, liveview, ros2
+from biris_hw.cli import build_parser
+from biris_hw.commands import common
+from biris_hw.commands import view as view_command
+from biris_hw.liveview import FAULT_POLL_S, LiveView
 from biris_hw.replay import ReplayServer
+from biris_hw.status import ServerState
+from sim import SimulatedBiris
+from tests.conftest import until
+from tests.test_cli import SIM as CLI_SIM
 from tests.test_record_support import cloud_xyz, synthetic_scans, write_raw
 
 STANDARD = get_typestore(Stores.ROS2_HUMBLE)
 SUBPROTOCOL = "foxglove.sdk.v1"  # foxglove-sdk 0.30's name for foxglove.websocket.v1
 WAIT = 10.0
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _foxglove_runtime() -> None:
+    """foxglove-sdk keeps its runtime (an epoll, an eventfd, a socket pair) for the life of the
+    process once a server has run: start it before any test's leak check takes its snapshot."""
+    import foxglove
+
+    foxglove.start_server(port=0, context=foxglove.Context()).stop()
 
 
 def _advertised(ws: Any) -> dict[str, dict[str, Any]]:
@@ -97,3 +121,176 @@ def test_the_layout_keeps_the_sweep_pieces_long_enough_to_show_a_sweep() -> None
     clouds = {t for t, msgtype in ros2.TOPICS.items() if msgtype == ros2.POINT_CLOUD2}
     assert clouds <= set(topics)
     assert topics["/biris/sweep"]["decayTime"] > 0
+
+
+def _subscribe(ws: Any, topics: list[str]) -> dict[int, dict[str, Any]]:
+    """Subscribe to ``topics``; the subscriptions by id (the channel's)."""
+    channels = {c["topic"]: c for c in _advertised(ws).values()}
+    subs = {channels[t]["id"]: channels[t] for t in topics}
+    ws.send(
+        json.dumps({"op": "subscribe", "subscriptions": [{"id": i, "channelId": i} for i in subs]})
+    )
+    return subs
+
+
+def _messages(ws: Any, subs: dict[int, dict[str, Any]]) -> Iterator[tuple[str, Any]]:
+    """(topic, decoded message) for every message the server sends, for as long as asked."""
+    while True:
+        frame = ws.recv(timeout=WAIT)  # TimeoutError if the view went quiet
+        if isinstance(frame, bytes) and frame[0] == 1:
+            channel = subs[struct.unpack_from("<I", frame, 1)[0]]
+            yield channel["topic"], STANDARD.deserialize_cdr(frame[13:], channel["schemaName"])
+
+
+def _stamp(message: Any) -> float:
+    return float(message.header.stamp.sec + message.header.stamp.nanosec * 1e-9)
+
+
+def test_a_fault_shows_on_diagnostics_while_the_view_serves_on(
+    rig: SimulatedBiris, server: BirisServer
+) -> None:
+    """A parity fault mid-sweep: the WebSocket stays open, /diagnostics says ERROR with the
+    fault's kind and the server's message (and keeps saying it), the sensor is asked for data
+    only every FAULT_POLL_S meanwhile, and after reset() new acquisitions arrive again."""
+    view = LiveView(server, port=0, status_period_s=0.1)
+    with (
+        view,
+        # no bound on what waits unread: the test stops reading while the view still sends,
+        # and a full queue would keep the client from seeing the close (a 10 s timeout)
+        connect(
+            f"ws://127.0.0.1:{view.port}",
+            subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
+            max_queue=None,
+        ) as ws,
+        server.open() as conn,
+    ):
+        subs = _subscribe(ws, ["/diagnostics", "/biris/profile"])
+        messages = _messages(ws, subs)
+        conn.continuous_scan(-20.0, 20.0)
+        assert any(topic == "/biris/profile" for topic, _ in messages)  # data flow
+        rig.faults.parity_error()
+        faulted = time.monotonic()
+        errors = []
+        for topic, message in messages:
+            if topic == "/diagnostics" and message.status[0].level == 2:  # ERROR
+                errors.append(message.status[0])
+                if len(errors) == 2:  # said again at the status period: the view goes on
+                    break
+        for status in errors:
+            assert status.name == "biris: server"
+            assert status.message == "fault:parity: parity error on the coupler"
+        assert not view.failed.is_set()
+        assert 1 <= view.faults_met <= 2 + (time.monotonic() - faulted) / FAULT_POLL_S
+        conn.reset()
+        reset_at = rig.clock.now()
+        conn.continuous_scan(-20.0, 20.0)
+        ok = new_data = False
+        for topic, message in messages:
+            if topic == "/diagnostics":
+                ok = ok or message.status[0].level == 0
+            elif _stamp(message) > reset_at:
+                new_data = True
+            if ok and new_data:
+                break
+        conn.stop_scan()
+        conn.wait_idle(timeout=WAIT)
+    assert view.error is None
+
+
+def test_a_reset_while_the_view_reads_does_not_end_it(
+    rig: SimulatedBiris, server: BirisServer
+) -> None:
+    """While a reset initialises the sensor, every ask for data is refused (the server is
+    initialising); the view reads on, on the same connections, and the data come back."""
+
+    def delivered() -> int:  # to the view's every-acquisition connection, by the server
+        conns = server.status().connections.values()
+        return sum(c.delivered for c in conns if c.policy == "EVERY_ACQUISITION")
+
+    view = LiveView(server, port=0)
+    with view, server.open() as conn:
+        conn.continuous_scan(-20.0, 20.0)
+        until(lambda: delivered() > 0, what="acquisitions read by the view")
+        conn.reset()  # the view asks every 50 ms meanwhile: a reset takes longer than that
+        before = delivered()
+        conn.continuous_scan(-20.0, 20.0)
+        until(lambda: delivered() > before, what="acquisitions read again after the reset")
+        assert not view.failed.is_set(), view.error
+        conn.stop_scan()
+        conn.wait_idle(timeout=WAIT)
+
+
+def test_closing_a_view_in_a_fault_does_not_wait_out_its_pause(
+    rig: SimulatedBiris, server: BirisServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The feed pauses between asks while the sensor is in a fault; a close ends the pause at
+    once (made 60 s here, so that waiting it out would show)."""
+    monkeypatch.setattr(liveview, "FAULT_POLL_S", 60.0)
+    view = LiveView(server, port=0).start()
+    try:
+        rig.faults.parity_error()
+        until(lambda: view.faults_met >= 2, what="the feed to meet the fault and pause")
+    finally:
+        started = time.monotonic()
+        view.close()
+    assert time.monotonic() - started < WAIT
+    with server.open() as conn:
+        conn.reset()
+
+
+def test_biris_view_serves_on_through_a_fault(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], no_target_env: None
+) -> None:
+    """``biris view --sim --cw --ccw`` meets a fault mid-sweep: it says so once and serves on;
+    a reset (from another thread, as a controller elsewhere would) brings the sweep back, and
+    the view ends with status 0."""
+    rigs: list[SimulatedBiris] = []
+    start_rig = common._start_rig
+
+    def keep(args: argparse.Namespace) -> SimulatedBiris:
+        rigs.append(start_rig(args))
+        return rigs[-1]
+
+    monkeypatch.setattr(common, "_start_rig", keep)
+    stop = threading.Event()
+    failure: list[BaseException] = []
+    helpers: list[threading.Thread] = []
+
+    def meddle(live: LiveView) -> None:
+        """Break the sensor once it sweeps, check the view goes on, reset, see it sweep."""
+        server = live.source
+        assert isinstance(server, BirisServer)
+        try:
+            until(lambda: server.status().state is ServerState.SCANNING, what="a sweep")
+            rigs[-1].faults.parity_error()
+            until(lambda: server.status().state is ServerState.FAULT, what="the fault")
+            until(lambda: live.faults_met >= 2, what="the view to meet the fault twice")
+            assert not live.failed.is_set()
+            server.reset()
+            until(lambda: server.status().state is ServerState.SCANNING, what="a new sweep")
+        except BaseException as exc:
+            failure.append(exc)
+        finally:
+            stop.set()
+
+    def ready(live: LiveView) -> None:
+        helpers.append(threading.Thread(target=meddle, args=(live,), name="test-meddle"))
+        helpers[0].start()
+
+    argv = ["view", "--port", "0", "--cw", "-20", "--ccw", "20", "--duration", "30", *CLI_SIM]
+    try:
+        code = view_command.run(
+            build_parser("view").parse_args(argv), io.StringIO(), ready=ready, stop=stop
+        )
+    finally:
+        for thread in helpers:
+            thread.join()
+    assert not failure, failure
+    assert code == 0
+    # warnings (a scan that began late, a simulator running late) depend on the host's load
+    said = [line for line in capsys.readouterr().err.splitlines() if ": warning: " not in line]
+    assert len(said) == 3, said
+    assert said[0].startswith("biris view: hardware fault (parity): parity error on the coupler")
+    assert said[0].endswith("the live view serves on and shows it on /diagnostics")
+    assert said[1].startswith("biris view: the server has left the fault (state ")
+    assert said[2] == "biris view: sweeping again"

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,10 +14,11 @@ import zenoh
 
 from biris_hw import BirisServer, ConnectionKind, Direction, MotorParams
 from biris_hw.data import DeliveryPolicy, Point, Scan
-from biris_hw.errors import AccessDenied, BirisError, ConnectionClosed, RequestError
+from biris_hw.errors import AccessDenied, BirisError, ConnectionClosed, HardwareFault, RequestError
 from biris_hw.net import RemoteSensor, Service, connect, serve
 from biris_hw.net.protocol import MAX_REQUEST, Keys
 from biris_hw.net.zconfig import make_config
+from sim import SimulatedBiris
 from tests.conftest import until
 from tests.net_helpers import endpoint, free_port, warm_up_zenoh
 
@@ -200,6 +202,61 @@ def test_bad_network_input_gets_clear_errors(
             assert other.status()["state"] == "idle"
     finally:
         raw.close()  # type: ignore[no-untyped-call]
+
+
+def test_the_service_serves_on_through_a_fault(
+    rig: SimulatedBiris, server: BirisServer, service: tuple[Service, str]
+) -> None:
+    """A parity fault mid-sweep: the service keeps answering status (the fault in it), publishes
+    the fault and the status that shows it, and once a controller has reset the sensor over
+    the network, publishes new acquisitions again: none of its threads ended at the fault."""
+    _svc, where = service
+    published: dict[str, list[Any]] = {"fault": [], "status": [], "point": []}
+    changed = threading.Condition()
+
+    def keeper(what: str) -> Callable[[Any], None]:
+        def keep(value: Any) -> None:
+            with changed:
+                published[what].append(value)
+                changed.notify_all()
+
+        return keep
+
+    with _connect(where, user="op", password="s3cret") as remote, _connect(where) as reader:
+        subscriptions = [
+            reader.subscribe("fault", keeper("fault")),
+            reader.subscribe("status", keeper("status")),
+            reader.subscribe("point", keeper("point")),
+        ]
+        conn = remote.open()
+        conn.continuous_scan(-10.0, 10.0)
+        until(lambda: published["point"], wake=changed, what="an acquisition published")
+        rig.faults.parity_error()
+        until(lambda: published["fault"], wake=changed, what="the fault published")
+        assert [f.kind for f in published["fault"]] == ["parity"]
+        until(
+            lambda: any(s.state_name == "fault:parity" for s in published["status"]),
+            wake=changed,
+            what="a status in the fault published",
+        )
+        for _ in range(3):  # asked again and again, the service answers
+            assert reader.status().state_name == "fault:parity"
+        with pytest.raises(HardwareFault, match="parity"):
+            conn.wait_idle(timeout=0)
+        conn.reset()
+        reset_at = rig.clock.now()
+        assert reader.status().state_name == "idle"
+        conn.continuous_scan(-10.0, 10.0)
+        until(
+            lambda: published["point"][-1].t > reset_at,
+            wake=changed,
+            what="an acquisition made after the reset published",
+        )
+        conn.stop_scan()
+        conn.wait_idle(timeout=30)
+        for subscription in subscriptions:
+            subscription.close()
+    assert len(published["fault"]) == 1
 
 
 def test_no_service_is_a_clear_error() -> None:

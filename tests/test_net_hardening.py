@@ -241,8 +241,21 @@ def test_a_feed_that_ends_closes_its_connection(
         return next(c for c in fake.opened if c.policy is DeliveryPolicy.EVERY_BUFFER)
 
     until(lambda: any(c.policy is DeliveryPolicy.EVERY_BUFFER for c in fake.opened))
-    fake.feed(RequestError("the server is closing"))
+    fake.feed(ConnectionClosed("the BIRIS server has stopped"))
     until(lambda: feed().closed, what="the scan feed's connection closed")
+
+
+def test_a_feed_reads_on_while_the_server_initialises(
+    fake: FakeSensor, served: tuple[Service, str]
+) -> None:
+    """During a reset every read is refused (RequestError: the server is initialising); the
+    feed looks again on the same connection, whose data come back when the reset is done."""
+    until(lambda: any(c.policy is DeliveryPolicy.EVERY_BUFFER for c in fake.opened))
+    scans = next(c for c in fake.opened if c.policy is DeliveryPolicy.EVERY_BUFFER)
+    for _ in range(3):
+        fake.feed(RequestError("the server is initialising"))
+    until(lambda: not fake.scans, what="every refusal read by the feed")
+    assert not scans.closed
 
 
 def test_status_thread_survives_an_unexpected_error(

@@ -45,6 +45,7 @@ from biris_hw.commands.common import (
     check_output_folder,
     is_terminal,
     make_scene,
+    quiet_collector,
 )
 from biris_hw.data import Direction, Scan
 from biris_hw.records import BirisInitRecord
@@ -208,6 +209,7 @@ def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
         try:
             record = BirisInitRecord(continuous_acquisition=config.continuous)
             with BirisServer(rig.hardware, record) as server:  # homes and boots first
+                quiet_collector()
                 started = time.monotonic()
                 _sweep(server, rig, status, latest, view, started)
         finally:

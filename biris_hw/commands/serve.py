@@ -16,6 +16,11 @@ read-only. A service with credentials does no multicast scouting unless ``--mult
 ``--dead-man`` stops the head (stop_scan) when the last controller's client has gone, so that a
 continuous scan nobody controls any more does not sweep for ever.
 
+A fault of the sensor does not end the service: the server stays up in its fault, the service
+goes on answering (the status says ``fault:<kind>``) and publishes the fault, and once a
+controller has reset the sensor over the network it publishes the sensor's data again
+(:class:`~biris_hw.net.Service`); the ``--foxglove`` view shows the fault on ``/diagnostics``.
+
 ``--foxglove PORT`` also shows the served sensor live in Foxglove or Lichtblick
 (:class:`~biris_hw.liveview.LiveView`) for as long as the service runs: one process, one server,
 both views. ``--replay FILE`` serves a recording instead of a sensor

@@ -6,6 +6,13 @@ until ``--duration`` is over or Ctrl-C; without limits nothing is commanded and 
 sensor does is shown. ``biris view --replay run.mcap`` shows a recording instead (a file damaged
 part way is shown up to the damage, then the command stops with a one-line error, exit status
 1). The command prints the WebSocket URL to open in the viewer (README: "Live view").
+
+A fault of the sensor does not end the view: the WebSocket stays up, ``/diagnostics`` says
+ERROR with the fault, the command says once on stderr what the fault is and how to recover
+(:class:`~biris_hw.commands.faults.FaultNotice`), and once the sensor has been reset the data
+come back (a sweep the fault ended is started again once the server is idle). Meanwhile the
+command looks at the status every :data:`POLL_S`. Exit status: 0, or 1 when the sensor was
+still in a fault as the view ended, 130 after Ctrl-C.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from biris_hw.commands.argtypes import degrees, path, positive_float
 from biris_hw.commands.common import (
     EXIT_FAULT,
     EXIT_INTERRUPTED,
+    Sensor,
     UsageError,
     add_continuous_argument,
     add_target_arguments,
@@ -32,6 +40,9 @@ from biris_hw.commands.common import (
     report_error,
     sweep_chosen,
 )
+from biris_hw.commands.faults import FaultNotice
+from biris_hw.errors import HardwareFault
+from biris_hw.status import ServerState
 
 __all__ = ["add_arguments", "run"]
 
@@ -66,18 +77,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_target_arguments(parser)
 
 
+POLL_S = 0.5
+"""How often the command looks at the sensor's status (to say when a fault comes and goes, and
+to sweep again after a reset), in real seconds."""
+
+
 def _wait(duration: float | None, stop: threading.Event) -> None:
     stop.wait(duration)
 
 
-def run(args: argparse.Namespace, out: TextIO | None = None, ready: Any = None) -> int:
-    """Serve the live view; 0 after ``--duration``, 130 after Ctrl-C. ``ready`` (tests), if
-    given, is called with the :class:`LiveView` once it listens."""
+def run(
+    args: argparse.Namespace,
+    out: TextIO | None = None,
+    ready: Any = None,
+    stop: threading.Event | None = None,
+) -> int:
+    """Serve the live view; 0 after ``--duration`` (1 if the sensor was then in a fault), 130
+    after Ctrl-C. ``ready`` (tests), if given, is called with the :class:`LiveView` once it
+    listens; ``stop`` (tests, an embedding program), if given, ends a sensor's view when set,
+    as the end of ``--duration`` would."""
     from biris_hw.liveview import LiveView
 
     stream = out or sys.stdout
     sweep = sweep_chosen(args)
-    stop = threading.Event()
+    stop = stop or threading.Event()
     try:
         if args.replay is not None:
             from biris_hw.replay import ReplayError, ReplayServer
@@ -102,29 +125,70 @@ def run(args: argparse.Namespace, out: TextIO | None = None, ready: Any = None) 
             LiveView(session.server, host=args.host, port=args.port, frame=args.frame) as view,
         ):
             _announce(view, stream, ready)
-            if not sweep:
-                _wait(args.duration, stop)
-                return 0
-            from biris_hw.angles import destination_counts
-            from biris_hw.sweeps import sweeping
+            if sweep:
+                from biris_hw.angles import destination_counts
 
-            confirm_moves(
-                session,
-                args,
-                [
-                    ("--cw", destination_counts(args.cw, "--cw")),
-                    ("--ccw", destination_counts(args.ccw, "--ccw")),
-                ],
-            )
-            end = None if args.duration is None else time.monotonic() + args.duration
-            with sweeping(session.server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
-                while end is None or time.monotonic() < end:
-                    wait = args.timeout if end is None else max(0.0, end - time.monotonic())
-                    sweeps.next(timeout=min(wait, args.timeout))
+                confirm_moves(
+                    session,
+                    args,
+                    [
+                        ("--cw", destination_counts(args.cw, "--cw")),
+                        ("--ccw", destination_counts(args.ccw, "--ccw")),
+                    ],
+                )
+            notice = _serve(session.server, args, sweep, stop)
+        return notice.exit_status()
     except KeyboardInterrupt:
         print(f"{prog_of(args)}: stopped", file=sys.stderr)
         return EXIT_INTERRUPTED
-    return 0
+
+
+def _serve(
+    server: Sensor, args: argparse.Namespace, sweep: bool, stop: threading.Event
+) -> FaultNotice:
+    """Keep the sensor going while the view serves, until ``--duration`` is over or ``stop``
+    is set: sweep between ``--cw`` and ``--ccw`` if asked, and look at the status every
+    :data:`POLL_S` meanwhile. A fault ends the sweep (abandoned: the fault has stopped the
+    head) but not the view; once the server is idle after a reset, a new sweep begins.
+
+    Returns the notice that followed the faults (its ``exit_status`` is the command's).
+    """
+    from biris_hw.sweeps import sweeping
+
+    notice = FaultNotice(server, args, "the live view serves on and shows it on /diagnostics")
+    end: float | None = None if args.duration is None else time.monotonic() + args.duration
+
+    def pause() -> float:
+        """Until the next look: POLL_S, or what is left of --duration."""
+        if end is None:
+            return POLL_S
+        return max(0.0, min(POLL_S, end - time.monotonic()))
+
+    def over() -> bool:
+        return stop.is_set() or (end is not None and time.monotonic() >= end)
+
+    sweeps_begun = 0
+    status = server.status()
+    notice.observe(status)
+    while not over():
+        if sweep and not notice.faulted and (sweeps_begun == 0 or status.state is ServerState.IDLE):
+            if sweeps_begun:
+                print(f"{prog_of(args)}: sweeping again", file=sys.stderr, flush=True)
+            sweeps_begun += 1
+            try:
+                with sweeping(server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
+                    while not over():
+                        sweeps.next(timeout=pause())  # returns at each sweep, or None
+            except HardwareFault:  # the status says it (and the notice with it), below
+                status = server.status()
+                if not notice.observe(status):  # reset meanwhile: the next sweep waits a turn
+                    stop.wait(pause())
+                continue
+        else:
+            stop.wait(pause())
+        status = server.status()
+        notice.observe(status)
+    return notice
 
 
 def _announce(view: Any, stream: TextIO, ready: Any) -> None:

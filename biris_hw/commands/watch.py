@@ -6,20 +6,23 @@ per refresh otherwise, so the same command feeds a log. With ``--cw``/``--ccw`` 
 while it is watched (a server at rest has little to show); at the end the sweep under way is
 allowed to finish.
 
-A server in a fault (``state=fault:<kind>``) stays in it until it is reset, and nothing in a
-``biris watch`` run resets it: watching on would print the same fault for ever. So the command
-shows that last status, says what the fault is (the server's own message) and that it gives
-up, and exits 1.
+A server in a fault (``state=fault:<kind>``) keeps running and answering ``status()``, and
+stays in the fault until it is reset: ``watch`` goes on showing its status, with the fault,
+says once on stderr what the fault is (the server's own message) and how to recover, and shows
+the server live again once someone has reset it (a sweep asked for with ``--cw``/``--ccw`` is
+abandoned at the fault and started again once the server is idle after the reset). The run ends
+at ``--duration`` or Ctrl-C as always; its exit status says whether the server was still in a
+fault then (:class:`~biris_hw.commands.faults.FaultNotice`): 0 if not, 1 if so, 130 after
+Ctrl-C.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, TextIO
 
 from biris_hw.angles import counts_to_deg, destination_counts
@@ -36,7 +39,8 @@ from biris_hw.commands.common import (
     note_clamped,
     open_session,
 )
-from biris_hw.errors import BirisError, HardwareFault
+from biris_hw.commands.faults import FaultNotice
+from biris_hw.errors import HardwareFault
 from biris_hw.status import ServerState, ServerStatus
 from biris_hw.sweeps import sweeping
 from regs.wiener_crate import CrateReading
@@ -69,59 +73,125 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_target_arguments(parser)
 
 
-def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
+def run(
+    args: argparse.Namespace, out: TextIO | None = None, stop: threading.Event | None = None
+) -> int:
+    """Watch until ``--duration`` is over (or ``stop``, if given, is set: an embedding program,
+    the tests) or Ctrl-C; 0, or 1 if the server was in a fault at the end."""
     stream = out or sys.stdout
     if (args.cw is None) != (args.ccw is None):
         raise UsageError("sweeping while watching needs both --cw and --ccw")
     with open_session(args) as session:
         server = session.server
-        with contextlib.ExitStack() as stack:
-            if args.cw is not None:  # on leaving: STOP, the sweep under way completes, idle
-                limits = [
-                    (f"--cw {args.cw:g}", destination_counts(args.cw, "--cw")),
-                    (f"--ccw {args.ccw:g}", destination_counts(args.ccw, "--ccw")),
-                ]
-                confirm_moves(session, args, limits)
-                sweeps = stack.enter_context(
-                    sweeping(server, args.cw, args.ccw, timeout=args.timeout)
-                )
-                note_clamped(session.prog, "--cw", args.cw, sweeps.limits[0])
-                note_clamped(session.prog, "--ccw", args.ccw, sweeps.limits[1])
-            show = stack.enter_context(_Live(stream) if is_terminal(stream) else _Lines(stream))
-            pause = threading.Event()  # never set: waiting on it paces the refreshes
-            started = time.monotonic()
-            while True:
-                elapsed = time.monotonic() - started
-                status = server.status()
-                show.update(status, elapsed)
-                if status.state is ServerState.FAULT:
-                    raise _giving_up(server, status)
-                if args.duration is not None and elapsed >= args.duration:
-                    break
-                left = None if args.duration is None else args.duration - elapsed
-                pause.wait(args.interval if left is None else min(args.interval, left))
+        if args.cw is not None:
+            limits = [
+                (f"--cw {args.cw:g}", destination_counts(args.cw, "--cw")),
+                (f"--ccw {args.ccw:g}", destination_counts(args.ccw, "--ccw")),
+            ]
+            confirm_moves(session, args, limits)
+        with _Live(stream) if is_terminal(stream) else _Lines(stream) as show:
+            watcher = _Watcher(session.prog, server, args, show, stop or threading.Event())
+            watcher.run()
+        if watcher.notice.faulted:
+            return watcher.notice.exit_status()
         with server.open() as conn:
-            conn.wait_idle(timeout=args.timeout)  # raises the fault, if the server is in one
+            conn.wait_idle(timeout=args.timeout)  # raises a fault that came since the last look
     return 0
 
 
-def _giving_up(server: Sensor, status: ServerStatus) -> HardwareFault:
-    """The fault the server is in, with its own message (a poll raises it), and why watching
-    stops: nothing in this run will reset the server, so the status would never change."""
-    kind = status.fault or "internal"
-    message = "reported by the server's status"
-    try:
-        with server.open() as conn:
-            conn.wait_idle(timeout=0)
-    except HardwareFault as exc:
-        kind, message = exc.kind, exc.message
-    except (BirisError, TimeoutError):
-        pass
-    return HardwareFault(
-        kind,
-        f"{message}; the server stays in this fault until it is reset, so watch gives up "
-        f"(check the sensor, then run the command again)",
-    )
+class _Abandon(Exception):
+    """Raised inside a :func:`sweeping` block to leave it without waiting for the sweep: the
+    server is in a fault, so the sweep has ended already and nothing would come."""
+
+
+class _Watcher:
+    """The refresh loop: a look at the status every ``--interval``, sweeping meanwhile if asked.
+
+    A sweep runs in a :func:`sweeping` block that the fault ends (abandoned: stop asked, nothing
+    waited for); while the server is in the fault the status is shown without a sweep, and
+    once it is idle again after a reset a new block sweeps between the same limits.
+    """
+
+    def __init__(
+        self,
+        prog: str,
+        server: Sensor,
+        args: argparse.Namespace,
+        show: _Lines,
+        stop: threading.Event,
+    ) -> None:
+        self._prog = prog
+        self._server = server
+        self._args = args
+        self._show = show
+        self._stop = stop  # waited on between looks: it paces the refreshes, and ends them
+        self._started = time.monotonic()
+        self._status: ServerStatus | None = None
+        self._sweeps = 0
+        self.notice = FaultNotice(server, args, "watch goes on showing the status")
+
+    def run(self) -> None:
+        sweep = self._args.cw is not None
+        while not self._over():
+            if sweep and not self.notice.faulted and (self._sweeps == 0 or self._idle()):
+                self._sweep()
+            else:
+                self._watch_until(lambda: sweep and self._idle(), look_first=self._sweeps == 0)
+
+    def _sweep(self) -> None:
+        args = self._args
+        first = self._sweeps == 0
+        self._sweeps += 1
+        try:
+            with sweeping(self._server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
+                if first:
+                    note_clamped(self._prog, "--cw", args.cw, sweeps.limits[0])
+                    note_clamped(self._prog, "--ccw", args.ccw, sweeps.limits[1])
+                else:
+                    print(f"{self._prog}: sweeping again", file=sys.stderr, flush=True)
+                self._watch_until(lambda: self.notice.faulted, look_first=first)
+                if self.notice.faulted:
+                    raise _Abandon
+        except _Abandon:
+            pass
+        except HardwareFault:  # met starting the sweep or waiting for its end: the status
+            self._look()  # shows it (and the notice says it), like a fault seen by a look
+            if not self.notice.faulted:  # reset meanwhile: the next sweep waits its turn
+                self._wait()
+
+    def _watch_until(self, done: Callable[[], bool], look_first: bool = True) -> None:
+        """Look at the status, and wait between looks, until ``done()`` or the run is over
+        (with a last look then: the status as the run ends is shown, and decides the exit
+        status)."""
+        if not look_first:
+            self._wait()
+        while True:
+            self._look()
+            if done() or self._over():
+                return
+            self._wait()
+
+    def _look(self) -> None:
+        status = self._server.status()
+        self._show.update(status, time.monotonic() - self._started)
+        self.notice.observe(status)
+        self._status = status
+
+    def _idle(self) -> bool:
+        return self._status is not None and self._status.state is ServerState.IDLE
+
+    def _over(self) -> bool:
+        if self._stop.is_set():
+            return True
+        duration = self._args.duration
+        return duration is not None and time.monotonic() - self._started >= duration
+
+    def _wait(self) -> None:
+        wait = self._args.interval
+        if self._args.duration is not None:
+            left = self._args.duration - (time.monotonic() - self._started)
+            wait = min(wait, max(0.0, left))
+        self._stop.wait(wait)
 
 
 # -- rendering -------------------------------------------------------------------------------------

@@ -413,8 +413,15 @@ class Service:
                     self._last_fault = exc
                     self._stop.wait(0.05)  # the fault stays until a reset: look again shortly
                     continue
-                except (ConnectionClosed, RequestError):
+                except ConnectionClosed:
                     return  # the server or the service is closing
+                except RequestError:
+                    if self._stop.is_set():
+                        return  # the service is closing
+                    # the server is initialising (a reset): this connection's data come back
+                    # when it is done, so look again shortly rather than end the feed
+                    self._stop.wait(0.05)
+                    continue
                 except Exception:  # a sensor that is not a BirisServer may fail otherwise
                     log.exception("service feed %s failed", policy.value)
                     self._stop.wait(0.1)
