@@ -272,16 +272,23 @@ def test_an_end_the_notifier_took_already_is_no_stall(core: Core) -> None:
     assert core.admin.life.fault is None and core.az_watchdog.deadline is None
 
 
-def test_a_biris_timeout_is_a_fault_only_if_biris_made_nothing_when_read_afresh() -> None:
-    """The countdown runs from the last life the host saw; before calling BIRIS hung the
-    level-2 routine reads it afresh: new acquisitions (posted ahead of the answer) or a
-    completion re-arm it; nothing new is a timeout."""
+def _owing_biris() -> tuple[Core, m.TransferOrder]:
+    """A core whose BIRIS timeout asks the level-2 routine first, mid-scan with the motor done:
+    BIRIS owes BI_ACQUIRE's completion (returned)."""
     core = Core(recheck_biris=True)
     core.initialise()
     conn = core.open()
     core.call(p.TimeoutEnable(conn))
     acquire, _ = _scan(core, conn, 1000)
     core.arrive()
+    return core, acquire
+
+
+def test_a_biris_timeout_is_a_fault_only_if_biris_made_nothing_when_read_afresh() -> None:
+    """The countdown runs from the last life the host saw; before calling BIRIS hung the
+    level-2 routine reads it afresh: new acquisitions (posted ahead of the answer) or a
+    completion re-arm it; nothing new is a timeout."""
+    core, acquire = _owing_biris()
     core.advance(4.2)  # the host saw nothing for 4 s
     assert core.admin.life.fault is None and core.biris_rechecks == 1
     # the routine found acquisitions made meanwhile: they come first, then its answer
@@ -299,12 +306,7 @@ def test_a_biris_timeout_is_a_fault_only_if_biris_made_nothing_when_read_afresh(
 
 
 def test_life_seen_while_a_biris_recheck_is_out_proves_biris_alive() -> None:
-    core = Core(recheck_biris=True)
-    core.initialise()
-    conn = core.open()
-    core.call(p.TimeoutEnable(conn))
-    acquire, _ = _scan(core, conn, 1000)
-    core.arrive()
+    core, acquire = _owing_biris()
     core.advance(4.2)
     assert core.biris_rechecks == 1
     core.acquisitions(acquire.seq_id, range(0, 1))  # a data interrupt came meanwhile
