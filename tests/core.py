@@ -69,7 +69,11 @@ class Core:
     SAMPLES = 64
 
     def __init__(
-        self, record: BirisInitRecord | None = None, *, recheck_biris: bool = False
+        self,
+        record: BirisInitRecord | None = None,
+        *,
+        recheck_biris: bool = False,
+        lag: Callable[[], float] | None = None,
     ) -> None:
         self.record = record if record is not None else BirisInitRecord()
         self.clock = VirtualClock()
@@ -95,6 +99,7 @@ class Core:
             self.el_watchdog,
             recheck_motion=self._recheck,
             recheck_biris=self._recheck_biris if recheck_biris else None,
+            lag=lag,
         )
         self.transfer = self.send(m.CmdTransferRdy())
         self.notifier: Ticket | None = None

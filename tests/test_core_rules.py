@@ -305,6 +305,22 @@ def test_a_biris_timeout_is_a_fault_only_if_biris_made_nothing_when_read_afresh(
     assert fault is not None and fault.kind == "timeout"
 
 
+@pytest.mark.parametrize(("lag", "said"), [(0.14, True), (0.0, False)])
+def test_a_fault_met_while_the_simulator_lagged_says_so(lag: float, said: bool) -> None:
+    """A timeout or motor_stall judged while the hardware (a simulator the host cannot keep up
+    with) ran behind its clock names the lag; on time, it does not."""
+    core = Core(lag=lambda: lag)
+    core.initialise()
+    conn = core.open()
+    core.call(p.TimeoutEnable(conn))
+    _scan(core, conn, 1000)
+    core.arrive()
+    core.advance(4.2)  # no routine to ask (recheck_biris off): a timeout at once
+    fault = core.admin.life.fault
+    assert fault is not None and fault.kind == "timeout"
+    assert ("140 ms behind its clock" in fault.message) is said, fault.message
+
+
 def test_life_seen_while_a_biris_recheck_is_out_proves_biris_alive() -> None:
     core, acquire = _owing_biris()
     core.advance(4.2)
