@@ -101,6 +101,10 @@ __all__ = [
     "Mode",
 ]
 
+ACCESS_TICKS = 4096
+"""Most samples one bus access simulates to catch the chip up (5.8 s of hardware time at
+Appendix B's sample timer: never reached while the board's thread keeps the chip on time)."""
+
 HISTORY = 1024
 """Samples of encoder readings kept for :meth:`Hctl1000.position_at`: 1.4 s of hardware time at
 the default sample period, far more than a late thread is behind at any time scale tests use."""
@@ -438,8 +442,11 @@ class Hctl1000:
 
     # -- bus side ----------------------------------------------------------------------------------
     def _sync(self) -> None:
+        """Catch up to now before an access, by at most :data:`ACCESS_TICKS` samples: a sample
+        timer the host cannot simulate in time would otherwise make every access longer than
+        the last, without end (the board's :data:`sim.tech80._ACCESS_TICKS` reasons alike)."""
         if self._clock is not None:
-            self.advance_to(self._clock())
+            self.advance_to(self._clock(), ACCESS_TICKS)
 
     def bus_read(self, reg: int) -> int:
         """One byte as the host reads it; reading R14H latches the actual position."""

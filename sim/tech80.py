@@ -34,7 +34,7 @@ from regs.tech80 import MOTION_WINDOW_SIZE, MOTOR_IRQ_LEVEL, AxisBit, BoardReg
 from sim.audit import Audit, Rule
 from sim.clock import SimClock
 from sim.device import DeviceWindow
-from sim.hctl1000 import HEAD_LIMIT_COUNTS, Hctl1000
+from sim.hctl1000 import ACCESS_TICKS, HEAD_LIMIT_COUNTS, Hctl1000
 from sim.motor import MotorPlant
 
 __all__ = ["Model7600"]
@@ -45,6 +45,14 @@ _POLL_REAL_S = 0.002
 _MIN_SLEEP_REAL_S = 0.00005
 _BATCH_TICKS = 256
 """Sample periods per chip simulated before the thread lets a bus access in."""
+_ACCESS_TICKS = ACCESS_TICKS
+"""Most sample periods per chip one bus access (or backdoor look) simulates to catch up: 5.8 s
+of hardware time at Appendix B's sample timer, never reached while the board's thread keeps up.
+A sample timer the host cannot simulate in time (0 is 8 us: 1.25 million samples a real second
+at x10) leaves the chips ever further behind; an access that caught them up fully would take
+longer the further behind they are, and the time it took would put them further behind still,
+without end. Capped, the access reads the board as far as it has been simulated, late, and the
+rig's lag says so."""
 
 
 class Model7600:
@@ -108,7 +116,7 @@ class Model7600:
     def catch_up(self) -> None:
         """Bring both chips and plants up to now (backdoor readers call it first)."""
         with self.lock:
-            self._sync()
+            self._sync(_ACCESS_TICKS)
 
     def _sync(self, max_ticks: int | None = None) -> bool:
         """Catch both chips up to now; False if ``max_ticks`` stopped either short."""
@@ -159,7 +167,7 @@ class Model7600:
         """One byte as the driver reads it (HCTL side effects included)."""
         self._check_offset(offset)
         with self.lock:
-            self._sync()
+            self._sync(_ACCESS_TICKS)
             if offset < 2 * HCTL_SPACE:
                 return self.chips[offset // HCTL_SPACE].bus_read(offset % HCTL_SPACE)
             return self._board_read(offset)
@@ -169,7 +177,7 @@ class Model7600:
         self._check_offset(offset)
         value &= 0xFF
         with self.lock:
-            self._sync()
+            self._sync(_ACCESS_TICKS)
             if offset < 2 * HCTL_SPACE:
                 self.chips[offset // HCTL_SPACE].bus_write(offset % HCTL_SPACE, value)
                 return
@@ -220,7 +228,7 @@ class Model7600:
     def snapshot(self) -> bytes:
         """All window bytes as a driver would read them, without any side effect."""
         with self.lock:
-            self._sync()
+            self._sync(_ACCESS_TICKS)
             out = bytearray(MOTION_WINDOW_SIZE)
             for axis, chip in enumerate(self.chips):
                 base = axis * HCTL_SPACE

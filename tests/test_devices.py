@@ -174,11 +174,14 @@ def test_a_host_that_polls_late_watches_longer_and_a_head_that_arrived_has_settl
     driver = AxisDriver(window, Axis.ELEVATION, Arriving(), time_scale=1.0)
     assert driver.wait_settled(threading.Event(), limit_s=1.0) is True
     assert clock.now > 1.5
-    # and the same late host, with a head that never arrives, still gets its verdict
+    # and the same late host, with a head that never arrives, gets its verdict at the first
+    # look two limits of hardware time on (not after the 67 a 15 ms share of each gap needs):
+    # seconds after its profile, a head away from its command position is the shaft's doing
     clock.now = 0.0
     _positions(window, Axis.ELEVATION, 100, 200)
     stuck = AxisDriver(window, Axis.ELEVATION, clock, time_scale=1.0)
     assert stuck.wait_settled(threading.Event(), limit_s=1.0) is False
+    assert 2.0 <= clock.now <= 2.0 + 2 * 0.3  # a look past the span
 
 
 def test_settling_gives_up_at_once_when_stopped() -> None:

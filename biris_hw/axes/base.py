@@ -51,6 +51,17 @@ WATCH_GAP_POLLS = 10
 limit (:func:`wait_settled`): a longer gap is a host that was not looking, not a head that
 was."""
 
+LATE_VERDICT_POLLS = 2
+LATE_VERDICT_LIMITS = 2.0
+"""However late each look: a head seen away from its command position at a look made at least
+this many settling limits of hardware time after the first (and at least
+:data:`LATE_VERDICT_POLLS` looks in all) has not come to rest -- seconds after its profile
+ended, that is the shaft's doing, not the host's. A head that arrived during a stall is seen at
+its command position at the look after it, and is then watched for its hold. Bounds what a
+device whose every read is slow costs: a simulator that cannot keep up with its clock catches
+its chips up at each read and falls further behind with each, so waiting for many slow looks
+would never end."""
+
 
 @runtime_checkable
 class MotionAxis(Protocol):
@@ -229,20 +240,26 @@ def wait_settled(
     stall of the polling thread (a loaded machine, a simulator clock far faster than the host)
     costs polls, never a false "had not come to rest": the head is called unsettled only after
     it was seen moving, or away from its command position, across ``limit_s`` of polls made on
-    time. The watchdog above this (:mod:`biris_hw.server.motion`) asks the controller before
-    it calls a move stalled.
+    time -- or away from it at a look :data:`LATE_VERDICT_LIMITS` limits of hardware time after
+    the first, however late each came. The watchdog above this
+    (:mod:`biris_hw.server.motion`) asks the controller before it calls a move stalled.
     """
     watched = 0.0
     gap_limit = WATCH_GAP_POLLS * sample_s
+    first: float | None = None
     previous: float | None = None
     last: int | None = None
+    polls = 0
     steady = 0
     since = 0.0
     while True:
         now = clock()
         pos, target = positions()
+        polls += 1
         if previous is not None:
             watched += min(max(now - previous, 0.0), gap_limit)
+        else:
+            first = now
         previous = now
         at_target = abs(pos - target) <= 1 and (holding is None or holding())
         if at_target and pos == last:
@@ -252,7 +269,13 @@ def wait_settled(
         else:
             steady = 0
             since = now
+        # seen long enough on time (a head at its command position then gets a hold's worth
+        # more), or seen often over a long time however late each look (a few more polls)
         if watched >= limit_s and (not at_target or watched >= limit_s + 2 * SETTLE_HOLD_S):
+            return None
+        assert first is not None
+        late = polls >= LATE_VERDICT_POLLS and now - first >= LATE_VERDICT_LIMITS * limit_s
+        if late and (not at_target or (steady == 0 and polls >= LATE_VERDICT_POLLS + 10)):
             return None
         last = pos
         if stop.wait(sample_s / time_scale):
