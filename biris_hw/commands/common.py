@@ -526,7 +526,6 @@ def open_session(args: argparse.Namespace) -> Iterator[Session]:
         try:
             server = BirisServer(hardware, record)
             stack.callback(server.close)
-            quiet_collector()
             yield Session(server, hardware, record, rig, args.target is None, prog)
         except HardwareFault as exc:
             named = _name_unanswered(exc, hardware)
@@ -545,8 +544,10 @@ def quiet_collector() -> None:
     """Take what a command has built to run (modules, the server, a simulator's scene) out of
     the cyclic garbage collector's reach: a full collection over it stalled the data path for
     40-75 ms on a quiet machine and 100-180 ms on a busy one (``make bench``'s streaming p99),
-    and after ``gc.freeze()`` it costs under a millisecond. Done once a command's server is up
-    (one process, one sensor); a library user decides this for their own program."""
+    and after ``gc.freeze()`` it costs under a millisecond. Done by the long-running commands
+    (serve, view, watch, record, demo) once their sensor is open: one process, one sensor; a
+    one-shot command would pay the collection for nothing, and a library user decides this for
+    their own program."""
     gc.collect()
     gc.freeze()
 

@@ -32,6 +32,7 @@ from biris_hw.commands.common import (
     note_clamped,
     open_session,
     prog_of,
+    quiet_collector,
     sweep_chosen,
 )
 
@@ -111,6 +112,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     recorder: Recorder | None = None
     try:
         with open_session(args) as session:
+            quiet_collector()
             recorder = Recorder(
                 session.server,
                 args.out,

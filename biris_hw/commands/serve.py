@@ -50,6 +50,7 @@ from biris_hw.commands.common import (
     add_target_arguments,
     open_session,
     parse_zenoh_options,
+    quiet_collector,
     read_toml,
 )
 from biris_hw.errors import BirisError
@@ -173,6 +174,7 @@ def _sensor(args: argparse.Namespace) -> Iterator[Any]:
     """The sensor to serve: a server of our own on --sim/--target/--attach, or a replay."""
     if args.replay is None:
         with open_session(args) as session:
+            quiet_collector()
             yield session.server
         return
     from biris_hw.replay import ReplayError, ReplayServer

@@ -37,6 +37,7 @@ from biris_hw.commands.common import (
     confirm_moves,
     open_session,
     prog_of,
+    quiet_collector,
     report_error,
     sweep_chosen,
 )
@@ -124,6 +125,7 @@ def run(
             open_session(args) as session,
             LiveView(session.server, host=args.host, port=args.port, frame=args.frame) as view,
         ):
+            quiet_collector()
             _announce(view, stream, ready)
             if sweep:
                 from biris_hw.angles import destination_counts

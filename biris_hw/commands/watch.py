@@ -38,6 +38,7 @@ from biris_hw.commands.common import (
     is_terminal,
     note_clamped,
     open_session,
+    quiet_collector,
 )
 from biris_hw.commands.faults import FaultNotice
 from biris_hw.errors import HardwareFault
@@ -82,6 +83,7 @@ def run(
     if (args.cw is None) != (args.ccw is None):
         raise UsageError("sweeping while watching needs both --cw and --ccw")
     with open_session(args) as session:
+        quiet_collector()
         server = session.server
         if args.cw is not None:
             limits = [
