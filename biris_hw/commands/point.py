@@ -21,7 +21,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from biris_hw.angles import destination_counts
+from biris_hw.angles import counts_to_deg, destination_counts
 from biris_hw.commands.argtypes import degrees
 from biris_hw.commands.common import (
     Session,
@@ -103,6 +103,12 @@ def latest_point(
                 scan = conn.request_scan_data(Direction.of_motion(start, dest))
                 if scan is not None:
                     made.append(scan)
+            if point is None and dest != start:
+                # the scan came back empty (marked partial, with why: its motor started later
+                # than its count allowed for); once more, back over the same span
+                conn.single_scan(counts_to_deg(start))
+                conn.wait_idle(timeout=timeout)
+                point = conn.request_point()
     if point is None:
         raise TimeoutError("the scan ended without an acquisition")
     return point
