@@ -680,7 +680,17 @@ def _axis_worker(
                 if order.schedule is not None:
                     axis.prepare_trapezoid(order.destination)  # the journal's write, ahead
                     if not order.schedule.wait_start():
-                        ready = make_ready(None, None)  # the scan was abandoned: nothing starts
+                        # abandoned (nothing starts, nothing to say), or its BI_ACQUIRE never
+                        # written: said, so that the move is not waited for for ever
+                        unwritten = (
+                            None
+                            if order.schedule.cancelled
+                            else (
+                                "the scan's BI_ACQUIRE was not written in time: its motor was not "
+                                "started"
+                            )
+                        )
+                        ready = make_ready(unwritten, "timeout" if unwritten else None)
                         continue
                 if order.sweep and reader is not None:
                     # just before the motor starts, so that a worker the machine runs late
