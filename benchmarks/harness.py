@@ -46,6 +46,7 @@ SECTIONS: tuple[str, ...] = (
     "latency_us",
     "presentation_ms",
     "throughput",
+    "virtual_time",
     "fanout",
     "registers",
     "sweep_gap_ms",

@@ -15,7 +15,6 @@ write.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ from biris_hw.bus.base import BusWindow
 from biris_hw.errors import HardwareFault
 from biris_hw.pan_reference import PanReference
 from biris_hw.records import MotorParams
+from biris_hw.timebase import StopEvent, timebase_of
 from regs import biexec
 from regs.bit3 import Bit3Reg, LocalCommand, LocalIntControl
 from regs.hctl1000 import (
@@ -175,7 +175,7 @@ class AxisDriver:
         self._base = AXIS_BASE[axis]
         self._clock = clock
         self._scale = time_scale
-        self._latch = threading.Lock()
+        self._latch = timebase_of(clock, time_scale).Lock()  # held across reads: TimeBase.Lock
         self._prepared: tuple[int, int] | None = None
         """(start, destination) recorded ahead by :meth:`prepare_trapezoid`, until started."""
         """A position is three byte reads that must not interleave with another thread's: the
@@ -360,7 +360,7 @@ class AxisDriver:
     # -- waiting for the motor -------------------------------------------------------------------
     def wait_settled(
         self,
-        stop: threading.Event,
+        stop: StopEvent,
         limit_s: float = SETTLE_LIMIT_S,
         sample_s: float = 0.0015,
     ) -> bool:
@@ -376,9 +376,7 @@ class AxisDriver:
             self.reference.settled(pos)
         return True
 
-    def wait_still(
-        self, stop: threading.Event, limit_s: float = 2.0, sample_s: float = 0.002
-    ) -> None:
+    def wait_still(self, stop: StopEvent, limit_s: float = 2.0, sample_s: float = 0.002) -> None:
         """Poll until the encoder stops changing (:func:`biris_hw.axes.base.wait_still`): after
         a chip reset the motor coasts, and nothing is commanded to compare it with."""
         still_poll(self.actual_position, self._clock, self._scale, stop, limit_s, sample_s)

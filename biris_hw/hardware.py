@@ -13,6 +13,7 @@ from biris_hw.bus.base import BusWindow
 from biris_hw.devices import Devices
 from biris_hw.irq.base import InterruptLine
 from biris_hw.pan_reference import PanReference
+from biris_hw.timebase import TimeBase, timebase_of
 
 if TYPE_CHECKING:  # python-can is imported only when a crate monitor is made
     from biris_hw.crate import CrateMonitor
@@ -54,7 +55,9 @@ class BirisHardware:
     clock: Callable[[], float]
     time_scale: float = 1.0
     """Hardware seconds per real second: 1.0 on the target, the simulator's ``time_scale``
-    otherwise. Timers (the 4 s BIRIS timeout, the motor watchdog) use it to wait in real time."""
+    otherwise (on virtual time, the scale the rig is nominally run at: a caller's timeout is read
+    at it, see :meth:`TimeBase.timeout_hw <biris_hw.timebase.TimeBase.timeout_hw>`). Waits go
+    through :attr:`timebase`, in hardware seconds."""
     pan_journal: str | PathLike[str] | None = None
     """The pan reference journal's path, or None to keep the reference in memory only."""
     axes: AxisSet | None = None
@@ -75,8 +78,13 @@ class BirisHardware:
     """The pan counter's relation to true zero, built here once (reads the journal if any)."""
     devices: Devices = field(init=False, repr=False, compare=False)
     """One driver per device over these windows, built here once (no register is touched)."""
+    timebase: TimeBase = field(init=False, repr=False, compare=False)
+    """What every thread of a server on this bundle waits through (:mod:`biris_hw.timebase`):
+    the clock itself when it is a time base (a simulator's, scaled or virtual), else scaled time
+    over ``clock`` at ``time_scale`` (the target's own clock)."""
 
     def __post_init__(self) -> None:
+        self.timebase = timebase_of(self.clock, self.time_scale)
         self.pan_reference = PanReference(self.pan_journal)
         self.devices = Devices.over(
             biris=self.biris,

@@ -25,6 +25,17 @@ one short critical section. The doorbell is a bare lock rather than a ``threadin
 because the administrator is woken for every message, and a condition's wait and notify run
 several times the Python code, which on a machine whose caches have gone cold between two
 messages is much of the cost of a hop.
+
+On virtual time (:class:`~biris_hw.timebase.VirtualTime`, issue 22) a bare lock will not do: the
+time base must know who waits on what, or it would take a sender blocked on its envelope for a
+running thread and never move time on (nor tell a deadlock). ``Mailbox(name, timebase)`` with a
+virtual time base is therefore a mailbox whose every wait goes through the time base: each
+envelope settles an event of the time base, and the doorbell is a condition of the time base on
+the mailbox's lock. Both hand the wake over before the settling call returns, as virtual time
+requires, and label their waits (``"reply from 'BIRISSERV'"``, ``"inbox 'BIRISSERV'"``) for the
+deadlock message. The semantics above are the same in both kinds; a caller's timeout is read
+through :meth:`~biris_hw.timebase.TimeBase.timeout_hw`. With no time base, or a scaled one, whose
+waits are real waits anyway, a mailbox is the bare-lock one.
 """
 
 from __future__ import annotations
@@ -35,6 +46,7 @@ import time
 from collections import deque
 
 from biris_hw.errors import BirisError, ConnectionClosed
+from biris_hw.timebase import HwCondition, HwEvent, TimeBase
 
 __all__ = ["Envelope", "Mailbox", "ReplyError", "TaskStopped", "Ticket"]
 
@@ -228,11 +240,21 @@ class Ticket:
 class Mailbox:
     """A task's inbox: any number of senders, one receiving task (the owner).
 
-    ``name`` is for messages and logs, like a Harmony server's registered name.
+    ``name`` is for messages and logs, like a Harmony server's registered name. ``timebase`` is
+    the time base of the rig the mailbox serves: with a virtual one, every wait of a sender or
+    a receiver is a wait in its domain (module notes); with None or a scaled one, waits are on
+    bare locks. Timeouts are the caller's seconds either way.
     """
 
-    def __init__(self, name: str) -> None:
+    def __new__(cls, name: str, timebase: TimeBase | None = None) -> Mailbox:
+        if cls is Mailbox and timebase is not None and timebase.virtual:
+            cls = _VirtualMailbox
+        return super().__new__(cls)
+
+    def __init__(self, name: str, timebase: TimeBase | None = None) -> None:
         self.name = name
+        self.timebase = timebase
+        """The time base given, if any (its waits are used only when it is virtual)."""
         self._lock = threading.Lock()
         # Released ("rung") when there is news for a blocked receiver; ``_rung`` says so, so a
         # second sender never releases it twice. A ring nobody took is harmless: the receiver
@@ -392,3 +414,91 @@ class Mailbox:
     def __repr__(self) -> str:
         state = "closed" if self._closed else f"{self.queued} queued, {self.held} held"
         return f"<Mailbox {self.name!r}: {state}>"
+
+
+# -- on virtual time ------------------------------------------------------------------------------
+
+
+class _VirtualEnvelope(Envelope):
+    """An envelope whose sender waits in the domain of a virtual time base: on an event of the
+    time base, set when the envelope settles. The inherited signal lock still marks an envelope
+    somebody waits for (:attr:`Envelope.waiting`, :attr:`Envelope.oneway`); nobody waits on it."""
+
+    __slots__ = ("_event",)
+
+    def __init__(self, message: object, mailbox: _VirtualMailbox, oneway: bool = False) -> None:
+        super().__init__(message, mailbox, oneway)
+        self._event: HwEvent | None = None if oneway else mailbox._timebase_v.Event()
+
+    def _settle(self, state: int, value: object, error: BaseException | None) -> None:
+        super()._settle(state, value, error)
+        if self._event is not None:
+            self._event.set()  # hands the wake over before the settling call returns
+
+    def _await(self, timeout: float | None) -> object:
+        event = self._event
+        assert event is not None, "a one-way post has no answer to wait for"
+        mailbox = self._mailbox
+        timebase = mailbox.timebase
+        assert timebase is not None
+        timeout_hw = None if timeout is None else timebase.timeout_hw(max(timeout, 0.0))
+        try:
+            settled = event.wait(timeout_hw, what=f"reply from {mailbox.name!r}")
+        except BaseException:
+            # Interrupted, or a deadlock of the domain: the caller has gone, take it back.
+            with mailbox._lock:
+                self._withdraw_locked()
+            raise
+        if not settled:
+            with mailbox._lock:
+                self._withdraw_locked()  # no-op if a reply won the race: then use it
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+class _VirtualMailbox(Mailbox):
+    """The mailbox of a rig on virtual time (module notes): its receivers wait on a condition
+    of the time base on the mailbox's lock, its senders on their envelopes' events.
+
+    Made by ``Mailbox(name, timebase)`` for a virtual ``timebase``.
+    """
+
+    def __init__(self, name: str, timebase: TimeBase | None = None) -> None:
+        super().__init__(name, timebase)
+        assert timebase is not None and timebase.virtual
+        self._timebase_v = timebase
+        self._news: HwCondition = timebase.Condition(self._lock)
+
+    def _post(self, message: object, oneway: bool = False) -> Envelope:
+        envelope = _VirtualEnvelope(message, self, oneway)
+        with self._lock:
+            if self._closed:
+                raise self._stopped()
+            self._queue.append(envelope)
+            if self._receiving:
+                self._news.notify()  # one message, one receiver
+        return envelope
+
+    def receive(self, timeout: float | None = None) -> Envelope:
+        with self._lock:
+            if self._queue or self._closed:
+                return self._take_locked()
+            timeout_hw = None if timeout is None else self._timebase_v.timeout_hw(max(0.0, timeout))
+            self._receiving += 1
+            try:
+                news = self._news.wait_for(self._has_news, timeout_hw, what=f"inbox {self.name!r}")
+            finally:
+                self._receiving -= 1  # also when interrupted, or the domain deadlocked
+            if not news:
+                raise TimeoutError(f"no message for {self.name!r} in {timeout} s")
+            if self._receiving and len(self._queue) > 1:
+                self._news.notify()  # news left for another receiver
+            return self._take_locked()
+
+    def _has_news(self) -> bool:
+        return bool(self._queue) or self._closed
+
+    def _ring_locked(self) -> None:
+        """Wake every blocked receiver: only :meth:`close` rings outside :meth:`_post`."""
+        self._news.notify_all()

@@ -131,18 +131,21 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from types import TracebackType
-from typing import Any, NamedTuple, TypeVar
+from typing import Any, NamedTuple, Protocol, TypeVar
 
 __all__ = [
     "HwCondition",
     "HwEvent",
+    "HwLock",
     "HwThread",
     "ScaledTime",
+    "StopEvent",
     "TimeBase",
     "VirtualTime",
     "VirtualTimeDeadlock",
     "VirtualTimeStall",
     "WaitInfo",
+    "timebase_of",
 ]
 
 log = logging.getLogger(__name__)
@@ -331,6 +334,28 @@ class HwThread(threading.Thread):
         return self._finished.is_set()
 
 
+class HwLock(Protocol):
+    """What :meth:`TimeBase.Lock` gives: ``threading.Lock``'s acquire, release and ``with``."""
+
+    def acquire(self, blocking: bool = ..., timeout: float = ...) -> bool: ...
+
+    def release(self) -> None: ...
+
+    def __enter__(self) -> bool: ...
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None: ...
+
+
+StopEvent = HwEvent | threading.Event
+"""A stop signal handed to a wait: a time base's event, or (on scaled time only) a plain one
+(:meth:`TimeBase.wait_event`)."""
+
+
 # -- the time base --------------------------------------------------------------------------------
 
 
@@ -361,6 +386,17 @@ class TimeBase(ABC):
     def hw_from_real(self, real_s: float) -> float:
         """Hardware seconds that ``real_s`` real seconds amount to: slack for work that threads
         do (a watchdog on a busy host). 0 in virtual time, where computation takes no time."""
+
+    @abstractmethod
+    def timeout_hw(self, real_s: float) -> float:
+        """Hardware seconds a caller's timeout of ``real_s`` seconds stands for.
+
+        A client's or a test's timeout is written in seconds of its own patience (``send(m,
+        timeout=10)``). In scaled time that is ``real_s * time_scale`` hardware seconds, exactly
+        what the real wait lasts. In virtual time computation takes no time, so the same timeout
+        is read at the rig's *nominal* scale (:class:`VirtualTime`'s ``nominal_scale``, the
+        scale it would have run at): a test moved from scaled to virtual time keeps the
+        hardware meaning of every timeout it passes."""
 
     # -- participants ----------------------------------------------------------------------------
 
@@ -400,6 +436,15 @@ class TimeBase(ABC):
     @abstractmethod
     def Event(self) -> HwEvent:  # noqa: N802 (named as threading's factory, which it replaces)
         """An event, with waits in hardware seconds."""
+
+    def Lock(self) -> HwLock:  # noqa: N802 (named as threading's factory, which it replaces)
+        """A lock for a critical section that may wait in the domain while held (a bus read the
+        simulator slows, :meth:`sleep`-ing in the reading thread). On scaled time a plain
+        ``threading.Lock``. On virtual time a thread blocked on a plain lock counts as
+        runnable, so time would stand still while the holder waits for it to move: this lock's
+        contended acquire waits in the domain instead (module notes, "Blocking outside the
+        domain")."""
+        return threading.Lock()
 
     def Thread(  # noqa: N802 (named as threading's class, which it replaces)
         self,
@@ -454,6 +499,28 @@ class TimeBase(ABC):
         """Say that ``fd`` was just made readable: wakes (hands over to) its pollers in virtual
         time; does nothing in scaled time, where the write itself wakes them."""
 
+    def wait_event(
+        self,
+        event: HwEvent | threading.Event,
+        timeout_hw: float | None = None,
+        *,
+        what: str | None = None,
+    ) -> bool:
+        """``event.wait`` in hardware seconds, for code handed a stop event it did not make.
+
+        An :class:`HwEvent` of this time base waits in the domain; a plain ``threading.Event``
+        (a caller on the target, a test) waits ``timeout_hw / time_scale`` real seconds, which
+        only scaled time can do: in virtual time it is a TypeError (the wait would hold time
+        still for ever), so a virtual rig's stop events are always made by its time base."""
+        if isinstance(event, HwEvent):
+            return event.wait(timeout_hw, what=what)
+        if self.virtual:
+            raise TypeError(
+                f"a plain threading.Event cannot be waited on in virtual time ({what or 'wait'}):"
+                " make it with the time base's Event()"
+            )
+        return event.wait(None if timeout_hw is None else max(0.0, timeout_hw) / self.time_scale)
+
     # -- for HwThread ----------------------------------------------------------------------------
 
     @abstractmethod
@@ -485,11 +552,20 @@ class ScaledTime(TimeBase):
 
     virtual = False
 
-    def __init__(self, time_scale: float = 1.0, *, t0: float | None = None) -> None:
+    def __init__(
+        self,
+        time_scale: float = 1.0,
+        *,
+        t0: float | None = None,
+        clock: Callable[[], float] | None = None,
+    ) -> None:
         if not (time_scale > 0.0 and math.isfinite(time_scale)):
             raise ValueError(f"time_scale must be positive and finite, not {time_scale}")
         self._scale = float(time_scale)
         self._t0 = time.monotonic() if t0 is None else float(t0)
+        self._clock = clock
+        if clock is not None:
+            self.now = clock  # type: ignore[method-assign]  # a hardware clock of its own
 
     @property
     def t0(self) -> float:
@@ -504,6 +580,9 @@ class ScaledTime(TimeBase):
         return self._scale
 
     def hw_from_real(self, real_s: float) -> float:
+        return real_s * self._scale
+
+    def timeout_hw(self, real_s: float) -> float:
         return real_s * self._scale
 
     def to_real(self, hw_s: float) -> float:
@@ -639,6 +718,7 @@ class _Wait:
     """One blocked call: who, on what, until when, and the private lock it sleeps on."""
 
     __slots__ = (
+        "began",
         "deadline",
         "driver",
         "error",
@@ -662,6 +742,7 @@ class _Wait:
         self.what = what
         self.deadline = deadline
         self.driver = driver
+        self.began = 0.0  # hardware time the wait began (set by its domain)
         self.participant = False
         self.state = _WAITING
         self.error: VirtualTimeDeadlock | None = None
@@ -691,6 +772,13 @@ class VirtualTime(TimeBase):
     (default: the calling thread), a participant from now on (rules 4 and 5).
     ``stall_timeout``: real seconds the driver or an outsider waits with nothing happening in
     the domain before it raises :class:`VirtualTimeStall` (default: never; rule 7).
+    ``nominal_scale``: hardware seconds per second of a caller's timeout
+    (:meth:`TimeBase.timeout_hw`).
+    ``runaway``: hardware seconds a wait of the driver with no deadline may see pass before it
+    is called a deadlock (default: never). A simulator with periodic work (video fields) always
+    has something due, so rule 5 never fires on it: a driver waiting for what will never come
+    would run time on for ever at the CPU's speed. With ``runaway`` it gets a
+    :class:`VirtualTimeDeadlock` naming every wait instead.
     """
 
     virtual = True
@@ -701,7 +789,16 @@ class VirtualTime(TimeBase):
         *,
         driver: threading.Thread | None = None,
         stall_timeout: float | None = None,
+        nominal_scale: float = 1.0,
+        runaway: float | None = None,
     ) -> None:
+        if runaway is not None and not runaway > 0.0:
+            raise ValueError(f"runaway must be positive, not {runaway}")
+        self._runaway = runaway
+        if not (nominal_scale > 0.0 and math.isfinite(nominal_scale)):
+            raise ValueError(f"nominal_scale must be positive and finite, not {nominal_scale}")
+        self.nominal_scale = float(nominal_scale)
+        """The scale a caller's timeout is read at (:meth:`TimeBase.timeout_hw`)."""
         if not math.isfinite(start):
             raise ValueError(f"start must be finite, not {start}")
         if stall_timeout is not None and not stall_timeout > 0.0:
@@ -743,6 +840,9 @@ class VirtualTime(TimeBase):
 
     def hw_from_real(self, real_s: float) -> float:
         return 0.0
+
+    def timeout_hw(self, real_s: float) -> float:
+        return real_s * self.nominal_scale
 
     @property
     def advances(self) -> int:
@@ -848,6 +948,9 @@ class VirtualTime(TimeBase):
     def Event(self) -> HwEvent:  # noqa: N802
         return _VirtualEvent(self)
 
+    def Lock(self) -> HwLock:  # noqa: N802
+        return _VirtualLock(self)
+
     def sleep_until(self, t_hw: float, *, what: str | None = None) -> None:
         wait = self._new_wait(what or "sleep", t_hw)
         with self._lock:
@@ -929,7 +1032,9 @@ class VirtualTime(TimeBase):
             raise RuntimeError("an advance hook must not wait in the domain")
         ident = threading.get_ident()
         name = threading.current_thread().name
-        return _Wait(next(self._seq), ident, name, what, deadline, ident == self._driver_ident)
+        wait = _Wait(next(self._seq), ident, name, what, deadline, ident == self._driver_ident)
+        wait.began = self._now
+        return wait
 
     def _enter_locked(self, wait: _Wait) -> float | None:
         """Register ``wait``: its thread stops counting as runnable. Then settle the domain,
@@ -998,6 +1103,8 @@ class VirtualTime(TimeBase):
                     self._deadlock_locked()
                 return None  # idle: the driver may still act
             due = heap[0][0]
+            if self._runaway is not None and self._driver_waits and self._runaway_locked(due):
+                return None
             if due > self._now:
                 self._now = due
                 self._advances += 1
@@ -1012,6 +1119,20 @@ class VirtualTime(TimeBase):
             # Only outsiders woken (or nothing): they are never counted, so go on to the next.
         return None
 
+    def _runaway_locked(self, due: float) -> bool:
+        """True (and the domain deadlocked) if the driver waits with no deadline and jumping to
+        ``due`` would take time more than ``runaway`` past the start of that wait."""
+        assert self._runaway is not None
+        for wait in self._waiting.values():
+            if wait.driver and wait.deadline is None and due - wait.began > self._runaway:
+                self._deadlock_locked(
+                    f"virtual time ran {self._runaway:g} hw s while the driver waited on "
+                    f"{wait.what} with no deadline: only periodic work is due, and none of "
+                    "these waits may ever end"
+                )
+                return True
+        return False
+
     def _driver_outside_locked(self) -> bool:
         """True while the driver has left the domain and runs outside it: it may still post to
         the rig, so a domain with nothing to do is idle, not deadlocked."""
@@ -1021,12 +1142,17 @@ class VirtualTime(TimeBase):
             and self._driver.is_alive()
         )
 
-    def _deadlock_locked(self) -> None:
+    def _deadlock_locked(self, why: str | None = None) -> None:
         waits = list(self._waiting.values())
         infos = [wait.info() for wait in waits]
         message = (
-            f"virtual time deadlock at t={self._now:.9g} hw s: every thread of the domain "
-            f"waits and nothing is due, so none of these waits can ever end:\n"
+            f"virtual time deadlock at t={self._now:.9g} hw s: "
+            + (
+                why
+                or "every thread of the domain waits and nothing is due, so none of these "
+                "waits can ever end"
+            )
+            + ":\n"
             + "\n".join(f"  {info}" for info in infos)
         )
         log.error("%s", message)
@@ -1226,3 +1352,67 @@ class _VirtualCondition(HwCondition):
         with timebase._lock:
             for wait in list(itertools.islice(self._waiters.values(), n)):
                 timebase._wake_locked(wait, _NOTIFIED)
+
+
+def timebase_of(clock: Callable[[], float], time_scale: float = 1.0) -> TimeBase:
+    """The time base behind a hardware ``clock``: the clock itself when it is one (a simulator
+    passes its :class:`TimeBase` as the clock), else a :class:`ScaledTime` reading ``clock``
+    whose waits are real waits of ``hw / time_scale`` seconds (a target's own clock).
+
+    Components that were handed ``(clock, time_scale)`` wait through what this returns, so
+    they run unchanged on either kind of time.
+    """
+    if isinstance(clock, TimeBase):
+        return clock
+    owner = getattr(clock, "__self__", None)
+    if isinstance(owner, TimeBase) and getattr(clock, "__name__", "") in ("now", "__call__"):
+        return owner
+    scale = time_scale if time_scale > 0.0 and math.isfinite(time_scale) else 1.0
+    return ScaledTime(scale, clock=clock)
+
+
+class _VirtualLock:
+    """A lock whose contended acquire waits in the virtual domain (:meth:`TimeBase.Lock`);
+    ``timeout`` is in hardware seconds. Uncontended, it costs one short critical section."""
+
+    __slots__ = ("_cond", "_held")
+
+    def __init__(self, timebase: VirtualTime) -> None:
+        self._cond = timebase.Condition(threading.Lock())
+        self._held = False
+
+    def acquire(self, blocking: bool = True, timeout: float = -1.0) -> bool:
+        with self._cond:
+            if not self._held:
+                self._held = True
+                return True
+            if not blocking:
+                return False
+            free = self._cond.wait_for(
+                lambda: not self._held, None if timeout < 0 else timeout, what="a held lock"
+            )
+            if not free:
+                return False
+            self._held = True
+            return True
+
+    def release(self) -> None:
+        with self._cond:
+            if not self._held:
+                raise RuntimeError("release unlocked lock")
+            self._held = False
+            self._cond.notify()
+
+    def locked(self) -> bool:
+        return self._held
+
+    def __enter__(self) -> bool:
+        return self.acquire()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.release()

@@ -26,6 +26,7 @@ from sim.tech80 import Model7600
 
 if TYPE_CHECKING:
     from biris_hw.bus.base import BusWindow
+    from biris_hw.timebase import HwThread
     from sim.cia402 import SimulatedDrive
 
 __all__ = ["FaultPanel"]
@@ -65,9 +66,11 @@ class FaultPanel:
         self._seed = seed
         self._slow = SlowReads(self._clock, driver_windows)
         self._lock = threading.Lock()
+        self._timebase = self._clock.timebase
+        self._burst_changed = self._timebase.Condition(self._lock)
         self._burst_generation = 0
         self._burst_until: float | None = None
-        self._burst_timers: list[threading.Timer] = []
+        self._burst_timers: list[HwThread] = []
 
     # -- coupler ---------------------------------------------------------------------------------
     def parity_error(self) -> None:
@@ -199,21 +202,27 @@ class FaultPanel:
         self.slow_reads(read_delay_s)
         with self._lock:
             self._burst_generation += 1
-            self._burst_until = self._clock.now() + duration_s
-            timer = threading.Timer(
-                self._clock.to_real(duration_s), self._end_burst, args=(self._burst_generation,)
+            until = self._burst_until = self._clock.now() + duration_s
+            timer = self._timebase.Thread(
+                target=self._end_burst,
+                args=(self._burst_generation, until),
+                name="faults-latency-burst",
+                daemon=True,
             )
-            timer.daemon = True
-            timer.name = "faults-latency-burst"
-            for old in self._burst_timers:
-                old.cancel()
-            self._burst_timers = [t for t in self._burst_timers if t.is_alive()]
+            self._burst_changed.notify_all()  # a burst still running ends its wait
+            self._burst_timers = [t for t in self._burst_timers if not t.finished]
             self._burst_timers.append(timer)
             timer.start()
 
-    def _end_burst(self, generation: int) -> None:
-        """The burst's timer fired: clear both, unless a later burst (or clear_all) took over."""
+    def _end_burst(self, generation: int, until: float) -> None:
+        """The burst's thread: at ``until`` (hardware time) clear both, unless a later burst
+        (or clear_all) took over meanwhile, which ends the wait at once."""
         with self._lock:
+            while generation == self._burst_generation:
+                left = until - self._clock.now()
+                if left <= 0.0:
+                    break
+                self._burst_changed.wait(self._clock.timeout_until(until), what="burst's end")
             if generation != self._burst_generation:
                 return
             self._burst_until = None
@@ -271,8 +280,7 @@ class FaultPanel:
         with self._lock:
             self._burst_generation += 1
             self._burst_until = None
-            for timer in self._burst_timers:
-                timer.cancel()
+            self._burst_changed.notify_all()
 
     def close(self) -> None:
         """Stop a burst's timer and join it, and take the slow-read wrappers off the windows:
@@ -282,5 +290,5 @@ class FaultPanel:
             timers, self._burst_timers = self._burst_timers, []
         for timer in timers:
             if timer is not threading.current_thread():
-                timer.join()
+                self._timebase.join_thread(timer)
         self.clear_slow_reads()

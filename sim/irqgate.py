@@ -19,6 +19,12 @@ per physical level lets the fault panel shape delivery without the device models
   releases them while lateness is on; ``late(None)`` delivers what is held at once and stops
   delaying. Lateness comes after coalescing: a released burst is late as a whole.
 
+Time: the gate's threads (the late-release thread, and one ``irqgate-hold`` thread per burst
+that may have to be released by ``max_hold``), their waits and their joins all go through the
+clock's time base (:attr:`sim.clock.SimClock.timebase`), in hardware seconds, so a gate runs
+unchanged on scaled real time or on virtual time, where a held interrupt leaves exactly when it
+is due.
+
 Counters obey ``raised == delivered + dropped + lost + pending + late_pending``: ``lost`` counts
 interrupts the line refused because the driver had already closed it (a shutdown race, not a
 fault).
@@ -40,6 +46,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 from biris_hw.errors import LineClosed
+from biris_hw.timebase import HwThread
 from sim.clock import SimClock
 
 __all__ = [
@@ -99,14 +106,17 @@ class InterruptGate:
     def __init__(self, trigger: Callable[[int], None], clock: SimClock) -> None:
         self._trigger = trigger
         self._clock = clock
+        self._tb = clock.timebase
         self._lock = threading.Lock()
         self._coalescing = False
         self._burst = 3
         self._max_hold: float | None = DEFAULT_MAX_HOLD
         self._pending = 0
         self._generation = 0
-        self._timer: threading.Timer | None = None
-        self._timers: list[threading.Timer] = []
+        """Counts the bursts taken out of the hold: a hold thread whose burst is gone ends."""
+        self._hold_cond = self._tb.Condition(self._lock)
+        """Wakes the hold threads when their burst leaves the hold early (or the gate closes)."""
+        self._holds: list[HwThread] = []
         self._drops: Counter[str] = Counter()
         self._by_source: Counter[str] = Counter()
         self._raised = 0
@@ -116,7 +126,7 @@ class InterruptGate:
         self._last_source: str | None = None
         self._closed = False
         # lateness (see late()): all under self._lock; the condition wakes the releasing thread
-        self._late_cond = threading.Condition(self._lock)
+        self._late_cond = self._tb.Condition(self._lock)
         self._late_max: float | None = None
         self._late_rng = random.Random(0)
         self._late_queue: deque[_Held] = deque()
@@ -126,8 +136,8 @@ class InterruptGate:
         self._late_busy = False
         """The releasing thread is handing a batch to the line, outside the lock: a raise
         meanwhile must queue behind it even once lateness is off, or it could overtake."""
-        self._late_thread: threading.Thread | None = None
-        self._late_threads: list[threading.Thread] = []
+        self._late_thread: HwThread | None = None
+        self._late_threads: list[HwThread] = []
         self._late_log: deque[LateDelivery] = deque(maxlen=LATE_LOG_SIZE)
         self.on_raise: Callable[[str, int], None] | None = None
         """Measurement hook: ``on_raise(source, t_ns)`` for every raise (dropped ones too), in the
@@ -161,7 +171,7 @@ class InterruptGate:
                 if self._pending >= self._burst:
                     deliver = self._take_pending()
                 elif self._pending == 1:
-                    self._arm_timer()
+                    self._arm_hold()
         self._deliver(deliver)
 
     def spurious(self) -> None:
@@ -223,10 +233,10 @@ class InterruptGate:
                     and self._late_thread is not None
                     and self._late_thread is not me
                 ):
-                    self._late_cond.wait()
+                    self._late_cond.wait(what="irqgate late interrupts flushed")
                 return
             if self._late_thread is None and not self._closed:
-                thread = threading.Thread(target=self._late_run, name="irqgate-late", daemon=True)
+                thread = self._tb.Thread(self._late_run, name="irqgate-late", daemon=True)
                 self._late_thread = thread
                 self._late_threads = [t for t in self._late_threads if t.is_alive()]
                 self._late_threads.append(thread)
@@ -239,24 +249,21 @@ class InterruptGate:
         self._deliver(deliver)
 
     def close(self) -> None:
-        """Cancel and join the hold timers and the late-release thread; held interrupts stay
+        """End and join the hold threads and the late-release thread; held interrupts stay
         held (nobody is left to take them). Joining matters: a rig that closes must leave no
-        thread behind."""
+        thread behind. The joins are waits in the time base, so a participant may close."""
         with self._lock:
             self._closed = True
             self._generation += 1
-            self._timer = None
-            timers, self._timers = self._timers, []
+            holds, self._holds = self._holds, []
+            self._hold_cond.notify_all()
             self._late_thread = None
             self._late_cond.notify_all()
             late_threads, self._late_threads = self._late_threads, []
-        for timer in timers:
-            timer.cancel()
-            if timer is not threading.current_thread():
-                timer.join()
-        for thread in late_threads:
-            if thread is not threading.current_thread():
-                thread.join()
+        me = threading.current_thread()
+        for thread in holds + late_threads:
+            if thread is not me:
+                self._tb.join_thread(thread)
 
     # -- observability -------------------------------------------------------------------------
     @property
@@ -342,12 +349,10 @@ class InterruptGate:
 
     # -- internals -----------------------------------------------------------------------------
     def _take_pending(self) -> int:
-        """Empty the hold (lock held) and disarm its timer; returns the count to deliver."""
+        """Empty the hold (lock held) and end its hold thread; returns the count to deliver."""
         count, self._pending = self._pending, 0
         self._generation += 1
-        timer, self._timer = self._timer, None
-        if timer is not None:
-            timer.cancel()
+        self._hold_cond.notify_all()
         return self._release(count)
 
     def _release(self, count: int) -> int:
@@ -396,13 +401,15 @@ class InterruptGate:
         fall due, or deliver every batch that is due (every batch, once lateness is off)."""
         queue = self._late_queue
         if not queue:
-            self._late_cond.wait()
+            self._late_cond.wait(what="irqgate late: an interrupt to hold")
             return
         now = self._clock.now()
         if self._late_max is not None:
-            wait_hw = queue[0].due_s - now
-            if wait_hw > 0.0:
-                self._late_cond.wait(self._clock.to_real(wait_hw))
+            due = queue[0].due_s
+            if due > now:
+                self._late_cond.wait(
+                    self._clock.timeout_until(due, now), what="irqgate late: next one due"
+                )
                 return
         count = 0
         while queue and (self._late_max is None or queue[0].due_s <= now):
@@ -423,28 +430,30 @@ class InterruptGate:
             self._late_busy = False
             self._late_cond.notify_all()
 
-    def _arm_timer(self) -> None:
-        """Start the max-hold timer for a burst that just began (lock held)."""
-        if self._max_hold is None:
+    def _arm_hold(self) -> None:
+        """Start the max-hold thread for a burst that just began (lock held); none once the
+        gate is closed (nobody would join it)."""
+        if self._max_hold is None or self._closed:
             return
-        generation = self._generation
-        timer = threading.Timer(
-            self._clock.to_real(self._max_hold), self._expire, args=(generation,)
+        due = self._clock.now() + self._max_hold
+        thread = self._tb.Thread(
+            self._hold_run, name="irqgate-hold", args=(self._generation, due), daemon=True
         )
-        timer.daemon = True
-        timer.name = "irqgate-hold"
-        self._timer = timer
-        self._timers = [t for t in self._timers if t.is_alive()]
-        self._timers.append(timer)
-        timer.start()
+        self._holds = [t for t in self._holds if t.is_alive()]
+        self._holds.append(thread)
+        thread.start()
 
-    def _expire(self, generation: int) -> None:
-        """The hold timer fired: release the burst it was armed for, unless already gone."""
+    def _hold_run(self, generation: int, due: float) -> None:
+        """A hold thread: at hardware time ``due``, release the burst it was started for,
+        unless the burst left the hold before (``generation`` moved on: it ends at once)."""
+        deliver = 0
         with self._lock:
-            if generation != self._generation:
-                return
-            self._timer = None
-            deliver = self._take_pending()
+            while generation == self._generation:
+                now = self._clock.now()
+                if now >= due:
+                    deliver = self._take_pending()
+                    break
+                self._hold_cond.wait(self._clock.timeout_until(due, now), what="irqgate max hold")
         self._deliver(deliver)
 
     def _deliver(self, count: int) -> None:

@@ -11,14 +11,14 @@ The windows' classes are untouched: the read methods are wrapped on the window *
 the fault is on (an instance attribute shadows the class's method) and the wrappers removed when
 it is cleared, so a window without the fault costs exactly what it cost before. One read the
 driver asks for costs one delay, however the window does it inside (``read_many`` may call
-``read``; the nested call is not delayed again).
+``read``; the nested call is not delayed again). The delay is a sleep through the clock's time
+base, in hardware seconds: a real sleep in scaled time, time the rig lets pass in virtual time.
 """
 
 from __future__ import annotations
 
 import math
 import threading
-import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -104,7 +104,7 @@ class SlowReads:
                 if delay > 0.0:
                     with self._lock:
                         self._made += 1
-                    time.sleep(self._clock.to_real(delay))
+                    self._clock.timebase.sleep(delay, what="slowed bus read")
                 return read(*args, **kwargs)
             finally:
                 nested.active = False

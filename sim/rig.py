@@ -22,6 +22,7 @@ from biris_hw.bus.memory import MemoryWindow
 from biris_hw.devices import LEVEL2_VECTOR
 from biris_hw.hardware import BirisHardware
 from biris_hw.irq.eventfd import EventFdLine
+from biris_hw.timebase import ScaledTime, TimeBase, VirtualTime
 from regs import biexec
 from regs.bit3 import Bit3Reg
 from regs.hctl1000 import COUNTS_PER_REV
@@ -78,6 +79,16 @@ because a test host shared with other test runs can stall a thread for a few hun
 heartbeat or SDO answer that late is not a lost drive."""
 
 TRANSPORTS = ("memory", "vmusb")
+
+RUNAWAY_HW_S = 600.0
+"""Hardware seconds a virtual rig lets pass while its driver waits with no deadline before it
+calls the wait a deadlock: the video fields are always due, so "nothing is due" never comes,
+and a test waiting for what will never happen would otherwise run the sensor's clock on for
+ever (ten hardware minutes take a few seconds of CPU)."""
+
+CLOCKS = ("scaled", "virtual")
+"""``SimulatedBiris(clock=...)``: scaled real time (the default: a person watches) or virtual
+time (hardware time moves only when nothing can run: tests)."""
 """How ``rig.hardware`` reaches the simulated target: in-process windows and eventfd lines, or
 pyusb through a simulated Wiener VM-USB (``transport="vmusb"``)."""
 
@@ -212,7 +223,17 @@ class SimulatedBiris:
         axes: str = "hctl1000",
         crate: bool = False,
         crate_poll_s: float = 0.05,
+        clock: str = "scaled",
+        stall_timeout: float | None = 60.0,
     ) -> None:
+        if clock not in CLOCKS:
+            raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, not {clock!r}")
+        if clock == "virtual" and (transport != "memory" or axes != "hctl1000" or crate):
+            raise ValueError(
+                'clock="virtual" goes with the memory transport and the Model 7600 only: the '
+                "VM-USB's pyusb reader and python-can's and canopen's threads wait outside the "
+                "time base (docs/simulator.md), so those rigs run on scaled time"
+            )
         if transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, not {transport!r}")
         if axes not in AXES:
@@ -249,15 +270,24 @@ class SimulatedBiris:
             raise ValueError("memory_map.samples differs from samples")
         if biris_buffer is not None and len(biris_buffer) < self.memory_map.size:
             raise ValueError("biris_buffer is smaller than the BIRIS memory map")
-        self.clock = SimClock(time_scale)
+        self.timebase: TimeBase = (
+            VirtualTime(nominal_scale=time_scale, stall_timeout=stall_timeout, runaway=RUNAWAY_HW_S)
+            if clock == "virtual"
+            else ScaledTime(time_scale)
+        )
+        """What every thread of the rig, and of a server on :attr:`hardware`, waits through:
+        scaled real time, or virtual time (``clock="virtual"``: hardware time moves only when
+        every one of them waits, docs/simulator.md). The thread that makes a virtual rig
+        drives it (:class:`~biris_hw.timebase.VirtualTime`, rule 4)."""
+        self.clock = SimClock(time_scale, timebase=self.timebase)
         self.audit = Audit(self.clock.now)
         seeds = np.random.SeedSequence(seed).spawn(5)
         rngs = [np.random.default_rng(s) for s in seeds]
         self._closed = False
         self._started = False
 
-        self._level2 = EventFdLine()
-        self._level3 = EventFdLine()
+        self._level2 = EventFdLine(timebase=self.timebase)
+        self._level3 = EventFdLine(timebase=self.timebase)
         try:
             self._build(time_scale, samples, noise, initial_azimuth_counts, biris_buffer, rngs)
         except BaseException:
@@ -358,7 +388,7 @@ class SimulatedBiris:
             level3=self._level3,
             biexec_offset=self.memory_map.biexec_offset,
             biris_base=self.memory_map.biris_base,
-            clock=self.clock.now,
+            clock=self.timebase,
             time_scale=time_scale,
             lag=self.lag_s,
         )

@@ -13,22 +13,25 @@ plus the filter's overshoot, whatever the chip's counter reads.
 
 Time: both chips are caught up to ``clock.now()`` on every bus access (whole sample periods, each
 chip at its own period), and a background thread (:meth:`Model7600.start`) keeps them moving so
-that profile ends, and their interrupts, happen on time without any bus access: it sleeps until
-the next expected profile end or for at most 2 ms of real time. Everything runs under one
-``RLock``, ``board.lock``, which the driver's :class:`sim.device.DeviceWindow` shares. Backdoor
-users (fault injection, the rig's true azimuth) take that lock too, and call
-:meth:`Model7600.catch_up` before reading a plant, e.g.
-``with board.lock: board.plants[0].stalled = True``.
+that profile ends, and their interrupts, happen on time without any bus access: it waits, through
+the clock's time base, until the next expected profile end or for at most the hardware time of
+2 ms of real time at the clock's scale (its nominal scale in virtual time), and a bus write that
+starts a profile ending sooner wakes it. Everything runs under one ``RLock``, ``board.lock``,
+which the driver's :class:`sim.device.DeviceWindow` shares. Backdoor users (fault injection, the
+rig's true azimuth) take that lock too, and call :meth:`Model7600.catch_up` before reading a
+plant, e.g. ``with board.lock: board.plants[0].stalled = True``.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
 
 import numpy as np
 
+from biris_hw.timebase import HwThread
 from regs.hctl1000 import HCTL_SPACE
 from regs.tech80 import MOTION_WINDOW_SIZE, MOTOR_IRQ_LEVEL, AxisBit, BoardReg
 from sim.audit import Audit, Rule
@@ -41,8 +44,14 @@ __all__ = ["Model7600"]
 
 _AXIS_BITS = (int(AxisBit.AZIMUTH), int(AxisBit.ELEVATION))
 _POLL_REAL_S = 0.002
-"""Longest real-time sleep of the background thread between catch-ups."""
+"""Longest sleep of the background thread between catch-ups, in real seconds at the clock's
+scale (``timeout_hw``: the same hardware time in virtual time, at the nominal scale). It bounds
+how far behind an idle board's chips fall between accesses, so that an access never has many
+samples to catch up."""
 _MIN_SLEEP_REAL_S = 0.00005
+"""Shortest sleep towards a profile end in scaled time, real seconds: a wake is no more precise
+than the host's scheduling. Nothing in virtual time (``hw_from_real``), where a wake is exact
+and a profile end is always after the present."""
 _BATCH_TICKS = 256
 """Sample periods per chip simulated before the thread lets a bus access in."""
 _ACCESS_TICKS = ACCESS_TICKS
@@ -86,8 +95,15 @@ class Model7600:
         self._irq_vector = 0
         self._irq_enable = 0
         self._irq_status = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._tb = clock.timebase
+        self._wake = self._tb.Condition(self.lock)
+        """The background thread waits on it (releasing ``lock``); stop() and a bus write that
+        starts an earlier profile end notify it."""
+        self._stopping = False
+        self._wake_at = math.inf
+        """Hardware time the waiting thread will wake at by itself; inf while it is not waiting
+        (guarded by ``lock``)."""
+        self._thread: HwThread | None = None
 
     # -- interrupts ------------------------------------------------------------------------------
     def _profile_end_handler(self, axis: int) -> Callable[[], None]:
@@ -130,32 +146,61 @@ class Model7600:
         """Run the background thread that keeps the chips on time between bus accesses."""
         if self._thread is not None:
             return
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="model7600", daemon=True)
+        with self.lock:
+            self._stopping = False
+        self._thread = self._tb.Thread(self._run, name="model7600", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
-        """Stop and join the background thread; calling it again does nothing."""
+        """Stop and join the background thread; calling it again does nothing.
+
+        The join is a wait in the time base, so a participant (a virtual-time test's own
+        thread) may stop the board.
+        """
         thread = self._thread
         if thread is None:
             return
-        self._stop.set()
-        thread.join()
+        with self.lock:
+            self._stopping = True
+            self._wake.notify_all()
+        if thread is not threading.current_thread():
+            self._tb.join_thread(thread)
         self._thread = None
 
     def _run(self) -> None:
         clock = self._clock
-        while not self._stop.is_set():
+        tb = self._tb
+        poll_hw = tb.timeout_hw(_POLL_REAL_S)
+        floor_hw = tb.hw_from_real(_MIN_SLEEP_REAL_S)
+        while True:
             with self.lock:
-                caught_up = self._sync(_BATCH_TICKS)
-                etas = [eta for chip in self.chips if (eta := chip.profile_end_eta()) is not None]
-            if not caught_up:
-                time.sleep(0)  # yield, so a waiting bus access gets the lock between batches
-                continue
-            sleep = _POLL_REAL_S
-            if etas:
-                sleep = min(sleep, max(_MIN_SLEEP_REAL_S, clock.to_real(min(etas) - clock.now())))
-            self._stop.wait(sleep)
+                if self._stopping:
+                    return
+                if self._sync(_BATCH_TICKS):
+                    now = clock.now()
+                    wake = now + poll_hw
+                    for chip in self.chips:
+                        eta = chip.profile_end_eta()
+                        if eta is not None:
+                            wake = min(wake, max(eta, now + floor_hw))
+                    if not wake > now:  # a wait must move time on, or virtual time stands still
+                        wake = math.nextafter(now, math.inf)
+                    self._wake_at = wake
+                    try:
+                        self._wake.wait(
+                            clock.timeout_until(wake, now), what="model7600 next profile end"
+                        )
+                    finally:
+                        self._wake_at = math.inf
+                    continue
+            time.sleep(0)  # yield, so a waiting bus access gets the lock between batches
+
+    def _wake_for(self, chip: Hctl1000) -> None:
+        """After a write to ``chip`` (lock held): wake the background thread if the chip's
+        profile now ends before the thread would wake by itself, so its interrupt is on time."""
+        eta = chip.profile_end_eta()
+        if eta is not None and eta < self._wake_at:
+            self._wake.notify()
 
     # -- bus side ----------------------------------------------------------------------------------
     @staticmethod
@@ -179,7 +224,9 @@ class Model7600:
         with self.lock:
             self._sync(_ACCESS_TICKS)
             if offset < 2 * HCTL_SPACE:
-                self.chips[offset // HCTL_SPACE].bus_write(offset % HCTL_SPACE, value)
+                chip = self.chips[offset // HCTL_SPACE]
+                chip.bus_write(offset % HCTL_SPACE, value)
+                self._wake_for(chip)
                 return
             self._board_write(offset, value)
 

@@ -607,6 +607,7 @@ class _FakeTime:
 def test_the_clock_measures_how_late_its_waits_run(monkeypatch: pytest.MonkeyPatch) -> None:
     fake = _FakeTime()
     monkeypatch.setattr("sim.clock.time", fake)
+    monkeypatch.setattr("biris_hw.timebase.time", fake)
     clock, stop = SimClock(10.0), threading.Event()
     assert clock.lateness() == 0.0
     fake.now += 1.0  # a second of real time: ten of hardware time

@@ -44,7 +44,7 @@ from biris_hw.server import BirisServer
 from biris_hw.server.cmd_transfer import TIMEOUT_REAL_SLACK_S
 from biris_hw.server.motion import ARRIVAL_TOLERANCE_COUNTS, expected_move_s
 from sim.rig import SimulatedBiris
-from tests.conftest import WAIT, RigFactory, until
+from tests.conftest import WAIT, RigFactory, join, spawn, until
 
 # -- bounds ----------------------------------------------------------------------------------------
 
@@ -189,10 +189,10 @@ class Caller:
         self.error: BaseException | None = None
         self.at = float("nan")
         self.done = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"caller-{name}", daemon=True)
+        self._thread: threading.Thread | None = None
 
     def start(self) -> Caller:
-        self._thread.start()
+        self._thread = spawn(self._run, name=f"caller-{self.name}")
         return self
 
     def _run(self) -> None:
@@ -208,8 +208,8 @@ class Caller:
         self.done.set()
 
     def join(self) -> None:
-        self._thread.join(WAIT)
-        assert not self._thread.is_alive(), f"{self.name} is still blocked"
+        assert self._thread is not None
+        assert join(self._thread, WAIT), f"{self.name} is still blocked"
 
 
 class ReaderFault:
@@ -378,7 +378,7 @@ def _exercise(
         if spontaneous:
             cell.cause_hw = t_inject
             cell.bound_hw = _bound(cell, 0, None)
-            assert log.seen.wait(WAIT), "a fault the coupler raises is noticed with no request"
+            until(log.seen.is_set, what="a fault the coupler raises noticed with no request")
         # a request that needs the hardware
         dest = deg_to_counts(90.0)
         cell.cause_hw = cell.cause_hw if spontaneous else clock()
@@ -417,7 +417,7 @@ def _exercise(
         cell.bound_hw = _bound(cell, ccw - cw, None)
 
     # -- detected, within the bound, as the right kind --------------------------------------
-    assert log.seen.wait(WAIT), f"{fault} was never reported"
+    until(log.seen.is_set, what=f"{fault} reported")
     detected_hw, detected_wall, message = log.events[0]
     if cell.reader is not None:
         assert cell.reader.raised_at is not None

@@ -16,6 +16,7 @@ from biris_hw.bus.memory import MemoryWindow
 from biris_hw.errors import LineClosed
 from biris_hw.irq import Demultiplexer, EventFdLine, InterruptLine
 from biris_hw.server.isr import Level2Demux, Level3Demux, Logical
+from biris_hw.timebase import HwThread, TimeBase, VirtualTime, VirtualTimeDeadlock
 from regs.biexec import OFF_COMMAND, BiCommand
 from regs.bit3 import BIT3_SPACE, Bit3Reg, LocalStatus
 from regs.tech80 import MOTION_WINDOW_SIZE, AxisBit, BoardReg
@@ -371,8 +372,8 @@ class Doorbell(Demultiplexer[str]):
     """A device-free routine: every physical interrupt rings "bell"; a count of 0 is impossible,
     so a count above 3 is called spurious, to exercise the counters."""
 
-    def __init__(self, line: InterruptLine) -> None:
-        super().__init__(line, ("bell", "spare"), "doorbell_isr")
+    def __init__(self, line: InterruptLine, *, timebase: TimeBase | None = None) -> None:
+        super().__init__(line, ("bell", "spare"), "doorbell_isr", timebase=timebase)
 
     def _service(self, count: int) -> None:
         if count > 3:
@@ -419,3 +420,77 @@ def test_a_routine_closed_before_its_thread_runs_returns_at_once() -> None:
         owner.join(WAIT)
         assert not owner.is_alive() and not bell.running
     assert open_fds() == before
+
+
+# -- on virtual time ------------------------------------------------------------------------------
+# The test's thread drives the domain (time moves only while it waits in it); a stall_timeout
+# makes a wait the domain cannot see (a real poll in the routine) fail instead of hang.
+
+
+class LookingDoorbell(Doorbell):
+    """A doorbell whose devices keep state to look at again: a recheck rings "spare"."""
+
+    def _look(self) -> None:
+        self._raise("spare")
+
+
+def test_a_virtual_routine_wakes_its_notifier_at_the_instant_of_the_interrupt() -> None:
+    tb = VirtualTime(stall_timeout=WAIT)
+    before = open_fds()
+    with EventFdLine(timebase=tb) as physical:
+        bell = LookingDoorbell(physical, timebase=tb)
+        bell.start()
+        assert isinstance(bell._thread, HwThread)  # a participant of the domain
+
+        def simulator() -> None:
+            tb.sleep(1.0)
+            physical.trigger(2)
+
+        sim = tb.Thread(simulator, name="simulator", daemon=True)
+        sim.start()
+        assert bell.line("bell").wait(WAIT) == 2
+        assert tb.now() == 1.0 and bell.counts == {"bell": 2, "spare": 0}
+        assert tb.join_thread(sim)
+        bell.recheck()  # the routine looks at once: no time passes
+        assert bell.line("spare").wait(WAIT) == 1
+        assert tb.now() == 1.0
+
+        ended: list[tuple[str, float]] = []
+
+        def notifier() -> None:
+            try:
+                bell.line("bell").wait()
+            except LineClosed:
+                ended.append(("closed", tb.now()))
+
+        waiting = tb.Thread(notifier, name="bell notifier", daemon=True)
+        waiting.start()
+        tb.sleep(2.0)  # the routine and the notifier wait all the while
+        bell.close()  # joins the routine in the domain, then closes the logical lines
+        assert not bell.running
+        assert tb.join_thread(waiting)
+        assert ended == [("closed", 3.0)]
+        bell.close()  # idempotent
+    assert open_fds() == before and tb.deadlock is None
+
+
+def test_a_virtual_routine_waits_in_the_domain_so_a_lost_interrupt_is_a_deadlock() -> None:
+    tb = VirtualTime(stall_timeout=WAIT)
+    with EventFdLine(timebase=tb) as physical, Doorbell(physical, timebase=tb) as bell:
+        with pytest.raises(VirtualTimeDeadlock) as info:
+            bell.line("bell").wait()  # nobody will ever trigger the physical line
+        whats = sorted(wait.what for wait in info.value.waits)
+        assert whats == ["doorbell_isr: its physical interrupt line", "interrupt line eventfd"]
+
+
+def test_a_virtual_routine_closed_by_another_closer_waits_in_the_domain() -> None:
+    tb = VirtualTime(stall_timeout=WAIT)
+    with EventFdLine(timebase=tb) as physical:
+        bell = Doorbell(physical, timebase=tb)
+        bell.start()
+        closers = [tb.Thread(bell.close, name=f"closer-{i}", daemon=True) for i in range(2)]
+        for closer in closers:
+            closer.start()
+        for closer in closers:
+            assert tb.join_thread(closer)
+        assert bell.closed and not bell.running and bell.line("bell").closed

@@ -26,6 +26,7 @@ from biris_hw.irq import (
     register_line,
     registry,
 )
+from biris_hw.timebase import HwThread, ScaledTime, VirtualTime, VirtualTimeDeadlock
 from tests.conftest import until
 
 RELEASE_BOUND = 0.5
@@ -426,3 +427,125 @@ def test_register_line_adds_a_kind() -> None:
     finally:
         registry._REGISTRY.unregister("loopback-test")
     assert "loopback-test" not in LINE_KINDS
+
+
+# -- on virtual time ------------------------------------------------------------------------------
+# The test's thread drives the domain: time moves only while it waits in it, so every instant is
+# exact. A stall_timeout makes a wait the domain cannot see (a real poll) fail, naming who is
+# stuck, instead of hanging.
+
+
+class VirtualWaiter:
+    """A thread of ``tb`` blocked in ``line.wait(timeout)``; records how it ended, and when."""
+
+    def __init__(self, tb: VirtualTime, line: InterruptLine, timeout: float | None = None) -> None:
+        self.tb = tb
+        self.ended: tuple[object, float] | None = None
+
+        def run() -> None:
+            try:
+                result: object = line.wait(timeout)
+            except Exception as exc:
+                result = exc
+            self.ended = (result, tb.now())
+
+        self.thread: HwThread = tb.Thread(run, name="notifier", daemon=True)
+        self.thread.start()
+
+    def result(self) -> tuple[object, float]:
+        assert self.tb.join_thread(self.thread), "the waiter never ended"
+        assert self.ended is not None
+        return self.ended
+
+
+def test_virtual_eventfd_waiter_is_woken_by_a_trigger_at_that_instant() -> None:
+    tb = VirtualTime(stall_timeout=WAIT)
+    before = open_fds()
+    with EventFdLine(timebase=tb) as line:
+        waiter = VirtualWaiter(tb, line)
+        tb.sleep(2.0)  # the waiter waits on the line all the while: time can pass
+        line.trigger(3)
+        assert waiter.result() == (3, 2.0)
+        assert line.wait(0) == 0  # all three taken at once
+
+        def interrupt() -> None:  # what the simulator does from its own thread
+            tb.sleep(0.5)
+            line.trigger()
+
+        raiser = tb.Thread(interrupt, name="simulator", daemon=True)
+        raiser.start()
+        assert line.wait(WAIT) == 1
+        assert tb.now() == 2.5
+        assert tb.join_thread(raiser)
+    assert open_fds() == before and tb.deadlock is None
+
+
+def test_virtual_eventfd_wait_times_out_at_its_virtual_deadline() -> None:
+    tb = VirtualTime(start=1.0 / 3.0, stall_timeout=WAIT, nominal_scale=10.0)
+    with EventFdLine(timebase=tb) as line:
+        t0 = tb.now()
+        assert line.wait(0.25) == 0  # a caller's 0.25 s: 2.5 hardware seconds
+        assert tb.now() == t0 + tb.timeout_hw(0.25)
+        assert line.wait(0) == 0  # a look, not a wait: no time passes
+        assert tb.now() == t0 + tb.timeout_hw(0.25)
+        line.trigger()
+        assert line.wait(0.25) == 1  # pending already: no time passes either
+        assert tb.now() == t0 + tb.timeout_hw(0.25)
+        waiter = VirtualWaiter(tb, line, timeout=0.1)
+        assert waiter.result() == (0, t0 + tb.timeout_hw(0.25) + tb.timeout_hw(0.1))
+
+
+def test_virtual_eventfd_close_wakes_the_waiter_with_line_closed() -> None:
+    tb = VirtualTime(stall_timeout=WAIT)
+    before = open_fds()
+    line = EventFdLine(timebase=tb)
+    waiter = VirtualWaiter(tb, line)
+    tb.sleep(1.0)
+    line.close()
+    result, at = waiter.result()
+    assert isinstance(result, LineClosed) and at == 1.0
+    assert open_fds() == before  # the waiter, last out, released the descriptors
+
+
+def test_a_virtual_eventfd_nobody_triggers_is_a_deadlock_naming_the_line() -> None:
+    tb = VirtualTime(stall_timeout=WAIT)
+    with EventFdLine(timebase=tb) as line:
+        with pytest.raises(VirtualTimeDeadlock, match="interrupt line eventfd"):
+            line.wait()
+        assert line._waiters == 0
+
+
+def test_an_eventfd_on_scaled_time_waits_for_real() -> None:
+    with EventFdLine(timebase=ScaledTime(1000.0)) as line:  # timeouts stay the caller's seconds
+        started = time.monotonic()
+        assert line.wait(0.05) == 0
+        assert time.monotonic() - started >= 0.04
+        line.trigger()
+        assert line.wait(WAIT) == 1
+
+
+def test_virtual_poll_line_checks_once_a_period_of_hardware_time() -> None:
+    tb = VirtualTime(stall_timeout=WAIT)
+    before = open_fds()
+    flag = Flag()
+    checks: list[float] = []
+
+    def predicate() -> bool:
+        checks.append(tb.now())
+        return flag.is_set()
+
+    def raise_level() -> None:
+        tb.sleep_until(1.1)
+        flag.set = True
+
+    line = PollLine(predicate, 0.25, acknowledge=flag.acknowledge, timebase=tb)
+    raiser = tb.Thread(raise_level, name="device", daemon=True)
+    raiser.start()
+    assert line.wait(10.0) == 1
+    assert tb.now() == 1.25  # the first check after the level rose
+    assert checks == [0.0, 0.25, 0.5, 0.75, 1.0, 1.25]
+    assert flag.acks == 1 and tb.join_thread(raiser)
+    assert line.wait(0.3) == 0 and tb.now() == 1.25 + 0.3
+    line.close()  # joins the polling thread in the domain
+    assert line.closed and not line._thread.is_alive()
+    assert open_fds() == before

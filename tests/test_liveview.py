@@ -32,6 +32,9 @@ from tests.conftest import until
 from tests.test_cli import SIM as CLI_SIM
 from tests.test_record_support import cloud_xyz, synthetic_scans, write_raw
 
+# the Foxglove WebSocket server's threads call into the server: scaled real time
+pytestmark = pytest.mark.realtime
+
 STANDARD = get_typestore(Stores.ROS2_HUMBLE)
 SUBPROTOCOL = "foxglove.sdk.v1"  # foxglove-sdk 0.30's name for foxglove.websocket.v1
 WAIT = 10.0

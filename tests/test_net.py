@@ -22,6 +22,9 @@ from sim import SimulatedBiris
 from tests.conftest import until
 from tests.net_helpers import endpoint, free_port, warm_up_zenoh
 
+# the Zenoh service's own threads call into the server: scaled real time
+pytestmark = pytest.mark.realtime
+
 CONTROLLERS = {"op": "s3cret"}
 
 

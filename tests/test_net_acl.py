@@ -47,7 +47,7 @@ from biris_hw.status import ServerStatus
 from tests.conftest import WAIT, until
 from tests.net_helpers import FakeSensor, endpoint, free_port, warm_up_zenoh
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]  # the service's own threads
 
 NAME = "acl"
 KEYS = Keys(NAME)

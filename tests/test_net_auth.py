@@ -18,7 +18,7 @@ from biris_hw.errors import AccessDenied, ConnectionClosed
 from biris_hw.net import connect, serve
 from tests.net_helpers import endpoint, free_port, warm_up_zenoh
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]  # the service's own threads
 
 REFUSED_WAIT_S = 1.5
 """How long a refused peer waits for the service before connect() gives up; loopback links

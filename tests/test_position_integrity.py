@@ -13,7 +13,6 @@ with the same journal file: all a new process would share with the old one.
 from __future__ import annotations
 
 import json
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -479,6 +478,6 @@ def test_the_pan_driver_records_before_it_moves(
     monkeypatch.setattr(reference, "record_move", spy)
     pan.start_trapezoid(start + 200)
     assert seen == [(start, start + 200, False)]
-    assert pan.wait_settled(threading.Event(), limit_s=5.0)
+    assert pan.wait_settled(rig.timebase.Event(), limit_s=5.0)
     assert reference.state.move[0] == reference.state.move[1]
     assert abs(reference.state.move[0] - (start + 200)) <= 1

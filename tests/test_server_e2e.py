@@ -7,7 +7,6 @@ descriptor left behind.
 from __future__ import annotations
 
 import math
-import threading
 
 import numpy as np
 import pytest
@@ -25,7 +24,7 @@ from biris_hw.server import BirisServer
 from biris_hw.server.scan_timing import trapezoid_s
 from regs.layout import acquisition_period_s
 from sim import POISON, SimulatedBiris
-from tests.conftest import RigFactory
+from tests.conftest import RigFactory, join, spawn
 
 WAIT = 30.0  # generous real-time bound for anything that should take well under a second
 PERIOD = acquisition_period_s(64)
@@ -101,13 +100,11 @@ def test_continuous_scanning_feeds_every_data_connection_in_order(server: BirisS
         except BaseException as exc:  # report in the main thread
             errors.append(exc)
 
-    threads = [threading.Thread(target=consume, args=(i,)) for i in range(len(data))]
-    for t in threads:
-        t.start()
+    threads = [spawn(consume, i) for i in range(len(data))]
     cw, ccw = conn.continuous_scan(-20.0, 20.0)
     assert (cw, ccw) == (-228, 228)
     for t in threads:
-        t.join(WAIT)
+        join(t)
     conn.stop_scan()
     conn.wait_idle(timeout=WAIT)
     assert not errors, errors
@@ -290,10 +287,9 @@ def test_coupler_faults_reach_every_caller_and_reset_recovers(
     other = server.open()
     conn.single_scan(90.0)
     caught: list[BaseException] = []
-    waiter = threading.Thread(target=lambda: _catch(other.wait_idle, caught))
-    waiter.start()
+    waiter = spawn(_catch, other.wait_idle, caught)
     getattr(rig.faults, inject)()
-    waiter.join(WAIT)
+    join(waiter)
     assert len(caught) == 1 and isinstance(caught[0], HardwareFault)
     assert caught[0].kind == kind
     with pytest.raises(HardwareFault) as later:
@@ -365,9 +361,7 @@ def test_a_connection_whose_thread_ended_is_released(server: BirisServer) -> Non
     def open_and_leave() -> None:
         made.append(server.open(ConnectionKind.DATA).ident)
 
-    t = threading.Thread(target=open_and_leave)
-    t.start()
-    t.join()
+    join(spawn(open_and_leave))
     assert made[0] in server.status()["connections"]
     conn.single_scan(10.0)
     conn.wait_idle(timeout=WAIT)

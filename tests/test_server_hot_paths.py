@@ -24,6 +24,7 @@ from biris_hw.irq.eventfd import EventFdLine
 from biris_hw.server.acquisition import AcquisitionReader
 from biris_hw.server.delivery import ClientConn, stamp
 from biris_hw.server.tasks import DeadlineTimer
+from biris_hw.timebase import timebase_of
 from regs.biexec import ACQ_LINE_END
 from regs.layout import AZIMUTH_DTYPE, FRAME_DTYPE, FrameAddressing
 from tests.conftest import until
@@ -231,7 +232,7 @@ class _Clock:
 def test_rearming_later_moves_the_expiry_and_sooner_is_noticed() -> None:
     admin = Mailbox("admin")
     clock = _Clock()
-    timer = DeadlineTimer("t", admin, clock, 1.0, lambda gen: gen)
+    timer = DeadlineTimer("t", admin, timebase_of(clock, 1.0), lambda gen: gen)
     timer.start()
     try:
         gen = timer.arm(0.05)

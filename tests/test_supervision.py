@@ -28,6 +28,7 @@ from biris_hw.server import BirisServer, scan_assembly, tasks
 from biris_hw.server.isr import Level3Demux
 from biris_hw.server.messages import BirisParityErr, MoveOrder, TaskFailed
 from biris_hw.server.task_table import Restart, Starts, threads
+from biris_hw.timebase import TimeBase
 from regs.biexec import BiCommand
 from regs.tech80 import Axis
 from sim.rig import SimulatedBiris
@@ -338,10 +339,11 @@ class Injected:
     """Stands in for a function a task calls. The first call blocks until :attr:`release` is
     set, then raises InjectedFailure; later calls are the real function's."""
 
-    def __init__(self, real: Callable[..., Any]) -> None:
+    def __init__(self, real: Callable[..., Any], timebase: TimeBase) -> None:
         self.real = real
-        self.entered = threading.Event()
-        self.release = threading.Event()
+        self.timebase = timebase
+        self.entered = timebase.Event()  # the rig's: a task held here waits in its time
+        self.release = timebase.Event()
         self.error = InjectedFailure("injected once")
         self.calls = 0
 
@@ -349,7 +351,7 @@ class Injected:
         self.calls += 1
         if self.calls == 1:
             self.entered.set()
-            self.release.wait(WAIT)
+            self.release.wait(self.timebase.timeout_hw(WAIT), what="the test's release")
             raise self.error
         return self.real(*args, **kwargs)
 
@@ -437,12 +439,12 @@ def test_an_exception_in_a_task_is_an_internal_fault_and_reset_brings_it_back(
     conn = server.open()
     conn.timeout_disable()  # a task held on purpose must not lose the race to the BIRIS timeout
     trigger = prepare(server)
-    injected = Injected(getattr(owner(server), method))
+    injected = Injected(getattr(owner(server), method), server.timebase)
     monkeypatch.setattr(owner(server), method, injected)
     callers = Callers(server)
 
     trigger()
-    assert injected.entered.wait(WAIT), f"{name} never called {method}"
+    until(injected.entered.is_set, what=f"{name} calling {method}")
     callers.block()
     released = time.monotonic()
     injected.release.set()  # the task now raises

@@ -14,7 +14,6 @@ one kind of head by a looser test than the other.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
@@ -22,6 +21,7 @@ from biris_hw.errors import HardwareFault
 from biris_hw.irq.base import InterruptLine
 from biris_hw.pan_reference import PanReference
 from biris_hw.records import MotorParams
+from biris_hw.timebase import StopEvent, timebase_of
 from regs.tech80 import Axis
 
 __all__ = [
@@ -114,16 +114,14 @@ class MotionAxis(Protocol):
 
     def wait_settled(
         self,
-        stop: threading.Event,
+        stop: StopEvent,
         limit_s: float = SETTLE_LIMIT_S,
         sample_s: float = 0.0015,
     ) -> bool:
         """Poll until the head stands at its command position (see :func:`wait_settled`)."""
         ...
 
-    def wait_still(
-        self, stop: threading.Event, limit_s: float = 2.0, sample_s: float = 0.002
-    ) -> None:
+    def wait_still(self, stop: StopEvent, limit_s: float = 2.0, sample_s: float = 0.002) -> None:
         """Poll until the encoder stops changing (see :func:`wait_still`)."""
         ...
 
@@ -218,7 +216,7 @@ def wait_settled(
     positions: Callable[[], tuple[int, int]],
     clock: Callable[[], float],
     time_scale: float,
-    stop: threading.Event,
+    stop: StopEvent,
     limit_s: float = SETTLE_LIMIT_S,
     sample_s: float = 0.0015,
     holding: Callable[[], bool] | None = None,
@@ -229,7 +227,8 @@ def wait_settled(
 
     Held means the same reading, within a count of the command position, for at least 3 polls
     and :data:`SETTLE_HOLD_S` of hardware time (``clock``), polled every ``sample_s`` (hardware
-    seconds, waited as ``sample_s / time_scale`` real ones on ``stop``). ``holding``, when
+    seconds, waited on ``stop`` through the clock's time base: :func:`~biris_hw.timebase.
+    timebase_of`). ``holding``, when
     given, says whether the axis's loop holds the head at all (a faulted drive's demand
     follows the head, so it would "settle" anywhere). Returns the settled position, or None
     (not settled, or ``stop`` set).
@@ -252,6 +251,7 @@ def wait_settled(
     polls = 0
     steady = 0
     since = 0.0
+    timebase = timebase_of(clock, time_scale)
     while True:
         now = clock()
         pos, target = positions()
@@ -278,7 +278,7 @@ def wait_settled(
         if late and (not at_target or (steady == 0 and polls >= LATE_VERDICT_POLLS + 10)):
             return None
         last = pos
-        if stop.wait(sample_s / time_scale):
+        if timebase.wait_event(stop, sample_s, what="settling poll"):
             return None
 
 
@@ -286,17 +286,18 @@ def wait_still(
     position: Callable[[], int],
     clock: Callable[[], float],
     time_scale: float,
-    stop: threading.Event,
+    stop: StopEvent,
     limit_s: float = 2.0,
     sample_s: float = 0.002,
 ) -> None:
     """Poll until the encoder stops changing (5 equal samples), bounded by ``limit_s`` of
     hardware time: a head let go coasts, and nothing is commanded to compare it with."""
+    timebase = timebase_of(clock, time_scale)
     deadline = clock() + limit_s
     last = position()
     steady = 0
     while clock() < deadline and steady < 5:
-        if stop.wait(sample_s / time_scale):
+        if timebase.wait_event(stop, sample_s, what="stillness poll"):
             return
         pos = position()
         steady = steady + 1 if pos == last else 0

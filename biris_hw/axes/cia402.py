@@ -111,6 +111,7 @@ from biris_hw.errors import BusError, FaultKind, HardwareFault
 from biris_hw.irq.eventfd import EventFdLine
 from biris_hw.pan_reference import PanReference
 from biris_hw.records import MotorParams
+from biris_hw.timebase import StopEvent
 from regs.hctl1000 import F_CLK_HZ, sample_period
 from regs.tech80 import Axis, AxisBit
 
@@ -1013,7 +1014,7 @@ class Cia402Axis:
 
     def wait_settled(
         self,
-        stop: threading.Event,
+        stop: StopEvent,
         limit_s: float = SETTLE_LIMIT_S,
         sample_s: float = 0.0015,
     ) -> bool:
@@ -1037,9 +1038,7 @@ class Cia402Axis:
             self.reference.settled(pos)
         return True
 
-    def wait_still(
-        self, stop: threading.Event, limit_s: float = 2.0, sample_s: float = 0.002
-    ) -> None:
+    def wait_still(self, stop: StopEvent, limit_s: float = 2.0, sample_s: float = 0.002) -> None:
         wait_still(self.actual_position, self._clock, self._scale, stop, limit_s, sample_s)
 
     # -- the index latch ------------------------------------------------------------------------

@@ -49,8 +49,8 @@ __all__ = [
 SAMPLES_METAVAR = "|".join(str(c) for c in SAMPLES_CHOICES)
 """How help shows a samples flag: ``64|128``."""
 
-SIM_DEFAULTS: dict[str, Any] = {"scene": "room", "samples": 64, "seed": 0}
-"""The simulator's defaults for ``--scene``, ``--samples`` and ``--seed``."""
+SIM_DEFAULTS: dict[str, Any] = {"scene": "room", "samples": 64, "seed": 0, "clock": "scaled"}
+"""The simulator's defaults for ``--scene``, ``--samples``, ``--seed`` and ``--clock``."""
 
 DEFAULT_TIME_SCALE = 4.0
 """The simulator's default speed, the same for every command that starts one (``--sim``,
@@ -193,8 +193,11 @@ def add_simulator_arguments(
     *,
     default_time_scale: float,
     deferred: bool = False,
+    clocks: bool = False,
 ) -> None:
-    """``--scene``, ``--samples``, ``--time-scale`` and ``--seed``, with :data:`SIM_DEFAULTS`.
+    """``--scene``, ``--samples``, ``--time-scale`` and ``--seed``, with :data:`SIM_DEFAULTS`;
+    ``--clock`` too with ``clocks`` (an in-process simulator only: a ``biris sim`` process
+    shares its clock with other processes, which only scaled time can do).
 
     ``deferred`` leaves every default None, so that the command can tell a flag that was given
     from one that was not (``--scene`` without ``--sim`` is a mistake) and fill the defaults in
@@ -232,3 +235,12 @@ def add_simulator_arguments(
         metavar="N",
         help=f"noise seed (default {SIM_DEFAULTS['seed']})",
     )
+    if clocks:
+        parser.add_argument(
+            "--clock",
+            choices=("scaled", "virtual"),
+            default=default(SIM_DEFAULTS["clock"]),
+            help="the simulator's time: scaled real time, --time-scale times faster (default), "
+            "or virtual time, which moves only when the driver and the simulator wait: a scan "
+            "comes back as soon as it is computed, whatever the host's load",
+        )

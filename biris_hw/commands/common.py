@@ -206,7 +206,7 @@ def add_target_arguments(parser: argparse.ArgumentParser, *, remote: bool = True
         help="server init record (TOML; default: the report's)",
     )
     sim = parser.add_argument_group("simulator (with --sim)")
-    add_simulator_arguments(sim, default_time_scale=DEFAULT_TIME_SCALE, deferred=True)
+    add_simulator_arguments(sim, default_time_scale=DEFAULT_TIME_SCALE, deferred=True, clocks=True)
     add_quiet_argument(parser)
     add_debug_argument(parser)
 
@@ -377,7 +377,12 @@ def add_timeout_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-_SIM_ONLY = ("scene", "samples", "time_scale", "seed")
+_SIM_ONLY = ("scene", "samples", "time_scale", "seed", "clock")
+
+_REAL_TIME_COMMANDS = frozenset({"serve", "view", "watch", "record", "demo"})
+"""Commands that run for as long as someone watches: their simulator keeps scaled time (a
+virtual clock would run the idle sensor's fields at the CPU's speed, and a network peer or a
+viewer lives in real time)."""
 
 
 def check_target_arguments(args: argparse.Namespace) -> None:
@@ -400,6 +405,13 @@ def check_target_arguments(args: argparse.Namespace) -> None:
             raise UsageError(
                 f"say which sensor to use: --sim, --target FILE or --attach NAME "
                 f"(or set {TARGET_ENV})"
+            )
+    if args.sim and getattr(args, "clock", None) == "virtual":
+        command = getattr(args, "command", None)
+        if command in _REAL_TIME_COMMANDS:
+            raise UsageError(
+                f"--clock virtual does not apply to biris {command}: it serves or shows the "
+                "sensor as time passes, which a person (or a network peer) watches in real time"
             )
     if args.sim:
         defaults = {**SIM_DEFAULTS, "time_scale": DEFAULT_TIME_SCALE}
@@ -484,6 +496,7 @@ def _start_rig(args: argparse.Namespace) -> SimulatedBiris:
         samples=args.samples,
         time_scale=args.time_scale,
         seed=args.seed,
+        clock=getattr(args, "clock", None) or "scaled",
     ).start()
 
 

@@ -32,6 +32,14 @@ An owner that expected an interrupt and has not seen it (an edge lost on the way
 watchdog running out on a move whose profile has in fact ended) calls
 :meth:`Demultiplexer.recheck`: the routine's thread then reads the devices once as if they had
 interrupted (:meth:`Demultiplexer._look`), so a lost interrupt costs a delay, not the move.
+
+A demultiplexer given a time base (``timebase=``, issue 22) belongs to that rig's domain: its
+thread is the time base's (:meth:`~biris_hw.timebase.TimeBase.Thread`), its logical lines are
+:class:`EventFdLine` on the same time base, every write to its stop and look descriptors is
+followed by a :meth:`~biris_hw.timebase.TimeBase.kick`, and on virtual time the thread polls
+through the time base, so the domain sees it waiting for an interrupt rather than running. The
+physical line must then be raised with a kick of the same time base too (an :class:`EventFdLine`
+made with it, which the simulator triggers): in virtual time nothing else wakes the routine.
 """
 
 from __future__ import annotations
@@ -50,6 +58,7 @@ from typing import Any, Generic, TypeVar
 from biris_hw.errors import BusError, LineClosed
 from biris_hw.irq.base import InterruptLine
 from biris_hw.irq.eventfd import EventFdLine
+from biris_hw.timebase import HwEvent, HwThread, TimeBase
 
 __all__ = ["Demultiplexer"]
 
@@ -70,15 +79,27 @@ class Demultiplexer(ABC, Generic[K]):
 
     ``name`` names the thread and the log lines. ``carries`` are the logical interrupts (any
     hashable keys, typically an enum's members), each with its own line and counter.
+    ``timebase``: the time base of the rig whose domain the routine belongs to (module notes);
+    None for none (its thread is then a plain thread, its waits real ones).
     """
 
-    def __init__(self, line: InterruptLine, carries: Iterable[K], name: str) -> None:
+    def __init__(
+        self,
+        line: InterruptLine,
+        carries: Iterable[K],
+        name: str,
+        *,
+        timebase: TimeBase | None = None,
+    ) -> None:
         self.name = name
+        self.timebase = timebase
+        """The time base given, if any."""
+        self._virtual = timebase if timebase is not None and timebase.virtual else None
         self._line = line
         self._lines: dict[K, EventFdLine] = {}
         try:
             for logical in carries:
-                self._lines[logical] = EventFdLine()
+                self._lines[logical] = EventFdLine(timebase=timebase)
             self._stop_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         except BaseException:
             self._close_logical()
@@ -95,7 +116,10 @@ class Demultiplexer(ABC, Generic[K]):
         self._spurious = 0
         self._thread: threading.Thread | None = None
         self._closed = False
-        self._shut = threading.Event()  # set once close() has finished
+        # set once close() has finished; a second closer waits on it, in the domain if any
+        self._shut: threading.Event | HwEvent = (
+            threading.Event() if timebase is None else timebase.Event()
+        )
         self._serving = False  # the service thread is inside _serve (under _lifecycle)
         self._release_on_exit = False  # close() ran in that thread: it releases the stop fd
 
@@ -141,6 +165,7 @@ class Demultiplexer(ABC, Generic[K]):
         with self._lifecycle:
             if not self._closed:
                 os.eventfd_write(self._look_fd, 1)
+                self._kick(self._look_fd)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def start(self) -> None:
@@ -148,7 +173,10 @@ class Demultiplexer(ABC, Generic[K]):
         started before or closed."""
         with self._lifecycle:
             self._check_startable()
-            self._thread = threading.Thread(target=self.run, name=self.name, daemon=True)
+            if self.timebase is not None:
+                self._thread = self.timebase.Thread(self.run, name=self.name, daemon=True)
+            else:
+                self._thread = threading.Thread(target=self.run, name=self.name, daemon=True)
             self._thread.start()
 
     def run(self) -> None:
@@ -239,14 +267,22 @@ class Demultiplexer(ABC, Generic[K]):
             thread = self._thread
             if first:
                 os.eventfd_write(self._stop_fd, 1)
+                self._kick(self._stop_fd)
         me = threading.current_thread()
         if not first:
             if thread is not me:
-                self._shut.wait()
+                if isinstance(self._shut, threading.Event):
+                    self._shut.wait()
+                else:
+                    self._shut.wait(what=f"{self.name} to close")
             return
         # joined outside the lock: a thread that has yet to enter run() takes it there
         if thread is not None and thread is not me:
-            thread.join()
+            if isinstance(thread, HwThread):
+                # a wait in its time base's domain: the closer may be a participant
+                thread.timebase.join_thread(thread)
+            else:
+                thread.join()
         self._close_logical()
         with self._lifecycle:
             # From inside the routine (a callback that closes it), the routine still polls the
@@ -276,9 +312,12 @@ class Demultiplexer(ABC, Generic[K]):
     def _serve(self) -> None:
         """Serve until the stop descriptor is written; LineClosed once the physical line is
         closed, and whatever the line's wait or ``_service`` raised."""
+        line_fd = self._line.fileno()  # LineClosed if it is closed already
+        if self._virtual is not None:
+            self._serve_virtual(self._virtual, line_fd)
+            return
         poller = select.poll()
         poller.register(self._stop_fd, select.POLLIN)
-        line_fd = self._line.fileno()  # LineClosed if it is closed already
         poller.register(line_fd, select.POLLIN | select.POLLERR)
         poller.register(self._look_fd, select.POLLIN)
         while True:
@@ -293,6 +332,29 @@ class Demultiplexer(ABC, Generic[K]):
                 with contextlib.suppress(BlockingIOError):
                     os.eventfd_read(self._look_fd)
                 self._look()
+
+    def _serve_virtual(self, timebase: TimeBase, line_fd: int) -> None:
+        """:meth:`_serve` in the domain of a virtual ``timebase``: the same loop, polling
+        through it."""
+        fds = (self._stop_fd, line_fd, self._look_fd)
+        what = f"{self.name}: its physical interrupt line"
+        while True:
+            ready = timebase.poll(fds, None, what=what)
+            if self._stop_fd in ready:  # checked first: shutdown wins over an interrupt flood
+                return
+            if line_fd in ready:
+                count = self._line.wait(0)
+                if count:
+                    self._service(count)
+            if self._look_fd in ready:
+                with contextlib.suppress(BlockingIOError):
+                    os.eventfd_read(self._look_fd)
+                self._look()
+
+    def _kick(self, fd: int) -> None:
+        """Tell the time base that ``fd`` (the stop or look descriptor) was just written."""
+        if self.timebase is not None:
+            self.timebase.kick(fd)
 
     def _close_logical(self) -> None:
         for logical_line in self._lines.values():

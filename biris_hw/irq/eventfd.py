@@ -10,6 +10,7 @@ import os
 
 from biris_hw.errors import LineClosed
 from biris_hw.irq.fdline import FdLine
+from biris_hw.timebase import TimeBase
 
 __all__ = ["EventFdLine"]
 
@@ -18,13 +19,15 @@ class EventFdLine(FdLine):
     """An eventfd counter: ``trigger(n)`` adds n, ``wait()`` takes the whole count (coalescing).
 
     Pass ``fd`` to adopt a descriptor received from elsewhere (the line then owns and closes it).
+    ``timebase``: the time base of the rig (:class:`~biris_hw.irq.fdline.FdLine`); ``trigger()``
+    kicks it, so a waiter on virtual time is woken by the interrupt.
     """
 
     kind = "eventfd"
 
-    def __init__(self, fd: int | None = None) -> None:
+    def __init__(self, fd: int | None = None, *, timebase: TimeBase | None = None) -> None:
         self._fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK) if fd is None else fd
-        super().__init__()
+        super().__init__(timebase=timebase)
 
     def trigger(self, count: int = 1) -> None:
         """Raise ``count`` interrupts; they accumulate until a waiter takes them."""
@@ -36,6 +39,8 @@ class EventFdLine(FdLine):
             if self._closed:
                 raise LineClosed("eventfd line is closed")
             os.eventfd_write(self._fd, count)
+            if self._virtual is not None:  # under the lock: the number cannot have been reused
+                self._virtual.kick(self._fd)
 
     def _line_fd(self) -> int:
         return self._fd

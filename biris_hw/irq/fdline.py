@@ -4,6 +4,13 @@ A waiter polls two descriptors at once: the line's own and a private stop eventf
 writes the stop eventfd, so every blocked waiter wakes at once and raises ``LineClosed``; the
 descriptors are closed by the last waiter to leave (or by ``close()`` when nobody waits), never
 while another thread might still be polling them.
+
+On virtual time (issue 22, :mod:`biris_hw.timebase`) a waiter polls through the time base
+instead, so the domain knows it waits on the line (a real ``poll`` would leave it counted as
+running, and time would stand still); every write that makes one of the line's descriptors
+readable is followed by a :meth:`~biris_hw.timebase.TimeBase.kick` of it, which is what wakes such
+a poller. A caller's timeout is read through :meth:`~biris_hw.timebase.TimeBase.timeout_hw`.
+Without a virtual time base a waiter polls for real.
 """
 
 from __future__ import annotations
@@ -16,14 +23,22 @@ from abc import abstractmethod
 
 from biris_hw.errors import LineClosed
 from biris_hw.irq.base import InterruptLine
+from biris_hw.timebase import TimeBase
 
 __all__ = ["FdLine"]
 
 
 class FdLine(InterruptLine):
-    """An interrupt line whose pending state is a readable descriptor."""
+    """An interrupt line whose pending state is a readable descriptor.
 
-    def __init__(self) -> None:
+    ``timebase``: the time base of the rig whose threads wait on the line (see the module notes;
+    only a virtual one changes how they wait). Whoever raises the line must kick the same one.
+    """
+
+    def __init__(self, *, timebase: TimeBase | None = None) -> None:
+        self.timebase = timebase
+        """The time base given, if any."""
+        self._virtual = timebase if timebase is not None and timebase.virtual else None
         self._stop_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         self._lock = threading.Lock()
         self._waiters = 0
@@ -68,6 +83,8 @@ class FdLine(InterruptLine):
         try:
             if timeout is not None and timeout <= 0.0:
                 return self._look()
+            if self._virtual is not None:
+                return self._wait_virtual(self._virtual, line_fd, timeout)
             if poller is None:
                 poller = select.poll()
                 poller.register(self._stop_fd, select.POLLIN)
@@ -113,6 +130,33 @@ class FdLine(InterruptLine):
             elif deadline is not None and time.monotonic() >= deadline:
                 return 0
 
+    def _wait_virtual(self, timebase: TimeBase, line_fd: int, timeout: float | None) -> int:
+        """:meth:`_wait` in the domain of a virtual ``timebase``: the deadline is in its time."""
+        # The first poll is given the timeout itself, so it ends at exactly the deadline the
+        # time base computes from it, which is the one compared with below.
+        left = None if timeout is None else timebase.timeout_hw(timeout)
+        deadline = None if left is None else timebase.now() + left
+        fds = (self._stop_fd, line_fd)
+        what = f"interrupt line {self.kind}"
+        while True:
+            ready = timebase.poll(fds, left, what=what)
+            if self._stop_fd in ready or self._closed:
+                raise LineClosed(f"{self.kind} line was closed while waiting")
+            if line_fd in ready:
+                count = self._consume()
+                if count:
+                    return count
+            elif deadline is not None and timebase.now() >= deadline:
+                return 0
+            if deadline is not None:
+                left = max(0.0, deadline - timebase.now())
+
+    def _kick(self, fd: int) -> None:
+        """Tell a virtual time base that ``fd`` was just made readable (module notes); a scaled
+        one needs no telling."""
+        if self._virtual is not None:
+            self._virtual.kick(fd)
+
     def close(self) -> None:
         with self._lock:
             if self._closed:
@@ -121,6 +165,9 @@ class FdLine(InterruptLine):
             idle = self._waiters == 0
             os.eventfd_write(self._stop_fd, 1)
             self._wake_pollers()
+            # Under the lock, before any descriptor can be released: each number is still ours.
+            self._kick(self._stop_fd)
+            self._kick(self._line_fd())
         if idle:
             self._release()
 

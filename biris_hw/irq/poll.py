@@ -4,6 +4,13 @@ Some bridges (a USB or CAN adaptor, a VME host whose kernel gives user space no 
 can read the status registers but cannot deliver the interrupt itself. A background thread then
 plays the interrupt controller: it evaluates a predicate at a fixed period and, when it holds,
 raises an internal eventfd, so notifiers wait on this line exactly as on any other.
+
+Given a time base (``timebase=``, issue 22), the line keeps that rig's time: the period is in its
+hardware seconds, the thread is the time base's (:meth:`~biris_hw.timebase.TimeBase.Thread`) and
+waits between checks through :meth:`~biris_hw.timebase.TimeBase.poll`, and every write to the
+line's descriptors is followed by a :meth:`~biris_hw.timebase.TimeBase.kick`. On virtual time
+each check then comes one period of hardware time after the one before (a check takes no time
+there, so none overruns), and waiters are woken through the domain.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from collections.abc import Callable
 
 from biris_hw.errors import BusError
 from biris_hw.irq.fdline import FdLine
+from biris_hw.timebase import HwThread, TimeBase
 
 __all__ = ["PollLine"]
 
@@ -41,6 +49,9 @@ class PollLine(FdLine):
     next ``wait()``, and every ``wait()`` after that raises :class:`BusError` chained to it (the
     descriptor stays readable, so a thread multiplexing on ``fileno()`` finds out too). Only
     ``close()`` ends that state.
+
+    ``timebase``: the time base whose hardware seconds the period is in, and whose domain the
+    thread and the waiters belong to (module notes); None for the monotonic clock and real waits.
     """
 
     kind = "poll"
@@ -51,6 +62,7 @@ class PollLine(FdLine):
         period: float,
         *,
         acknowledge: Callable[[], None] | None = None,
+        timebase: TimeBase | None = None,
     ) -> None:
         if not (isinstance(period, (int, float)) and math.isfinite(period) and period > 0):
             raise ValueError(
@@ -67,12 +79,16 @@ class PollLine(FdLine):
         self._event_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         self._halt_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         try:
-            super().__init__()
+            super().__init__(timebase=timebase)
         except BaseException:
             os.close(self._event_fd)
             os.close(self._halt_fd)
             raise
-        self._thread = threading.Thread(target=self._run, name="biris-poll-line", daemon=True)
+        self._thread: threading.Thread
+        if timebase is not None:
+            self._thread = timebase.Thread(self._run, name="biris-poll-line", daemon=True)
+        else:
+            self._thread = threading.Thread(target=self._run, name="biris-poll-line", daemon=True)
         self._thread.start()
 
     @property
@@ -89,7 +105,10 @@ class PollLine(FdLine):
     # -- the polling thread ----------------------------------------------------------------------
     def _run(self) -> None:
         try:
-            self._poll_loop()
+            if self.timebase is not None:
+                self._poll_loop_on(self.timebase)
+            else:
+                self._poll_loop()
         finally:
             if self._closed_by_thread:
                 super().close()
@@ -116,6 +135,28 @@ class PollLine(FdLine):
             if poller.poll(max(1, math.ceil((due - now) * 1000.0))):
                 return
 
+    def _poll_loop_on(self, timebase: TimeBase) -> None:
+        """:meth:`_poll_loop` in ``timebase``'s hardware seconds, waiting through it."""
+        halt = (self._halt_fd,)
+        due = timebase.now()
+        while True:
+            try:
+                fired = self._predicate()
+                if fired and self._acknowledge is not None:
+                    self._acknowledge()
+            except Exception as exc:
+                log.error("poll line stopped: its predicate or acknowledgement raised %r", exc)
+                self._raise_pending(error=exc)
+                return
+            if fired and not self._raise_pending():
+                return
+            now = timebase.now()
+            due += self._period
+            if due <= now:  # overran: skip the missed checks instead of catching up in a burst
+                due = now + self._period
+            if timebase.poll(halt, due - now, what="poll line period"):
+                return
+
     def _raise_pending(self, error: Exception | None = None) -> bool:
         """Count one interrupt (or record the failure) and make the descriptor readable.
 
@@ -130,6 +171,7 @@ class PollLine(FdLine):
             else:
                 self._error = error
             os.eventfd_write(self._event_fd, 1)
+            self._kick(self._event_fd)
             return True
 
     # -- FdLine hooks ----------------------------------------------------------------------------
@@ -172,8 +214,13 @@ class PollLine(FdLine):
                 # Written under the lock that set the flag, so no other closer can have released
                 # the descriptor yet (it would first have to see the flag).
                 os.eventfd_write(self._halt_fd, 1)
+                self._kick(self._halt_fd)
             if threading.current_thread() is self._thread:
                 self._closed_by_thread = True
                 return
-        self._thread.join()
+        thread = self._thread
+        if isinstance(thread, HwThread):
+            thread.timebase.join_thread(thread)  # a wait in the domain: a participant may close
+        else:
+            thread.join()
         super().close()

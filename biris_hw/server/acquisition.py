@@ -71,7 +71,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -80,6 +79,7 @@ import numpy as np
 from biris_hw.bus.base import BusWindow
 from biris_hw.devices import BirisLink
 from biris_hw.server.messages import Acquisition
+from biris_hw.timebase import timebase_of
 from regs.biexec import ACQ_LINE_END, ACQ_LINE_STARTUP, OFF_CURRENT_FRAME, decode_param
 from regs.layout import AZIMUTH_DTYPE, FRAME_DTYPE, FrameAddressing
 
@@ -181,7 +181,9 @@ class AcquisitionReader:
         clock: Callable[[], float],
         max_range: int,
     ) -> None:
-        self.lock = threading.Lock()
+        # a lock on the time base: a drain holds it across bus reads, which a simulator may slow
+        # by sleeping in hardware time (on virtual time, a waiter for a plain lock holds time)
+        self.lock = timebase_of(clock).Lock()
         self._window = window
         self._link = link
         self._clock = clock

@@ -70,6 +70,7 @@ from biris_hw.server.scan_timing import ScanTiming, data_rate_mismatch
 from biris_hw.server.scanning import AcquisitionFate, ScanSequencer
 from biris_hw.server.start_schedule import StartSchedule
 from biris_hw.status import ServerState, ServerStatus
+from biris_hw.timebase import timebase_of
 from regs.biexec import BiCommand, BiStatus
 from regs.tech80 import Axis
 
@@ -113,7 +114,10 @@ class Administrator:
         self.az = AxisState(Axis.AZIMUTH, motor_watchdog, record.motor)
         self.el = AxisState(Axis.ELEVATION, elevation_watchdog or motor_watchdog, record.tilt_motor)
         self.requests = MotorRequests()
-        self.scans = ScanSequencer(self.counters, record.mount, ScanTiming(time_scale=time_scale))
+        # the host's own latency, in hardware seconds per real one: none on virtual time, where
+        # the host takes no hardware time at all
+        host_scale = timebase_of(clock, time_scale).hw_from_real(1.0)
+        self.scans = ScanSequencer(self.counters, record.mount, ScanTiming(time_scale=host_scale))
         self.tilt = TiltControl(record.elevation_limits_counts)
         self.ring = Ring(record.continuous_acquisition)
         self.clients = Connections(clock, self.counters)
@@ -1104,8 +1108,16 @@ class Administrator:
         self._submit_command(BirisCommand(msg.code, msg.param, CommandPurpose.INIT, requester=env))
 
     def _on_init_move(self, env: Envelope, msg: m.InitMove) -> None:
+        axis = self._axis(msg.axis)
+        # The watchdog's bound must be that of the move the chip really makes. The chip runs the
+        # init record's parameters since the initialiser's configure_axes (not what a client
+        # loaded before the reset), and the move starts where the initialiser says: after its
+        # chip reset or a re-zeroing, the count is not where the last move (perhaps a scan the
+        # reset abandoned) was to end.
+        axis.motor = self.record.motor if axis is self.az else self.record.tilt_motor
         order = m.MoveOrder(msg.destination)
-        self._submit_motion(self._axis(msg.axis), Motion(order, MotionPurpose.INIT, requester=env))
+        job = Motion(order, MotionPurpose.INIT, requester=env, origin=msg.start)
+        self._submit_motion(axis, job)
 
     def _on_init_done(self, env: Envelope, msg: m.InitDone) -> None:
         env.reply(None)

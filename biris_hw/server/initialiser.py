@@ -53,7 +53,6 @@ disable and homing on the current position).
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -67,6 +66,7 @@ from biris_hw.pan_reference import NARROW_WINDOW, index_search_range
 from biris_hw.records import BirisInitRecord
 from biris_hw.server.cmd_transfer import command_name, status_name
 from biris_hw.server.messages import InitCommand, InitMove, InitSync
+from biris_hw.timebase import StopEvent
 from regs.biexec import BiCommand, BiStatus, decode_param
 from regs.hctl1000 import COUNTS_PER_REV, MOTION_LIMIT_COUNTS
 from regs.layout import (
@@ -125,7 +125,7 @@ class Initialiser:
         hw: BirisHardware,
         record: BirisInitRecord,
         admin: Mailbox,
-        stop: threading.Event,
+        stop: StopEvent,
     ) -> None:
         self.hw = hw
         self.record = record
@@ -184,12 +184,12 @@ class Initialiser:
             count = self._running_acquisitions()
             limit += STARTUP_LATENCY_S + count * LONGEST_ACQUISITION_S
             name = f"{name} of {count} acquisitions"
-        clock, scale = self.hw.clock, self.hw.time_scale
+        clock, timebase = self.hw.clock, self.hw.timebase
         started = clock()
         deadline = started + limit
         progress.info("waiting up to %.1f s for BIRIS to finish %s", limit, name)
         while True:
-            if self.stop.wait(BUSY_POLL_S / scale):
+            if timebase.wait_event(self.stop, BUSY_POLL_S, what="BIRIS to finish"):
                 return  # the server is closing: the next step finds the administrator gone
             code = self.link.command()
             if code == 0:
@@ -280,7 +280,9 @@ class Initialiser:
     def _move(self, destination: int, axis: Axis = Axis.AZIMUTH) -> None:
         if destination == self._position[axis]:
             return
-        self._send(InitMove(destination, axis))
+        # where the chip's count stands: the administrator cannot know it after a chip reset or
+        # a re-zeroing, and its watchdog bounds the move by the distance really driven
+        self._send(InitMove(destination, axis, start=self._position[axis]))
         self._position[axis] = destination
 
     def _send(self, message: object) -> object:

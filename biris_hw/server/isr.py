@@ -79,7 +79,6 @@ from __future__ import annotations
 
 import enum
 import logging
-import threading
 from collections.abc import Callable
 
 from biris_hw.axes.base import MotionController
@@ -88,6 +87,7 @@ from biris_hw.devices import LEVEL2_PREFETCH, LEVEL3_PREFETCH, MotionBoard
 from biris_hw.errors import BusError
 from biris_hw.irq.base import InterruptLine
 from biris_hw.irq.demux import Demultiplexer
+from biris_hw.timebase import ScaledTime, TimeBase
 from regs.biexec import OFF_COMMAND
 from regs.bit3 import Bit3Reg, LocalStatus
 from regs.tech80 import Axis, AxisBit
@@ -160,15 +160,17 @@ class Level2Demux(Demultiplexer[Logical]):
         biris: BusWindow,
         biexec_offset: int,
         name: str = LEVEL2_THREAD,
+        *,
+        timebase: TimeBase | None = None,
     ) -> None:
-        super().__init__(line, LEVEL2_LOGICALS, name)
+        super().__init__(line, LEVEL2_LOGICALS, name, timebase=timebase)
         self._coupler = coupler
         self._biris = biris
         self._command_offset = biexec_offset + OFF_COMMAND
         self._seen_errors = 0  # only the service thread touches it
         self._continuous = False
         self._data_notifier: Callable[[int], bool] | None = None
-        self._attach_lock = threading.Lock()
+        self._attach_lock = (timebase if timebase is not None else ScaledTime()).Lock()
         self._recheck: Callable[[], bool] | None = None
 
     def attach_recheck(self, recheck: Callable[[], bool] | None) -> None:
@@ -293,8 +295,10 @@ class Level3Demux(Demultiplexer[Logical]):
         line: InterruptLine,
         controller: MotionController | BusWindow,
         name: str = LEVEL3_THREAD,
+        *,
+        timebase: TimeBase | None = None,
     ) -> None:
-        super().__init__(line, LEVEL3_LOGICALS, name)
+        super().__init__(line, LEVEL3_LOGICALS, name, timebase=timebase)
         if isinstance(controller, BusWindow):  # the Model 7600's window: its board registers
             controller = MotionBoard(controller)
         self._controller: MotionController = controller

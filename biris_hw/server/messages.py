@@ -236,6 +236,11 @@ class InitMove:
 
     destination: int
     axis: Axis = Axis.AZIMUTH
+    start: int | None = None
+    """Where the axis's count stands as the move begins (the chip's command position). Only the
+    initialiser knows it: its chip resets and re-zeroings move the count under the
+    administrator, whose last destination is then no longer where the head is. None: where the
+    administrator's last move on the axis ended."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -75,6 +75,10 @@ class Motion:
     tilt: Tilt | None = None
     requester: Envelope | None = None
     """The initialiser's INIT_MOVE, replied when the move ends."""
+    origin: int | None = None
+    """Where a move starts on the axis's count when that is not where the axis's last move ended
+    (the initialiser's moves: a chip reset or a re-zeroing moved the count); the watchdog's bound
+    is that of the distance really driven."""
 
 
 def expected_move_s(distance: int, params: MotorParams) -> float:
@@ -151,7 +155,8 @@ class AxisState:
             self._tokens += 1
             order = dataclasses.replace(order, destination=dest, token=self._tokens)
             job.order = order  # what the worker got: the clamped destination and the token
-            duration = expected_move_s(dest - self.position, self.motor)
+            start = self.position if job.origin is None else job.origin
+            duration = expected_move_s(dest - start, self.motor)
             if order.schedule is not None:  # a scan's move starts BIRIS's start-up later
                 duration += order.schedule.lead_s
             # the notifier's settling may take up to SETTLE_LIMIT_S more, then threads run late

@@ -44,6 +44,7 @@ from biris_hw.server.messages import (
 )
 from biris_hw.server.task_table import TASKS, Starts, TaskSpec, task
 from biris_hw.status import ServerState, ServerStatus
+from biris_hw.timebase import HwThread
 from regs.tech80 import Axis
 
 __all__ = ["BirisServer"]
@@ -68,10 +69,13 @@ class BirisServer:
         if self.record.cpus:
             check_cpus(self.record.cpus)  # before anything starts: a bad set changes nothing
         hw = hardware
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
+        tb = self.timebase = hw.timebase
+        """Every wait of every task goes through it (:mod:`biris_hw.timebase`): scaled real time
+        on the target and by default, virtual time on a simulator made with ``clock="virtual"``."""
+        self._stop = tb.Event()
+        self._threads: list[HwThread] = []
         self._closed = False
-        self.inbox = Mailbox("BIRISSERV")
+        self.inbox = Mailbox("BIRISSERV", timebase=tb)
         self.devices = hw.devices  # the bundle's one driver per device (biris_hw.devices)
         self.link = self.devices.link
         self.azimuth = self.devices.azimuth
@@ -79,23 +83,22 @@ class BirisServer:
         self.board = self.devices.board
         self.coupler = self.devices.coupler
         self.reader = AcquisitionReader(hw.biris, self.link, hw.clock, self.record.max_range)
-        self.ledger = tasks.CommandLedger()
+        self.ledger = tasks.CommandLedger(tb)
         self.az_moves = tasks.MoveLedger(hw.clock)
         self.el_moves = tasks.MoveLedger(hw.clock)
-        self.supervisor = tasks.Supervisor(self.inbox)
-        self.level2 = Level2Demux(hw.level2, hw.coupler, hw.biris, hw.biexec_offset)
-        self.level3 = Level3Demux(hw.level3, self.devices.board)
+        self.supervisor = tasks.Supervisor(self.inbox, tb)
+        self.level2 = Level2Demux(hw.level2, hw.coupler, hw.biris, hw.biexec_offset, timebase=tb)
+        self.level3 = Level3Demux(hw.level3, self.devices.board, timebase=tb)
         self.biris_timeout = tasks.DeadlineTimer(
-            task("biris_timeout").thread, self.inbox, hw.clock, hw.time_scale, BirisTimeoutErr
+            task("biris_timeout").thread, self.inbox, tb, BirisTimeoutErr
         )
         self.motor_watchdog = tasks.DeadlineTimer(
-            task("az_watchdog").thread, self.inbox, hw.clock, hw.time_scale, MotorWatchdogErr
+            task("az_watchdog").thread, self.inbox, tb, MotorWatchdogErr
         )
         self.elevation_watchdog = tasks.DeadlineTimer(
             task("el_watchdog").thread,
             self.inbox,
-            hw.clock,
-            hw.time_scale,
+            tb,
             lambda generation: MotorWatchdogErr(generation, Axis.ELEVATION),
         )
         self.admin = Administrator(
@@ -139,7 +142,7 @@ class BirisServer:
     # -- task creation ---------------------------------------------------------------------
     def _spawn(self, spec: TaskSpec, body: Callable[[], None]) -> None:
         """Start ``spec``'s thread, running ``body`` under the supervisor."""
-        thread = threading.Thread(
+        thread = self.timebase.Thread(
             target=self.supervisor.run,
             args=(spec.name, body, spec.restart),
             name=spec.thread,
@@ -242,7 +245,7 @@ class BirisServer:
             except BirisError as exc:  # the administrator's case failed; it has said so
                 log.error("INIT_DONE refused: %s", exc)
 
-        thread = threading.Thread(
+        thread = self.timebase.Thread(
             target=run_initialiser,
             args=(init, report),
             name=task("biris_init").thread,
@@ -408,7 +411,7 @@ class BirisServer:
             self.crate_watch.close()
         for thread in self._threads:
             if thread is not threading.current_thread():
-                thread.join()
+                self.timebase.join_thread(thread)
         self.admin.shutdown()
 
     def __enter__(self) -> BirisServer:

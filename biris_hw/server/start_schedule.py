@@ -23,8 +23,9 @@ stopping): the waiting worker then starts nothing and reports ready.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
+
+from biris_hw.timebase import timebase_of
 
 __all__ = ["StartSchedule"]
 
@@ -38,17 +39,18 @@ class StartSchedule:
     """The hand-over between BI_ACQUIRE's write and the scan's trapezoid (module notes).
 
     ``lead_s`` is the hardware time from the write to the motor's start; ``clock`` the hardware
-    clock; ``time_scale`` hardware seconds per real second (to turn a hardware wait into a real
-    one). Shared by three threads: the command worker (:meth:`written`), the azimuth worker
-    (:meth:`wait_start`, :meth:`started`) and the administrator (:meth:`cancel`, and reading the
-    times once the scan is over); every field is guarded by one condition.
+    clock, waited on through its time base (:func:`~biris_hw.timebase.timebase_of`: scaled at
+    ``time_scale``, or the simulator's virtual time). Shared by three threads: the command
+    worker (:meth:`written`), the azimuth worker (:meth:`wait_start`, :meth:`started`) and the
+    administrator (:meth:`cancel`, and reading the times once the scan is over); every field is
+    guarded by one condition.
     """
 
     def __init__(self, lead_s: float, clock: Callable[[], float], time_scale: float = 1.0) -> None:
         self.lead_s = max(0.0, lead_s)
-        self._clock = clock
-        self._scale = time_scale if time_scale > 0 else 1.0
-        self._cond = threading.Condition()
+        self._timebase = timebase_of(clock, time_scale)
+        self._clock = self._timebase.now
+        self._cond = self._timebase.Condition()
         self._written_at: float | None = None
         self._started_at: float | None = None
         self._cancelled = False
@@ -102,13 +104,14 @@ class StartSchedule:
         """Block until the trapezoid is due; False if the scan was cancelled (or its command
         never written) meanwhile, and then nothing may start.
 
-        The wait is on the hardware clock: woken by :meth:`cancel`, and otherwise at the due
-        time converted to real seconds at ``time_scale`` (re-checked on waking, so a clock
-        that ran slow or fast is still honoured).
+        The wait is on the hardware clock's time base: woken by :meth:`cancel`, and otherwise at
+        the due time (re-checked on waking, so a clock that ran slow or fast is still honoured).
         """
         with self._cond:
             if not self._cond.wait_for(
-                lambda: self._cancelled or self._written_at is not None, WRITE_WAIT_S
+                lambda: self._cancelled or self._written_at is not None,
+                self._timebase.timeout_hw(WRITE_WAIT_S),
+                what="BI_ACQUIRE written",
             ):
                 return False
             while not self._cancelled:
@@ -118,5 +121,5 @@ class StartSchedule:
                 if remaining <= 0.0:
                     self._started_at = self._clock()
                     return True
-                self._cond.wait(remaining / self._scale)
+                self._cond.wait(remaining, what="the trapezoid's start")
             return False

@@ -40,8 +40,8 @@ BI_START_CONTINUOUS; ``biris_cmd_notifier`` lowers the flag once BI_STOP_CONTINU
 from __future__ import annotations
 
 import logging
+import math
 import threading
-import time
 from collections.abc import Callable
 
 from biris_hw.axes.base import MotionAxis
@@ -70,6 +70,7 @@ from biris_hw.server.messages import (
     TransferOrder,
 )
 from biris_hw.server.task_table import Restart
+from biris_hw.timebase import HwThread, ScaledTime, StopEvent, TimeBase
 from regs.biexec import BiCommand, BiStatus
 
 __all__ = [
@@ -175,9 +176,10 @@ class Supervisor:
     ADMIN_BACKOFF_MAX_S = 1.0
     """Longest pause between two restarts of a task restarted at once, when it keeps failing."""
 
-    def __init__(self, admin: Mailbox) -> None:
+    def __init__(self, admin: Mailbox, timebase: TimeBase | None = None) -> None:
         self._admin = admin
-        self._cond = threading.Condition()
+        self._timebase = timebase if timebase is not None else ScaledTime()
+        self._cond = self._timebase.Condition()
         self._resets = 0
         self._closed = False
         self._down: dict[str, int] = {}
@@ -207,8 +209,11 @@ class Supervisor:
     def wait_down(self, name: str, timeout: float | None = None) -> bool:
         """Block until task ``name`` is waiting for a reset (True) or ``timeout`` passes; for
         tests, which must not sleep to find that out."""
+        timeout_hw = None if timeout is None else self._timebase.timeout_hw(timeout)
         with self._cond:
-            return self._cond.wait_for(lambda: name in self._down, timeout)
+            return self._cond.wait_for(
+                lambda: name in self._down, timeout_hw, what=f"task {name!r} down"
+            )
 
     def reset(self) -> None:
         """The server's reset: every task waiting after a failure runs its body again.
@@ -260,13 +265,18 @@ class Supervisor:
             if restart is Restart.NEVER:
                 return
             if restart is Restart.AT_ONCE:
-                now = time.monotonic()
-                repeated = now - last_failure < self.ADMIN_BACKOFF_MAX_S
+                # the back-off is the caller's seconds, on the time base (in virtual time a
+                # task failing over and over must still let time pass between restarts)
+                tb = self._timebase
+                now = tb.now()
+                repeated = now - last_failure < tb.timeout_hw(self.ADMIN_BACKOFF_MAX_S)
                 pause = min(self.ADMIN_BACKOFF_MAX_S, max(0.001, 2 * pause)) if repeated else 0.0
                 last_failure = now
                 with self._cond:
                     self._down.pop(name, None)
-                    if self._cond.wait_for(lambda: self._closed, pause):
+                    if self._cond.wait_for(
+                        lambda: self._closed, tb.timeout_hw(pause), what=f"{name} back-off"
+                    ):
                         return
             elif not self._await_reset(name):
                 return
@@ -310,7 +320,9 @@ class Supervisor:
         """Wait, after a failure, for the next reset (True) or the server's close (False)."""
         with self._cond:
             failed_at = self._down.get(name, self._resets)
-            self._cond.wait_for(lambda: self._closed or self._resets != failed_at)
+            self._cond.wait_for(
+                lambda: self._closed or self._resets != failed_at, what=f"reset ({name} down)"
+            )
             self._down.pop(name, None)
             self._cond.notify_all()
             return not self._closed
@@ -330,8 +342,9 @@ class CommandLedger:
     lock, so a completion always names the command it completes (or is recognised as stale).
     """
 
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
+    def __init__(self, timebase: TimeBase | None = None) -> None:
+        # on the time base: COMMAND is read under it, and a read may be slowed (TimeBase.Lock)
+        self.lock = (timebase if timebase is not None else ScaledTime()).Lock()
         self.outstanding: TransferOrder | None = None
 
 
@@ -525,7 +538,7 @@ def _axis_notifier(
     line: InterruptLine,
     admin: Mailbox,
     axis: MotionAxis,
-    stop: threading.Event,
+    stop: StopEvent,
     done: type[AzScanDone] | type[ElScanDone],
     reader: AcquisitionReader | None = None,
     moves: MoveLedger | None = None,
@@ -561,7 +574,7 @@ def biris_az_notifier(
     line: InterruptLine,
     admin: Mailbox,
     axis: MotionAxis,
-    stop: threading.Event,
+    stop: StopEvent,
     reader: AcquisitionReader | None = None,
     moves: MoveLedger | None = None,
 ) -> None:
@@ -581,7 +594,7 @@ def el_scan_notifier(
     line: InterruptLine,
     admin: Mailbox,
     axis: MotionAxis,
-    stop: threading.Event,
+    stop: StopEvent,
     moves: MoveLedger | None = None,
 ) -> None:
     """ELEVATION_END_OF_SCAN -> EL_SCAN_DONE, once the tilt has come to rest (the report's
@@ -765,16 +778,15 @@ class DeadlineTimer:
         self,
         name: str,
         admin: Mailbox,
-        clock: Callable[[], float],
-        time_scale: float,
+        timebase: TimeBase,
         make: Callable[[int], object],
     ) -> None:
         self.name = name
         self._admin = admin
-        self._clock = clock
-        self._scale = time_scale
+        self._timebase = timebase
+        self._clock = timebase.now
         self._make = make
-        self._cond = threading.Condition()
+        self._cond = timebase.Condition()
         self._deadline: float | None = None
         self._generation = 0
         self._stopped = False
@@ -782,7 +794,7 @@ class DeadlineTimer:
 
     def start(self) -> None:
         """Run the task in a thread of its own, named :attr:`name`."""
-        thread = threading.Thread(target=self.run, name=self.name, daemon=True)
+        thread = self._timebase.Thread(target=self.run, name=self.name, daemon=True)
         with self._cond:
             if self._thread is not None:
                 raise RuntimeError(f"{self.name} is already running")
@@ -798,11 +810,17 @@ class DeadlineTimer:
 
         ``real_slack_s`` adds real seconds (scaled to hardware time): a watchdog on work that
         threads do (settling polls) must not fire because a busy machine ran them late, which
-        on a fast simulator clock is many hardware seconds.
+        on a fast simulator clock is many hardware seconds. None in virtual time, where work
+        takes no time (:meth:`TimeBase.hw_from_real <biris_hw.timebase.TimeBase.hw_from_real>`).
         """
         with self._cond:
             self._generation += 1
-            deadline = self._clock() + hw_seconds + real_slack_s * self._scale
+            now = self._clock()
+            deadline = now + hw_seconds + self._timebase.hw_from_real(real_slack_s)
+            if hw_seconds > 0.0 and not deadline > now:
+                # a delay too small to show in the sum (an ulp of the clock) is still a delay:
+                # expiring at once would let a re-arm loop spin with time standing still
+                deadline = math.nextafter(now, math.inf)
             sooner = self._deadline is None or deadline < self._deadline
             self._deadline = deadline
             if sooner:
@@ -821,7 +839,10 @@ class DeadlineTimer:
             self._cond.notify()
             thread = self._thread
         if thread is not None and thread is not threading.current_thread():
-            thread.join()
+            if isinstance(thread, HwThread) and thread.timebase is self._timebase:
+                self._timebase.join_thread(thread)
+            else:
+                thread.join()
 
     def run(self) -> None:
         """The task's body, for an owner that makes the thread itself (:meth:`start` runs it
@@ -831,11 +852,11 @@ class DeadlineTimer:
                 self._thread = threading.current_thread()
             while not self._stopped:
                 if self._deadline is None:
-                    self._cond.wait()
+                    self._cond.wait(what=f"{self.name} armed")
                     continue
                 remaining = self._deadline - self._clock()
                 if remaining > 0:
-                    self._cond.wait(remaining / self._scale)
+                    self._cond.wait(remaining, what=f"{self.name} deadline")
                     continue
                 generation = self._generation
                 self._deadline = None

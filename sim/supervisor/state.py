@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from biris_hw.bus.base import BusWindow
+from biris_hw.timebase import HwThread, TimeBase
 from regs.biexec import (
     ACQ_LINE_END,
     BIEXEC_COM_SIZE,
@@ -198,11 +199,14 @@ class SupervisorState(abc.ABC):
         self._elements = memory_map.samples + 1
         self._poison = np.full(self._elements, POISON, dtype=FRAME_DTYPE).tobytes()
 
+        # Every wait of the supervisor goes through the clock's time base, taken once here: the
+        # thread, the kick and the condition belong to it for the object's life.
+        self._tb: TimeBase = clock.timebase
         self._lock = threading.RLock()
-        self._changed = threading.Condition(self._lock)
-        self._kick = threading.Event()
+        self._changed = self._tb.Condition(self._lock)
+        self._kick = self._tb.Event()
         self._stopping = False
-        self._thread: threading.Thread | None = None
+        self._thread: HwThread | None = None
         self._failure: BaseException | None = None
         self._running_due = False
 

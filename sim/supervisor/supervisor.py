@@ -5,6 +5,10 @@ exposure due, polls COMMAND, then starts the next exposure, in that order, so a 
 during an exposure is seen at the field that ends it. Everything the thread changes is
 observable under the lock, and :meth:`BirisSupervisor.wait_for` lets a test wait for any state
 without sleeping.
+
+The thread, its kick and the state condition all belong to the clock's time base
+(:attr:`sim.clock.SimClock.timebase`), so the supervisor runs unchanged on scaled real time or
+on virtual time, where its fields fall at exactly ``k * FIELD_PERIOD`` whatever the host does.
 """
 
 from __future__ import annotations
@@ -36,17 +40,21 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
             self._stopping = False
             self._kick.clear()
             self._shift_schedule()
-            self._thread = threading.Thread(target=self._run, name="biris-supervisor", daemon=True)
+            self._thread = self._tb.Thread(self._run, name="biris-supervisor", daemon=True)
             self._thread.start()
 
     def stop(self) -> None:
-        """Stop the thread and join it; idempotent. State and memory are left as they are."""
+        """Stop the thread and join it; idempotent. State and memory are left as they are.
+
+        The join is a wait in the time base, so a participant (a virtual-time test's own
+        thread) may stop the supervisor: the kick hands the thread its wake at once.
+        """
         with self._lock:
             self._stopping = True
             thread = self._thread
         self._kick.set()
         if thread is not None and thread is not threading.current_thread():
-            thread.join()
+            self._tb.join_thread(thread)
 
     def __enter__(self) -> BirisSupervisor:
         self.start()
@@ -142,13 +150,18 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
             return self._failure
 
     def wait_for(self, predicate: Callable[[BirisSupervisor], bool], timeout: float) -> bool:
-        """Block up to ``timeout`` real seconds until ``predicate(self)`` holds; its last value.
+        """Block up to ``timeout`` seconds of the caller's patience until ``predicate(self)``
+        holds; its last value.
 
         The predicate is re-evaluated whenever the supervisor's state may have changed, so tests
-        can wait for "busy", "acquisition k exposed" and the like without sleeping.
+        can wait for "busy", "acquisition k exposed" and the like without sleeping. ``timeout``
+        is read by the time base (``timeout_hw``): real seconds in scaled time, seconds at the
+        nominal scale in virtual time, so a test keeps its meaning on either.
         """
         with self._changed:
-            return self._changed.wait_for(lambda: predicate(self), timeout)
+            return self._changed.wait_for(
+                lambda: predicate(self), self._tb.timeout_hw(timeout), what="supervisor state"
+            )
 
     def catch_up(self) -> None:
         """Do now whatever was due by now, on the caller's thread.
@@ -207,8 +220,9 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
                     hung = self._hung_since is not None
                     wake = self._fields.next_wake()
                 if hung:
-                    self._kick.wait()
+                    self._kick.wait(what="supervisor unhang")
                     continue
+                # labelled "next field" by the clock (a test's stand-in clock takes no label)
                 if not self._clock.wait_until(wake, self._kick):
                     continue
                 with self._changed:
