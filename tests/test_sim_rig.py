@@ -1,18 +1,22 @@
-"""SimulatedBiris as a whole: what it hands a driver, reproducibility, and a clean shutdown."""
+"""SimulatedBiris as a whole: what it hands a driver, reproducibility, and a clean shutdown.
+
+Every rig here runs on virtual time (issue 22): hardware time moves only while the test waits
+through the rig's time base, so what each test sees does not depend on the host's speed.
+"""
 
 from __future__ import annotations
-
-import threading
 
 import pytest
 
 import sim
 from biris_hw import BirisHardware
 from biris_hw.irq.eventfd import EventFdLine
+from biris_hw.timebase import HwEvent
 from regs import biexec
 from regs.layout import BirisMemoryMap
 from regs.tech80 import MOTION_WINDOW_SIZE
 from sim import POISON, Scene, SimulatedBiris
+from sim.clock import SimClock
 from sim.ramdisk import BOOT_FILE
 from tests.conftest import until
 
@@ -23,7 +27,9 @@ def test_the_design_names_are_there() -> None:
 
 
 def test_the_hardware_bundle_describes_the_target(no_leaks: None) -> None:
-    with SimulatedBiris(scene=Scene.circle(2.0), samples=128, time_scale=20.0, seed=1) as rig:
+    with SimulatedBiris(
+        scene=Scene.circle(2.0), samples=128, time_scale=20.0, seed=1, clock="virtual"
+    ) as rig:
         hw = rig.hardware
         assert isinstance(hw, BirisHardware)
         mm = BirisMemoryMap(samples=128)
@@ -40,14 +46,18 @@ def test_the_hardware_bundle_describes_the_target(no_leaks: None) -> None:
 
 
 def test_a_seed_fixes_where_the_head_wakes_up(no_leaks: None) -> None:
-    with SimulatedBiris(seed=5) as a, SimulatedBiris(seed=5) as b, SimulatedBiris(seed=6) as c:
+    with (
+        SimulatedBiris(seed=5, clock="virtual") as a,
+        SimulatedBiris(seed=5, clock="virtual") as b,
+        SimulatedBiris(seed=6, clock="virtual") as c,
+    ):
         assert a.azimuth_counts == pytest.approx(b.azimuth_counts, abs=0.01)
         assert a.azimuth_counts != pytest.approx(c.azimuth_counts, abs=0.01)
         assert -2048 <= a.azimuth_counts < 2048
 
 
 def test_shutdown_leaves_no_thread_or_descriptor(no_leaks: None) -> None:
-    rig = SimulatedBiris(time_scale=30.0)
+    rig = SimulatedBiris(time_scale=30.0, clock="virtual")
     rig.start()
     rig.faults.coalesce_interrupts(True)  # pending timers must be cancelled too
     rig.faults.spurious_interrupt()
@@ -60,28 +70,30 @@ def test_shutdown_leaves_no_thread_or_descriptor(no_leaks: None) -> None:
 def test_a_buffer_of_the_callers_holds_biris_memory(no_leaks: None) -> None:
     mm = BirisMemoryMap()
     buffer = bytearray(mm.size)
-    with SimulatedBiris(biris_buffer=memoryview(buffer), time_scale=20.0) as rig:
+    with SimulatedBiris(biris_buffer=memoryview(buffer), time_scale=20.0, clock="virtual") as rig:
         rig.hardware.biris.write16(mm.biexec_offset + biexec.OFF_PARAM, 0x4142)
         assert buffer[mm.biexec_offset + biexec.OFF_PARAM] == 0x41
     with pytest.raises(ValueError):
-        SimulatedBiris(biris_buffer=bytearray(16))
+        SimulatedBiris(biris_buffer=bytearray(16), clock="virtual")
 
 
 class _StarvingClock:
     """The supervisor's view of the clock, with a thread that never gets to run: every wait
-    blocks until the test lets go, as on a host too busy to schedule it."""
+    blocks until the test lets go, as on a host too busy to schedule it. The block is a wait
+    through the rig's time base that only the release ends, so hardware time runs on without
+    the thread (as a busy host's would) while the test waits."""
 
-    def __init__(self, clock: sim.SimClock) -> None:
+    def __init__(self, clock: SimClock) -> None:
         self._clock = clock
-        self.release = threading.Event()
-        self.waiting = threading.Event()
+        self.release = clock.timebase.Event()
+        self.waiting = clock.timebase.Event()
 
     def now(self) -> float:
         return self._clock.now()
 
-    def wait_until(self, t_hw: float, stop: threading.Event) -> bool:
+    def wait_until(self, t_hw: float, stop: HwEvent) -> bool:
         self.waiting.set()
-        while not self.release.wait(0.05):
+        while not self.release.wait(1.0, what="a starved supervisor"):
             if stop.is_set():
                 return False
         return self._clock.wait_until(t_hw, stop)
@@ -89,12 +101,12 @@ class _StarvingClock:
 
 def test_a_starved_supervisor_is_caught_up_by_the_drivers_reads(no_leaks: None) -> None:
     """BIRIS never lags the video fields: a driver read does what the starved thread has not."""
-    rig = SimulatedBiris(time_scale=20.0)
+    rig = SimulatedBiris(time_scale=20.0, clock="virtual")
     starving = _StarvingClock(rig.clock)
     rig.supervisor._clock = starving  # type: ignore[assignment]
     try:
         rig.start()
-        assert starving.waiting.wait(5.0)  # the thread is stuck from here on
+        until(starving.waiting.is_set, what="the supervisor's first wait")  # stuck from here on
         hw = rig.hardware
         command = hw.biexec_offset + biexec.OFF_COMMAND
         hw.biris.write16(command, 99)  # unknown: refused at the next field, after a jitter
@@ -115,7 +127,7 @@ def test_a_hook_reading_biris_memory_from_inside_an_event_is_not_a_recursion(
     no_leaks: None,
 ) -> None:
     """An interrupt hook runs inside the supervisor's field; its read must not start it over."""
-    with SimulatedBiris(time_scale=20.0) as rig:
+    with SimulatedBiris(time_scale=20.0, clock="virtual") as rig:
         hw = rig.hardware
         base = hw.biexec_offset
 

@@ -4,7 +4,8 @@ amplifier, a locked shaft), and the supervisor's bounded memory.
 
 Most tests step the models by hand (a plant, or the board on a clock that moves only when told),
 so they are exact and fast; the rig-level ones check the wiring a driver meets, through the
-registers and the level-3 line.
+registers and the level-3 line, on virtual time (issue 22): hardware time moves only while the
+test waits through the rig's time base, so they are exact too.
 """
 
 from __future__ import annotations
@@ -280,6 +281,7 @@ def _start_rig(**options: object) -> SimulatedBiris:
     options.setdefault("scene", Scene.circle(2.0))
     options.setdefault("time_scale", 20.0)
     options.setdefault("seed", 11)
+    options.setdefault("clock", "virtual")
     return SimulatedBiris(**options).start()  # type: ignore[arg-type]
 
 

@@ -257,10 +257,10 @@ class Blocked:
 def test_an_idle_drives_emcy_reaches_every_blocked_caller_at_once_and_reset_recovers(
     axis: Axis, code: int, kind: str
 ) -> None:
-    """Both drives stand holding while the server is busy without them: a single scan waits
-    for BIRIS, which hangs before its sequence starts (the BIRIS timeout off, so nothing else
-    can end the wait). One drive reports an EMCY: every blocked caller holds a fault of the
-    EMCY table's kind (``motor_stall``, or ``bus`` for a communication error) within
+    """Both drives stand holding while the server is busy without them: a single scan's move
+    has ended and the scan waits for BIRIS, which hangs in its sequence (the BIRIS timeout off,
+    so nothing else can end the wait). One drive reports an EMCY: every blocked caller holds a
+    fault of the EMCY table's kind (``motor_stall``, or ``bus`` for a communication error) within
     :data:`EMCY_TOLD_WITHIN_S`, the level-3 routine having raised it; not, as before, only
     when the next move is asked for. The server runs on; the reset's chip reset clears the
     drive's FAULT, and the axis moves again, every audit clean."""
@@ -275,7 +275,13 @@ def test_an_idle_drives_emcy_reaches_every_blocked_caller_at_once_and_reset_reco
             conn = server.open()
             conn.timeout_disable()
             rig.faults.hang_supervisor()
-            conn.single_scan(20.0)  # its motor waits for the sequence, which never starts
+            conn.single_scan(20.0)  # BIRIS never completes its sequence: the scan never ends
+            # the trapezoid starts on the scan's schedule (BI_ACQUIRE written, docs/design.md),
+            # hung BIRIS or not: the pan drives to 20 degrees and stands holding there
+            until(
+                lambda: not axes.pan.profile_active() and abs(rig.azimuth_counts - 228) <= 2,
+                what="the pan standing at 20 degrees",
+            )
             blocked = Blocked(server)
             blocked.block()
             assert server.status()["state"] == "scanning"
