@@ -30,8 +30,8 @@ UNITS = {
     "sweep_gap_ms": "ms",
 }
 """Unit of each section's figures..."""
-KEY_UNITS = {"latency_us.server_over_floor": "x"}
-"""... but for these, a ratio in a section of times."""
+KEY_UNITS = {"latency_us.server_over_floor": "x", "throughput.virtual_ceiling": "acq/cpu-s"}
+"""... but for these: a ratio in a section of times, a CPU cost beside a rate."""
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +79,8 @@ def test_section_runs_in_quick_mode(section: str, quick_run: Callable[[str], Out
     for fig in measured:
         if fig.key == "latency_us.server_over_floor":
             assert fig.values["ratio"] > 0
+        elif fig.key == "throughput.virtual_ceiling":
+            assert fig.values["acq_per_cpu_s"] > 0 and fig.values["acquisitions"] > 0
         elif section == "throughput":
             assert fig.values["acq_per_s"] > 0
             assert fig.values["samples"] == 128
