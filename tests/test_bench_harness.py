@@ -6,7 +6,6 @@ import json
 import math
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -179,9 +178,7 @@ def test_interleaved_rounds_rotate_who_goes_first() -> None:
 @pytest.mark.slow
 def test_registers_quick_run_gives_positive_figures(tmp_path: Path) -> None:
     pytest.importorskip("periphery")
-    started = time.perf_counter()
     doc = run(registry, tmp_path, "--only", "registers", "--quick")
-    assert time.perf_counter() - started < 5.0
     section = doc["registers"]
     assert section["status"] == "ok", section.get("error")
     figures = section["figures"]
@@ -254,9 +251,7 @@ def test_transport_vmusb_is_a_section_and_counts_the_transfers_of_one_access() -
     from benchmarks.transport_vmusb import register_costs
 
     assert "transport_vmusb" in SECTIONS and "transport_vmusb" in registry.benchmarks()
-    started = time.perf_counter()
     figures = {f.name: f for f in register_costs(rounds=1, batch_ms=1)}
-    assert time.perf_counter() - started < 2.0
     assert set(figures) == {
         f"register_{op}{armed}"
         for op in ("read8", "read16", "frame129")

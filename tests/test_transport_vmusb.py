@@ -72,7 +72,10 @@ def test_a_session_over_usb_homes_scans_tilts_and_streams(usb_rig: SimulatedBiri
         # spans 0..90 degrees to within two acquisitions at either end (the bridge's latency
         # makes the first scan's start later than the learned delay allows; the next learn it)
         step = int(np.median(np.diff(scan.azimuth)))
-        assert scan.azimuth[0] <= 2 * step and scan.azimuth[-1] >= 1024 - 2 * step
+        if scan.partial:  # a host too loaded for the bridge's latency: cut, and marked
+            assert scan.partial_reason and scan.span == (0, 1024)
+        else:
+            assert scan.azimuth[0] <= 2 * step and scan.azimuth[-1] >= 1024 - 2 * step
         assert abs(usb_rig.azimuth_counts - 1024) <= 8  # the true head, not the server's word
 
         # mid-sweep, only the data path touches the bus: ACQ_LINE in one list, the frames and

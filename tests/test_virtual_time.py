@@ -115,3 +115,15 @@ def test_virtual_time_needs_a_rig_the_time_base_can_see() -> None:
             SimulatedBiris(clock="virtual", **options)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="clock"):
         SimulatedBiris(clock="wall")
+
+
+def test_biris_scan_on_virtual_time_and_watch_refuses_it(biris: Any) -> None:
+    """``biris scan --sim --clock virtual`` returns its scan; a command that serves or shows the
+    sensor as time passes keeps scaled time and says so."""
+    sim = ["--sim", "--scene", "circle:2", "--seed", "3", "--clock", "virtual"]
+    code, out, err = biris("scan", "--to", "30", *sim)
+    assert code == 0, err
+    assert "acquisitions over" in out and "dropped 0" in out
+    code, _, err = biris("watch", "--duration", "0.1", *sim)
+    assert code != 0
+    assert "--clock virtual does not apply to biris watch" in err
