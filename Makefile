@@ -17,14 +17,14 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 test: $(STAMP)
-	$(PYTEST) -m "not slow" -q
+	$(PYTEST) -m "not slow" -q -n auto
 
 test-slow: $(STAMP)
 	$(PYTEST) -m slow -q
 
 # The fast tier with three CPU-bound processes beside it (sim.hostload), as on a shared machine.
 test-under-load: $(STAMP)
-	$(PY) tools/under_load.py --processes 3 -- $(PYTEST) -m "not slow" -q
+	$(PY) tools/under_load.py --processes 3 -- $(PYTEST) -m "not slow" -q -n auto
 
 demo: $(STAMP)
 	$(VENV)/bin/biris demo

@@ -278,6 +278,24 @@ virtual time, or at least one on scaled real time. Shown at the end of the run."
 _SCALED_BY_MODULE: dict[str, int] = {}
 
 
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """An xdist worker hands its tally to the controller, which prints the summary."""
+    workeroutput = getattr(session.config, "workeroutput", None)
+    if workeroutput is not None:
+        workeroutput["clock_tally"] = dict(_CLOCK_TALLY)
+        workeroutput["scaled_by_module"] = dict(_SCALED_BY_MODULE)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node: Any, error: object) -> None:
+    """(xdist controller) add a finished worker's tally to this process's."""
+    output = getattr(node, "workeroutput", {})
+    for kind, n in output.get("clock_tally", {}).items():
+        _CLOCK_TALLY[kind] += n
+    for module, n in output.get("scaled_by_module", {}).items():
+        _SCALED_BY_MODULE[module] = _SCALED_BY_MODULE.get(module, 0) + n
+
+
 def pytest_terminal_summary(terminalreporter: Any) -> None:
     """The virtual-time tier's share of the end-to-end tests run (issue 22: at least 80 %)."""
     total = _CLOCK_TALLY["virtual"] + _CLOCK_TALLY["scaled"]

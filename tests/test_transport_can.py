@@ -84,7 +84,10 @@ def test_a_session_over_can_homes_scans_tilts_and_streams(can_rig: SimulatedBiri
         scan = conn.request_scan_data(Direction.CCW)
         assert scan is not None and scan.dropped == 0
         step = int(np.median(np.diff(scan.azimuth)))
-        assert scan.azimuth[0] <= 2 * step and scan.azimuth[-1] >= 1024 - 2 * step
+        if scan.partial:  # a host too loaded for the bus's latency: cut, and marked
+            assert scan.partial_reason and scan.span == (0, 1024)
+        else:
+            assert scan.azimuth[0] <= 2 * step and scan.azimuth[-1] >= 1024 - 2 * step
         assert abs(rig.azimuth_counts - 1024) <= 8  # the true head, not the server's word
 
         # _Scan_limit: a request beyond a revolution stops at +0x1000, on the drive too
