@@ -102,13 +102,14 @@ def test_recorded_timing_is_kept_at_the_speed_asked(tmp_path: Path) -> None:
     span = scans[-1].t_delivered - scans[0].t[0]  # type: ignore[operator]
     path = write_raw(tmp_path / "run.mcap", scans)
     speed = 4.0
+    begun = time.monotonic()  # before the replay's clock starts: it is never faster than asked
     with ReplayServer(path, speed=speed) as replay:
         data = replay.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_BUFFER)
-        begun = time.monotonic()
         got = _drain(data)
         took = time.monotonic() - begun
     assert len(got) == 2
-    assert span / speed * 0.9 <= took < span / speed + 2.0
+    # a loaded host may make it later (a few real seconds allowed), never earlier
+    assert span / speed * 0.9 <= took < span / speed + 5.0
 
 
 def test_not_a_recording_is_a_replay_error(tmp_path: Path) -> None:
