@@ -428,7 +428,8 @@ def sim_process() -> Iterator[str]:
 
         resource_tracker.ensure_running()
     name = f"biris-cli-test-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    command = [sys.executable, "-m", "sim.process", "--shm", name, "--time-scale", "20"]
+    # another process: scaled time, at a scale a loaded host keeps up with (SCALED_TIME_SCALE)
+    command = [sys.executable, "-m", "sim.process", "--shm", name, "--time-scale", "10"]
     proc = subprocess.Popen(
         [*command, "--scene", "circle:2", "--seed", "3"],
         stdout=subprocess.PIPE,

@@ -289,7 +289,9 @@ def test_a_long_move_on_a_real_head_needs_yes(
     assert first.startswith("CCW #1: ") and span is not None, first
     # the long move was made (how close its last acquisition comes to 200 depends on the host's
     # latency on a first scan, README "What a scan covers"; test_scan_coverage judges that)
-    assert 180.0 < float(span[2]) <= 200.2, first  # the head may stand a count or two past
+    if "partial sweep" not in first:  # a loaded host may cut the first scan: it is marked
+        assert 180.0 < float(span[2]) <= 200.2, first  # the head may stand a count or two past
+    assert float(span[2]) <= 200.2, first
 
 
 def test_a_sweep_wider_than_half_a_turn_on_a_real_head_needs_yes(
