@@ -169,14 +169,15 @@ def test_a_driver_in_another_process_scans_and_regdump_watches(sim_process: SimP
             dest = conn.single_scan(30.0)
             conn.wait_idle(timeout=WAIT)
             scan = conn.request_scan_data(Direction.CCW)
-            assert scan is not None and scan.n_acq > 0 and scan.dropped == 0
-            valid = scan.range_mm[scan.range_mm > 0]
-            assert valid.size > 0.9 * scan.range_mm.size
-            assert np.all(np.abs(valid.astype(np.int64) - 2000) < 200)
-            step = (dest - start) / scan.n_acq  # within 1.5 acquisitions of the destination
+            assert scan is not None and scan.dropped == 0
             if scan.partial:  # a host too loaded for the processes' latency: cut, and marked
                 assert scan.partial_reason and scan.span == (start, dest)
             else:
+                assert scan.n_acq > 0
+                valid = scan.range_mm[scan.range_mm > 0]
+                assert valid.size > 0.9 * scan.range_mm.size
+                assert np.all(np.abs(valid.astype(np.int64) - 2000) < 200)
+                step = (dest - start) / scan.n_acq  # within 1.5 acquisitions of the destination
                 assert abs(int(scan.azimuth[-1]) - dest) <= 1.5 * step
 
             with pytest.raises(BusError, match="already has a driver attached") as refused:
