@@ -83,10 +83,10 @@ def test_a_session_over_can_homes_scans_tilts_and_streams(can_rig: SimulatedBiri
         conn.wait_idle(timeout=WAIT)
         scan = conn.request_scan_data(Direction.CCW)
         assert scan is not None and scan.dropped == 0
-        step = int(np.median(np.diff(scan.azimuth)))
-        if scan.partial:  # a host too loaded for the bus's latency: cut, and marked
+        if scan.partial:  # a host too loaded for the bus's latency: cut (even empty), marked
             assert scan.partial_reason and scan.span == (0, 1024)
         else:
+            step = int(np.median(np.diff(scan.azimuth)))
             assert scan.azimuth[0] <= 2 * step and scan.azimuth[-1] >= 1024 - 2 * step
         assert abs(rig.azimuth_counts - 1024) <= 8  # the true head, not the server's word
 

@@ -71,15 +71,15 @@ def test_a_session_over_usb_homes_scans_tilts_and_streams(usb_rig: SimulatedBiri
         conn = server.open()
         counters = usb_rig.usb_device.counters  # type: ignore[union-attr]
         conn.single_scan(90.0)
-        conn.wait_idle(timeout=WAIT)
+        conn.wait_idle(timeout=SLOW_WAIT)
         scan = conn.request_scan_data(Direction.CCW)
         assert scan is not None and scan.dropped == 0
         # spans 0..90 degrees to within two acquisitions at either end (the bridge's latency
         # makes the first scan's start later than the learned delay allows; the next learn it)
-        step = int(np.median(np.diff(scan.azimuth)))
-        if scan.partial:  # a host too loaded for the bridge's latency: cut, and marked
+        if scan.partial:  # a host too loaded for the bridge's latency: cut (even empty), marked
             assert scan.partial_reason and scan.span == (0, 1024)
         else:
+            step = int(np.median(np.diff(scan.azimuth)))
             assert scan.azimuth[0] <= 2 * step and scan.azimuth[-1] >= 1024 - 2 * step
         assert abs(usb_rig.azimuth_counts - 1024) <= 8  # the true head, not the server's word
 
