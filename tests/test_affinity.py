@@ -78,7 +78,7 @@ def test_a_server_keeps_every_thread_on_its_cpus(no_leaks: None) -> None:
     me = threading.current_thread()
     mine = _affinity(me)
     existing = set(threading.enumerate())
-    with SimulatedBiris(time_scale=20.0) as rig:
+    with SimulatedBiris(time_scale=20.0, clock="virtual") as rig:
         simulator = set(threading.enumerate()) - existing
         with BirisServer(rig.hardware, BirisInitRecord(cpus=(one,))) as server:
             assert _affinity(me) == mine  # the caller's thread is given back as it was
@@ -94,7 +94,7 @@ def test_a_server_keeps_every_thread_on_its_cpus(no_leaks: None) -> None:
 
 def test_a_server_asked_for_cpus_it_cannot_have_starts_nothing(no_leaks: None) -> None:
     outside = max(available_cpus()) + 1
-    with SimulatedBiris(time_scale=20.0) as rig:
+    with SimulatedBiris(time_scale=20.0, clock="virtual") as rig:
         before = set(threading.enumerate())
         with pytest.raises(RequestError, match="not available"):
             BirisServer(rig.hardware, BirisInitRecord(cpus=(outside,)))
@@ -112,7 +112,7 @@ def test_a_platform_that_forbids_affinity_is_a_request_error(
     one = min(available_cpus())
     with pytest.raises(RequestError, match="cannot keep this thread on"):
         pin_current_thread({one})
-    with SimulatedBiris(time_scale=20.0) as rig:
+    with SimulatedBiris(time_scale=20.0, clock="virtual") as rig:
         before = set(threading.enumerate())
         with pytest.raises(RequestError, match="cannot keep this thread on"):
             BirisServer(rig.hardware, BirisInitRecord(cpus=(one,)))

@@ -106,10 +106,13 @@ def test_check_goes_with_no_other_output(biris: Run, tmp_path: Path) -> None:
 
 def test_check_passes_a_recording_of_the_simulator(biris: Run, tmp_path: Path) -> None:
     """Continuous sweeps of the simulator, recorded: every scan keeps the invariants (the test
-    suite's own check judges the same scans as the server delivered them)."""
+    suite's own check judges the same scans as the server delivered them). On virtual time, as
+    test_record's sweep: the recorder's feed is an outsider that only polls."""
     out = tmp_path / "live.mcap"
     received: list[Scan] = []
-    with SimulatedBiris(scene=Scene.circle(2.0), samples=64, time_scale=8.0, seed=5) as rig:
+    with SimulatedBiris(
+        scene=Scene.circle(2.0), samples=64, time_scale=8.0, seed=5, clock="virtual"
+    ) as rig:
         rig.start()
         record = BirisInitRecord(continuous_acquisition=True)
         with BirisServer(rig.hardware, record) as server:
