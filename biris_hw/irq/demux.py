@@ -51,7 +51,7 @@ import os
 import select
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Hashable, Iterable, Iterator
+from collections.abc import Callable, Collection, Hashable, Iterable, Iterator
 from types import TracebackType
 from typing import Any, Generic, TypeVar
 
@@ -313,15 +313,9 @@ class Demultiplexer(ABC, Generic[K]):
         """Serve until the stop descriptor is written; LineClosed once the physical line is
         closed, and whatever the line's wait or ``_service`` raised."""
         line_fd = self._line.fileno()  # LineClosed if it is closed already
-        if self._virtual is not None:
-            self._serve_virtual(self._virtual, line_fd)
-            return
-        poller = select.poll()
-        poller.register(self._stop_fd, select.POLLIN)
-        poller.register(line_fd, select.POLLIN | select.POLLERR)
-        poller.register(self._look_fd, select.POLLIN)
+        ready_fds = self._waiter(line_fd)
         while True:
-            ready = dict(poller.poll())
+            ready = ready_fds()
             if self._stop_fd in ready:  # checked first: shutdown wins over an interrupt flood
                 return
             if line_fd in ready:
@@ -333,23 +327,19 @@ class Demultiplexer(ABC, Generic[K]):
                     os.eventfd_read(self._look_fd)
                 self._look()
 
-    def _serve_virtual(self, timebase: TimeBase, line_fd: int) -> None:
-        """:meth:`_serve` in the domain of a virtual ``timebase``: the same loop, polling
-        through it."""
+    def _waiter(self, line_fd: int) -> Callable[[], Collection[int]]:
+        """How the service thread blocks until one of its descriptors is ready: a real poll, or
+        through a virtual time base (which must see the wait)."""
         fds = (self._stop_fd, line_fd, self._look_fd)
-        what = f"{self.name}: its physical interrupt line"
-        while True:
-            ready = timebase.poll(fds, None, what=what)
-            if self._stop_fd in ready:  # checked first: shutdown wins over an interrupt flood
-                return
-            if line_fd in ready:
-                count = self._line.wait(0)
-                if count:
-                    self._service(count)
-            if self._look_fd in ready:
-                with contextlib.suppress(BlockingIOError):
-                    os.eventfd_read(self._look_fd)
-                self._look()
+        timebase = self._virtual
+        if timebase is not None:
+            what = f"{self.name}: its physical interrupt line"
+            return lambda: timebase.poll(fds, None, what=what)
+        poller = select.poll()
+        poller.register(self._stop_fd, select.POLLIN)
+        poller.register(line_fd, select.POLLIN | select.POLLERR)
+        poller.register(self._look_fd, select.POLLIN)
+        return lambda: dict(poller.poll())
 
     def _kick(self, fd: int) -> None:
         """Tell the time base that ``fd`` (the stop or look descriptor) was just written."""

@@ -105,18 +105,27 @@ class PollLine(FdLine):
     # -- the polling thread ----------------------------------------------------------------------
     def _run(self) -> None:
         try:
-            if self.timebase is not None:
-                self._poll_loop_on(self.timebase)
-            else:
-                self._poll_loop()
+            self._poll_loop()
         finally:
             if self._closed_by_thread:
                 super().close()
 
     def _poll_loop(self) -> None:
-        poller = select.poll()
-        poller.register(self._halt_fd, select.POLLIN)
-        due = time.monotonic()
+        """Check the predicate every period until halted: on the monotonic clock with a real
+        poll, or in a time base's hardware seconds, waiting through it."""
+        timebase = self.timebase
+        now: Callable[[], float]
+        halted: Callable[[float], bool]
+        if timebase is not None:
+            halt = (self._halt_fd,)
+            now = timebase.now
+            halted = lambda s: bool(timebase.poll(halt, s, what="poll line period"))  # noqa: E731
+        else:
+            poller = select.poll()
+            poller.register(self._halt_fd, select.POLLIN)
+            now = time.monotonic
+            halted = lambda s: bool(poller.poll(max(1, math.ceil(s * 1000.0))))  # noqa: E731
+        due = now()
         while True:
             try:
                 fired = self._predicate()
@@ -128,33 +137,11 @@ class PollLine(FdLine):
                 return
             if fired and not self._raise_pending():
                 return
-            now = time.monotonic()
+            t = now()
             due += self._period
-            if due <= now:  # overran: skip the missed checks instead of catching up in a burst
-                due = now + self._period
-            if poller.poll(max(1, math.ceil((due - now) * 1000.0))):
-                return
-
-    def _poll_loop_on(self, timebase: TimeBase) -> None:
-        """:meth:`_poll_loop` in ``timebase``'s hardware seconds, waiting through it."""
-        halt = (self._halt_fd,)
-        due = timebase.now()
-        while True:
-            try:
-                fired = self._predicate()
-                if fired and self._acknowledge is not None:
-                    self._acknowledge()
-            except Exception as exc:
-                log.error("poll line stopped: its predicate or acknowledgement raised %r", exc)
-                self._raise_pending(error=exc)
-                return
-            if fired and not self._raise_pending():
-                return
-            now = timebase.now()
-            due += self._period
-            if due <= now:  # overran: skip the missed checks instead of catching up in a burst
-                due = now + self._period
-            if timebase.poll(halt, due - now, what="poll line period"):
+            if due <= t:  # overran: skip the missed checks instead of catching up in a burst
+                due = t + self._period
+            if halted(due - t):
                 return
 
     def _raise_pending(self, error: Exception | None = None) -> bool:
