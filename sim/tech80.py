@@ -24,6 +24,7 @@ plant, e.g. ``with board.lock: board.plants[0].stalled = True``.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -31,7 +32,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from biris_hw.timebase import HwThread
+from biris_hw.timebase import HwThread, VirtualTimeDeadlock
 from regs.hctl1000 import HCTL_SPACE
 from regs.tech80 import MOTION_WINDOW_SIZE, MOTOR_IRQ_LEVEL, AxisBit, BoardReg
 from sim.audit import Audit, Rule
@@ -41,6 +42,8 @@ from sim.hctl1000 import ACCESS_TICKS, HEAD_LIMIT_COUNTS, Hctl1000
 from sim.motor import MotorPlant
 
 __all__ = ["Model7600"]
+
+log = logging.getLogger(__name__)
 
 _AXIS_BITS = (int(AxisBit.AZIMUTH), int(AxisBit.ELEVATION))
 _POLL_REAL_S = 0.002
@@ -190,6 +193,11 @@ class Model7600:
                         self._wake.wait(
                             clock.timeout_until(wake, now), what="model7600 next profile end"
                         )
+                    except VirtualTimeDeadlock:
+                        # the domain is dead and the driver was told who waited on what: the
+                        # board stops with it rather than raise the same report a second time
+                        log.debug("Model 7600 thread stopped by a virtual time deadlock")
+                        return
                     finally:
                         self._wake_at = math.inf
                     continue

@@ -69,6 +69,7 @@ class FaultNotice:
         self._prog = prog_of(args)
         self._hint = recovery_hint(args)
         self._going_on = going_on
+        self._faults_seen: int | None = None
         self.fault: HardwareFault | None = None
         """The fault the server is in, as of the last status seen; None outside a fault."""
 
@@ -77,20 +78,46 @@ class FaultNotice:
         """Whether the last status seen was a fault."""
         return self.fault is not None
 
+    def met(self, fault: HardwareFault) -> None:
+        """A fault the command met first-hand (a request of its own failed with it): said with
+        its own message even when a reset elsewhere has already cleared it by the time the
+        command reads the status, so a loaded host that looks late still says it."""
+        if self.fault is None or self.fault.kind != fault.kind:
+            self.fault = fault
+            self._say_fault(fault)
+
     def observe(self, status: ServerStatus) -> bool:
         """Take the latest status into account; returns whether it is a fault."""
+        faults = status.counters.get("faults")
+        came_and_went = (
+            faults is not None
+            and self._faults_seen is not None
+            and faults > self._faults_seen
+            and self.fault is None
+        )
+        if faults is not None:
+            self._faults_seen = faults
         if status.state is ServerState.FAULT:
             if self.fault is None or self.fault.kind != status.fault:
                 self.fault = fault_of(self._server, status)
-                self._say(
-                    f"{error_line(self.fault)}; the server stays in this fault until it is "
-                    f"reset: {self._hint}; {self._going_on}"
-                )
+                self._say_fault(self.fault)
             return True
         if self.fault is not None:
             self.fault = None
             self._say(f"the server has left the fault (state {status.state_name})")
+        elif came_and_went:
+            # between two looks the server met a fault and was reset: never silent
+            self._say(
+                f"the server met a hardware fault and was reset between two looks (faults "
+                f"counted: {faults}); its state is {status.state_name}"
+            )
         return False
+
+    def _say_fault(self, fault: HardwareFault) -> None:
+        self._say(
+            f"{error_line(fault)}; the server stays in this fault until it is "
+            f"reset: {self._hint}; {self._going_on}"
+        )
 
     def exit_status(self) -> int:
         """0, or 1 (said on stderr) when the server was in a fault as the command ended."""

@@ -181,7 +181,8 @@ def _serve(
                 with sweeping(server, args.cw, args.ccw, timeout=args.timeout) as sweeps:
                     while not over():
                         sweeps.next(timeout=pause())  # returns at each sweep, or None
-            except HardwareFault:  # the status says it (and the notice with it), below
+            except HardwareFault as exc:  # said first-hand, then the status says what is left
+                notice.met(exc)
                 status = server.status()
                 if not notice.observe(status):  # reset meanwhile: the next sweep waits a turn
                     stop.wait(pause())
