@@ -199,7 +199,7 @@ def _readme_two_terminals() -> list[str]:
 
 
 def test_readme_two_terminal_example_runs_as_written(tmp_path: Path, no_leaks: None) -> None:
-    """README.md, "The sensor as a network service", "Two terminals": each command as written
+    """README.md, "On your robot in five minutes", "Two terminals": each command as written
     (the port substituted, `biris` the installed command), in a folder of its own."""
     lines = _readme_two_terminals()
     assert len(lines) == 4, lines

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import usb.core
 
-from biris_hw import BirisInitRecord, ConnectionKind, Direction, Point
+from biris_hw import BirisInitRecord, ConnectionKind, Direction
 from biris_hw.bus.memory import MemoryWindow
 from biris_hw.bus.vmusb import VmUsbWindow
 from biris_hw.errors import HardwareFault
@@ -38,6 +38,11 @@ from tests.test_lost_target import Callers, _check_bus_everywhere
 TIME_SCALE = 10.0
 
 SLOW_WAIT = 30.0
+
+SCAN_START_END_LISTS = 40
+"""USB lists a single scan may spend beyond its acquisitions' two each: starting the motor and
+BI_ACQUIRE, stopping, BIRIS's completion, an ACQ_LINE read again when a batch straddles the
+ring's slot (measured on a quiet host: 192-243 lists for 109-113 acquisitions, 0-17 beyond)."""
 """Real seconds for a wait on the USB rig's progress (scaled time: every register access is a
 simulated transfer with its round trip, and its threads are the host's to schedule): a few
 seconds on a quiet machine, several times that beside three CPU-bound processes."""
@@ -83,26 +88,19 @@ def test_a_session_over_usb_homes_scans_tilts_and_streams(usb_rig: SimulatedBiri
             assert scan.azimuth[0] <= 2 * step and scan.azimuth[-1] >= 1024 - 2 * step
         assert abs(usb_rig.azimuth_counts - 1024) <= 8  # the true head, not the server's word
 
-        # mid-sweep, only the data path touches the bus: ACQ_LINE in one list, the frames and
-        # the azimuth entry in another (request_point reads no register)
-        before = conn.request_point()
-        assert before is not None
-
-        def new_point(at_least: int) -> Point | None:
-            p = conn.request_point()
-            fresh = p is not None and p.t > before.t and p.acq >= at_least
-            return p if fresh else None
-
+        # while a scan runs, only the data path touches the bus: ACQ_LINE in one list, the frames
+        # and the azimuth entry in another (request_point and request_scan_data read no
+        # register), plus the scan's start and end (motor, BI_ACQUIRE, completion). Counted over
+        # the whole scan from the device's and the server's counters, so a loaded host that
+        # looks late sees the same figures (a 450-degree scan at x10 lasts about 0.4 s)
+        read = server.status().counters["acquisitions_read"]  # status() reads encoders: first
+        lists = counters.immediate_lists
         conn.single_scan(-360.0)
-        # every access a USB transfer, in real time: a loaded host takes its time (SLOW_WAIT)
-        until(lambda: new_point(10), SLOW_WAIT, what="the tenth acquisition of the new scan")
-        first, lists = new_point(10), counters.immediate_lists
-        assert first is not None
-        until(lambda: new_point(first.acq + 20), SLOW_WAIT, what="twenty more")
-        last, spent = new_point(first.acq + 20), counters.immediate_lists - lists
-        assert last is not None
-        assert spent / (last.acq - first.acq) <= 2.0 + 2.0 / (last.acq - first.acq)
         conn.wait_idle(timeout=SLOW_WAIT)
+        spent = counters.immediate_lists - lists
+        read = server.status().counters["acquisitions_read"] - read
+        assert read > 0
+        assert spent <= 2 * read + SCAN_START_END_LISTS, (spent, read)
 
         conn.set_elevation(10.0)
         conn.wait_idle(timeout=WAIT)
