@@ -131,7 +131,7 @@ def _match(
 def _latency_phase(
     ctx: BenchContext, n_subs: int, seconds: float, samples: int = 64
 ) -> tuple[list[list[float]], list[float], dict[str, float]]:
-    from biris_hw.net import serve
+    from biris_hw.io.net import serve
 
     period_us = acquisition_period_s(samples) * 1e6
     where = f"tcp/127.0.0.1:{_port()}"
@@ -279,7 +279,7 @@ class _Firehose:
 
 
 def _throughput(ctx: BenchContext) -> Figure:
-    from biris_hw.net import serve
+    from biris_hw.io.net import serve
 
     samples = 128
     sensor_rate = 1.0 / acquisition_period_s(samples)
@@ -339,7 +339,7 @@ def _throughput(ctx: BenchContext) -> Figure:
 
 
 def _sub(where: str, name: str, wait_status: bool) -> None:
-    from biris_hw.net import connect
+    from biris_hw.io.net import connect
 
     received: list[tuple[int, int]] = []
     status = threading.Event()

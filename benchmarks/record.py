@@ -1,12 +1,12 @@
 """Recording, replay and live view: throughput, file size, and the latency they add.
 
 * **throughput** -- the simulator at 128 samples (20 acquisitions per hardware second) runs
-  faster than real time while a :class:`~biris_hw.record.Recorder` records continuous sweeps;
+  faster than real time while a :class:`~biris_hw.io.record.Recorder` records continuous sweeps;
   the figure is the highest time scale of a ladder (x20, x40, ... until a rung fails) at which
   the recorder wrote every acquisition (its connections dropped none) while the simulator kept
   its rate: the recording rate as a multiple of the sensor's real one. When the simulator is
   what fails, the figure is a floor and the method says so.
-* **replay** -- a :class:`~biris_hw.replay.ReplayServer` at ``speed=None`` read by an
+* **replay** -- a :class:`~biris_hw.io.record.ReplayServer` at ``speed=None`` read by an
   EVERY_ACQUISITION client: acquisitions per second, as a multiple of the real rate.
 * **size** -- the file's bytes per minute of hardware-time scanning (128 samples, profiles on).
 * **latency** -- the every-acquisition path of :mod:`benchmarks.latency` (interrupt raise to a
@@ -30,8 +30,8 @@ from benchmarks.harness import BenchContext, Figure, Target, benchmark, percenti
 from benchmarks.latency import _every_acquisition
 from biris_hw import ConnectionKind, DeliveryPolicy
 from biris_hw.errors import BirisError
-from biris_hw.record import Recorder
-from biris_hw.replay import EndOfRecording, ReplayServer
+from biris_hw.io.record import Recorder
+from biris_hw.io.record.replay import EndOfRecording, ReplayServer
 
 __all__ = ["record"]
 
@@ -266,7 +266,7 @@ def _subscriber(port: int, stop: threading.Event) -> threading.Thread:
 
 
 def _latency(ctx: BenchContext, seconds: float, rounds: int) -> list[Figure]:
-    from biris_hw.liveview import LiveView
+    from biris_hw.io.liveview import LiveView
 
     samples: dict[str, list[float]] = {"without": [], "recorder": [], "liveview": []}
     published: list[float] = []

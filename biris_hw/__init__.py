@@ -11,6 +11,9 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from biris_hw import _moved
+from biris_hw._version import __version__ as __version__
+
 if TYPE_CHECKING:
     from biris_hw.angles import counts_to_deg, deg_to_counts
     from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
@@ -39,7 +42,6 @@ __all__ = [
     "deg_to_counts",
 ]
 
-__version__ = "0.1.0"
 
 _WHERE: dict[str, str] = {
     "BirisError": "biris_hw.errors",
@@ -71,6 +73,9 @@ if not TYPE_CHECKING:  # hidden from type checkers, so a misspelt name is still 
         value = getattr(importlib.import_module(module), name)
         globals()[name] = value  # later look-ups skip this function
         return value
+
+
+_moved.install()  # the old paths of the modules now in biris_hw.io (one more release)
 
 
 def __dir__() -> list[str]:

@@ -401,8 +401,8 @@ class Connection(Generic[D]):
 class Sensor(Protocol):
     """What a program needs of a sensor, wherever it is: a local
     :class:`~biris_hw.BirisServer`, a service reached over the network
-    (:class:`biris_hw.net.RemoteSensor`) or a replayed recording
-    (:class:`biris_hw.replay.ReplayServer`). The service, the recorder and every ``biris``
+    (:class:`biris_hw.io.net.RemoteSensor`) or a replayed recording
+    (:class:`biris_hw.io.record.ReplayServer`). The service, the recorder and every ``biris``
     command take any of them; their connections have the methods of :class:`Connection`."""
 
     @overload

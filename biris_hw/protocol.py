@@ -19,6 +19,7 @@ from __future__ import annotations
 import operator
 from dataclasses import dataclass
 
+from biris_hw.angles import shown
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction
 from biris_hw.errors import RequestError
 from biris_hw.records import MotorParams
@@ -42,6 +43,42 @@ def _check_poll(poll: object) -> None:
     """``poll`` must be a bool: a truthy number there is a bug in the sender, not a wish."""
     if poll is not True and poll is not False:
         raise RequestError(f"poll: must be True or False, not {poll!r}")
+
+
+MAX_DEPTH = 1 << 16
+"""Largest queue a connection may ask for (a bound on the server's memory, not a BIRIS limit)."""
+
+
+def check_policy(kind: ConnectionKind, policy: object, depth: object) -> tuple[DeliveryPolicy, int]:
+    """The policy and queue depth an OPEN_REQUEST asks for, checked.
+
+    ``depth`` may be any integer type (a numpy ``int64`` from a computed size passes) and comes
+    back a plain int; None means the policy's default.
+
+    Raises:
+        RequestError: an unknown policy, a policy on a NORMAL connection, or a depth that is not
+            a whole number in 1..MAX_DEPTH (1 under LATEST).
+    """
+    try:
+        chosen = DeliveryPolicy(policy)
+    except ValueError:
+        raise RequestError(f"no delivery policy {policy!r}") from None
+    if kind is not ConnectionKind.DATA and chosen is not DeliveryPolicy.LATEST:
+        raise RequestError("a delivery policy is for DATA connections")
+    if depth is None:
+        return chosen, chosen.default_depth
+    wanted = f"depth: must be a whole number in 1..{MAX_DEPTH}"
+    if isinstance(depth, bool):
+        raise RequestError(f"{wanted}, not a bool")
+    try:
+        number = operator.index(depth)  # type: ignore[arg-type]  # any integer type
+    except TypeError:
+        raise RequestError(f"{wanted}, not {type(depth).__name__}") from None
+    if not 1 <= number <= MAX_DEPTH:
+        raise RequestError(f"{wanted}, not {shown(number)}")
+    if chosen is DeliveryPolicy.LATEST and number != 1:
+        raise RequestError("depth: LATEST keeps only the newest scan: its depth is 1")
+    return chosen, number
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,7 +3,7 @@
 A driver in another process then sees what it would see on the robot: BIRIS memory in a shared
 memory segment (the coupler's window), the boards' registers with every side effect (over a Unix
 socket, see :mod:`biris_hw.bus.remote`), and interrupt levels 2 and 3 as eventfds it polls
-(passed with ``SCM_RIGHTS``). ``biris_hw.remote.attach(NAME)`` builds that driver's hardware.
+(passed with ``SCM_RIGHTS``). ``biris_hw.simlink.attach(NAME)`` builds that driver's hardware.
 
 The segment holds a whole :class:`~regs.layout.TargetImage`. BIRIS memory in it is the simulator's
 own; the coupler and board areas are a *mirror*, refreshed from the models' side-effect-free

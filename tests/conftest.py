@@ -579,7 +579,7 @@ def core() -> Core:
 def fonts_open(tmp_path: Path) -> None:
     """matplotlib keeps the font files it has used open for the life of the process (a cache,
     not a leak): draw once before a leak check (``no_leaks``) takes its snapshot."""
-    from biris_hw.plots import save_polar
+    from biris_hw.io.plots import save_polar
 
     save_polar(tmp_path / "warm-up.png", [])
 

@@ -191,7 +191,7 @@ def make_tls(folder: Path) -> dict[str, Path]:
 
 def _serve(argv: Sequence[str]) -> None:
     from biris_hw import BirisInitRecord, BirisServer
-    from biris_hw.net import serve
+    from biris_hw.io.net import serve
     from sim import Scene, SimulatedBiris
 
     parser = argparse.ArgumentParser()
@@ -247,7 +247,7 @@ def _reader(argv: Sequence[str]) -> None:
     from biris_hw import ConnectionKind
     from biris_hw.data import DeliveryPolicy
     from biris_hw.errors import AccessDenied
-    from biris_hw.net import connect
+    from biris_hw.io.net import connect
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--endpoint", required=True)
@@ -277,7 +277,7 @@ def _scans(data: Any, n: int) -> Iterator[Any]:
 
 def _controller(argv: Sequence[str]) -> None:
     from biris_hw import ConnectionKind
-    from biris_hw.net import connect
+    from biris_hw.io.net import connect
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--endpoint", required=True)
@@ -482,7 +482,7 @@ def warm_up_zenoh() -> None:
     global _warm
     if _warm:
         return
-    from biris_hw.net import connect, serve
+    from biris_hw.io.net import connect, serve
 
     where = endpoint(free_port())
     with serve(_NoSensor(), name="warmup", listen=[where], multicast=False):  # type: ignore[arg-type]

@@ -22,9 +22,9 @@ from biris_hw import cli
 from biris_hw.cli import COMMANDS, Command
 from biris_hw.client import Connection
 from biris_hw.commands import argtypes, common
-from biris_hw.plots import closest_points_xy
+from biris_hw.io.plots import closest_points_xy
+from biris_hw.io.scanfile import load_scans
 from biris_hw.records import BirisInitRecord
-from biris_hw.scanfile import load_scans
 from sim import Scene, SimulatedBiris
 from sim.audit import Rule
 from tests.conftest import Run

@@ -20,9 +20,9 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 from websockets.sync.client import connect
 
-from biris_hw import ros2, wire
 from biris_hw.commands import scan as scan_command
 from biris_hw.commands.scan import scan_to_json
+from biris_hw.io import ros2, wire
 from tests.conftest import Run
 from tests.test_record_support import cloud_xyz, damaged_recording, read_decoded, synthetic_scans
 
@@ -138,7 +138,7 @@ def test_view_serves_a_websocket_and_stops_on_ctrl_c(
 ) -> None:
     """``biris view --sim --cw --ccw`` in the main thread; a websockets client in another sees
     the channels, decodes a profile and a transform, then sends SIGINT: exit 130."""
-    from biris_hw import liveview
+    from biris_hw.io import liveview
 
     listening = threading.Event()
     start = liveview.LiveView.start

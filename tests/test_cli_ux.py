@@ -30,10 +30,10 @@ from biris_hw.commands import argtypes, common, demo, watch
 from biris_hw.commands.common import EXIT_INTERRUPTED, HALF_TURN_COUNTS
 from biris_hw.errors import HardwareFault
 from biris_hw.hardware import BirisHardware
+from biris_hw.io.scanfile import load_scans
+from biris_hw.io.sweeps import Sweeps
 from biris_hw.records import BirisInitRecord
-from biris_hw.scanfile import load_scans
 from biris_hw.server import BirisServer
-from biris_hw.sweeps import Sweeps
 from sim import Scene, SimulatedBiris
 from sim.clock import LAG_WARNING_S, SimClock
 from tests.conftest import Run
@@ -331,7 +331,7 @@ def test_home_asks_only_for_a_head_more_than_half_a_turn_away() -> None:
 def fonts_open(tmp_path: Path) -> None:
     """matplotlib keeps the font files it has used open for the life of the process: draw once
     before the leak check takes its snapshot."""
-    from biris_hw.plots import save_polar
+    from biris_hw.io.plots import save_polar
 
     save_polar(tmp_path / "warm-up.png", [])
 

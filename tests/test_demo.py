@@ -15,8 +15,8 @@ import pytest
 
 from biris_hw.cli import main
 from biris_hw.data import Direction
-from biris_hw.plots import closest_points_xy, profile_points
-from biris_hw.scanfile import load_scans
+from biris_hw.io.plots import closest_points_xy, profile_points
+from biris_hw.io.scanfile import load_scans
 from sim import Scene
 
 RADIUS_M = 2.0

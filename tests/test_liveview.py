@@ -20,12 +20,13 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 from websockets.sync.client import connect
 
-from biris_hw import BirisServer, liveview, ros2
+from biris_hw import BirisServer
 from biris_hw.cli import build_parser
 from biris_hw.commands import common
 from biris_hw.commands import view as view_command
-from biris_hw.liveview import FAULT_POLL_S, LiveView
-from biris_hw.replay import ReplayServer
+from biris_hw.io import liveview, ros2
+from biris_hw.io.liveview import FAULT_POLL_S, LiveView
+from biris_hw.io.record.replay import ReplayServer
 from biris_hw.status import ServerState
 from sim import SimulatedBiris
 from tests.conftest import until

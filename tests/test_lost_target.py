@@ -7,7 +7,7 @@ socket hung up). Then end to end: an in-process rig closed under a continuous sc
 ``biris sim`` process killed under one. In each, every blocked caller gets HardwareFault("bus")
 within :data:`DETECTION_S`, and the next reset does too.
 
-Detection bounds (stated in ``biris_hw.irq.demux``, ``biris_hw.remote`` and
+Detection bounds (stated in ``biris_hw.irq.demux``, ``biris_hw.simlink`` and
 ``biris_hw.server.tasks``): a closed line or a hung-up socket wakes the routine's ``poll`` at
 once. There is no timer and no polling period, so what is measured here is one thread wake-up,
 a one-way post and one administrator case: milliseconds.
@@ -36,9 +36,9 @@ from biris_hw.bus.memory import MemoryWindow
 from biris_hw.bus.remote import default_socket_path
 from biris_hw.errors import BusError, HardwareFault
 from biris_hw.irq import EventFdLine
-from biris_hw.remote import LinkedLine, attach
 from biris_hw.server import BirisServer
 from biris_hw.server.isr import Level3Demux, Logical
+from biris_hw.simlink import LinkedLine, attach
 from regs.tech80 import MOTION_WINDOW_SIZE, AxisBit, BoardReg
 from sim.rig import SimulatedBiris
 from tests.conftest import WAIT, until

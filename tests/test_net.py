@@ -15,9 +15,9 @@ import zenoh
 from biris_hw import BirisServer, ConnectionKind, Direction, MotorParams
 from biris_hw.data import DeliveryPolicy, Point, Scan
 from biris_hw.errors import AccessDenied, BirisError, ConnectionClosed, HardwareFault, RequestError
-from biris_hw.net import RemoteSensor, Service, connect, serve
-from biris_hw.net.protocol import MAX_REQUEST, Keys
-from biris_hw.net.zconfig import make_config
+from biris_hw.io.net import RemoteSensor, Service, connect, serve
+from biris_hw.io.net.keys import MAX_REQUEST, Keys
+from biris_hw.io.net.zconfig import make_config
 from sim import SimulatedBiris
 from tests.conftest import until
 from tests.net_helpers import endpoint, free_port, warm_up_zenoh

@@ -40,9 +40,9 @@ import zenoh
 from biris_hw import BirisServer, ConnectionKind
 from biris_hw.data import DeliveryPolicy, Scan
 from biris_hw.errors import AccessDenied, ConnectionClosed
-from biris_hw.net import RemoteSensor, Service, connect, serve
-from biris_hw.net.protocol import READ_OPS, Keys
-from biris_hw.net.zconfig import make_config
+from biris_hw.io.net import RemoteSensor, Service, connect, serve
+from biris_hw.io.net.keys import READ_OPS, Keys
+from biris_hw.io.net.zconfig import make_config
 from biris_hw.status import ServerStatus
 from tests.conftest import WAIT, until
 from tests.net_helpers import FakeSensor, endpoint, free_port, warm_up_zenoh
@@ -196,7 +196,7 @@ def router_access_control() -> dict[str, Any]:
 
 DENIED_WITHIN_S = 1.0
 """A denied request is answered (empty) within a round trip on loopback; the client's own reply
-timeout (:data:`~biris_hw.net.remote.REPLY_MARGIN_S`, 5 s) is far longer, so this bound tells
+timeout (:data:`~biris_hw.io.net.remote.REPLY_MARGIN_S`, 5 s) is far longer, so this bound tells
 Zenoh's answer from the client giving up."""
 
 REFUSED_WAIT_S = 1.0

@@ -15,7 +15,7 @@ import pytest
 
 from biris_hw import BirisServer
 from biris_hw.errors import AccessDenied, ConnectionClosed
-from biris_hw.net import connect, serve
+from biris_hw.io.net import connect, serve
 from tests.net_helpers import endpoint, free_port, warm_up_zenoh
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]  # the service's own threads

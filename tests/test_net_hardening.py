@@ -19,10 +19,10 @@ import zenoh
 
 from biris_hw.data import DeliveryPolicy, Direction
 from biris_hw.errors import ConnectionClosed, HardwareFault, RequestError
-from biris_hw.net import RemoteSensor, Service, connect, remote, serve
-from biris_hw.net.protocol import Keys
-from biris_hw.net.service import MAX_BLOCKING, NEW_CLIENT_BURST, _Client
-from biris_hw.net.zconfig import make_config
+from biris_hw.io.net import RemoteSensor, Service, connect, remote, serve
+from biris_hw.io.net.keys import Keys
+from biris_hw.io.net.service import MAX_BLOCKING, NEW_CLIENT_BURST, _Client
+from biris_hw.io.net.zconfig import make_config
 from tests.conftest import until
 from tests.net_helpers import FakeSensor, endpoint, free_port, warm_up_zenoh
 from tests.test_record_support import synthetic_scans

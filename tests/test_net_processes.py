@@ -21,7 +21,7 @@ import pytest
 from biris_hw import ConnectionKind
 from biris_hw.data import DeliveryPolicy
 from biris_hw.errors import ConnectionClosed
-from biris_hw.net import connect, tls_options
+from biris_hw.io.net import connect, tls_options
 from tests.conftest import until
 from tests.net_helpers import (
     ROOT,

@@ -16,10 +16,10 @@ import pytest
 from biris_hw import ConnectionKind, Direction
 from biris_hw.data import DeliveryPolicy, Scan
 from biris_hw.errors import AccessDenied, ConnectionClosed, RequestError
-from biris_hw.net import connect, serve
-from biris_hw.net.protocol import error_payload
-from biris_hw.record import write_scans
-from biris_hw.replay import EndOfRecording, ReplayRefused, ReplayServer
+from biris_hw.io.net import connect, serve
+from biris_hw.io.net.keys import error_payload
+from biris_hw.io.record import write_scans
+from biris_hw.io.record.replay import EndOfRecording, ReplayRefused, ReplayServer
 from tests.net_helpers import Helper, endpoint, free_port, warm_up_zenoh
 from tests.test_record_support import synthetic_scans
 from tests.test_wire import assert_scans_equal
@@ -135,7 +135,7 @@ def test_biris_serve_replay_with_live_view(
     from websockets.sync.client import connect as ws_connect
     from websockets.typing import Subprotocol
 
-    from biris_hw import ros2
+    from biris_hw.io import ros2
 
     path, scans = recording
     where = endpoint(free_port())

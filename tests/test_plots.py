@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from biris_hw import plots
 from biris_hw.data import Direction, Scan
-from biris_hw.plots import (
+from biris_hw.io import plots
+from biris_hw.io.plots import (
     GAP_RATIO,
     polar_figure,
     save_3d_view,

@@ -44,8 +44,8 @@ import pytest
 from biris_hw import BirisInitRecord, ConnectionKind, DeliveryPolicy, Direction
 from biris_hw.errors import HardwareFault
 from biris_hw.pan_reference import JOURNAL_ENV
-from biris_hw.remote import attach
 from biris_hw.server import BirisServer
+from biris_hw.simlink import attach
 from regs.biexec import OFF_COMMAND
 from tests.conftest import until
 

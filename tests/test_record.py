@@ -15,10 +15,11 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_typestore
 
-from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy, ros2, wire
+from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy
 from biris_hw.data import Scan
-from biris_hw.record import Recorder, RecordError, mcapfile, write_scans
-from biris_hw.replay import ReplayServer
+from biris_hw.io import ros2, wire
+from biris_hw.io.record import Recorder, RecordError, mcapfile, write_scans
+from biris_hw.io.record.replay import ReplayServer
 from sim import Scene, SimulatedBiris
 from tests.test_record_support import (
     assert_same_scan,

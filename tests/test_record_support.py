@@ -13,11 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from biris_hw import wire
 from biris_hw.data import Direction, Point, Scan
 from biris_hw.geometry import Mount
-from biris_hw.record import RAW_POINT_TOPIC, RAW_SCAN_TOPIC
-from biris_hw.record.mcapfile import McapFile
+from biris_hw.io import wire
+from biris_hw.io.record import RAW_POINT_TOPIC, RAW_SCAN_TOPIC
+from biris_hw.io.record.mcapfile import McapFile
 
 MOUNT = Mount(offset_m=(0.3, -0.1, 0.2), head_height_m=0.5, head_offset_m=0.05)
 PERIOD = 1 / 30

@@ -12,10 +12,10 @@ import pytest
 from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy, Direction
 from biris_hw.data import Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
-from biris_hw.net.protocol import CONTROL_OPS
-from biris_hw.record import Recorder
+from biris_hw.io.net.keys import CONTROL_OPS
+from biris_hw.io.record import Recorder
+from biris_hw.io.record.replay import EndOfRecording, ReplayError, ReplayRefused, ReplayServer
 from biris_hw.records import MotorParams
-from biris_hw.replay import EndOfRecording, ReplayError, ReplayRefused, ReplayServer
 from sim import Scene, SimulatedBiris
 from tests.conftest import Run
 from tests.test_record_support import (

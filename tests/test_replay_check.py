@@ -14,15 +14,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy, Direction, wire
+from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy, Direction
 from biris_hw import protocol as p
 from biris_hw.commands.common import log_to_stderr
 from biris_hw.commands.scan import scan_summary, scan_to_json
 from biris_hw.data import Point, Scan
-from biris_hw.record import RAW_SCAN_TOPIC, Recorder, write_scans
-from biris_hw.record.mcapfile import McapFile
-from biris_hw.replay import EndOfRecording, ReplayServer
-from biris_hw.scanfile import save_scans
+from biris_hw.io import wire
+from biris_hw.io.record import RAW_SCAN_TOPIC, Recorder, write_scans
+from biris_hw.io.record.mcapfile import McapFile
+from biris_hw.io.record.replay import EndOfRecording, ReplayServer
+from biris_hw.io.scanfile import save_scans
 from sim import Scene, SimulatedBiris
 from sim.optics import OpticsParams
 from tests.conftest import Run, _Delivered, _scan_problems, _Watch
@@ -189,8 +190,8 @@ def test_a_recording_of_a_replay_keeps_partial_reason_and_span(tmp_path: Path) -
 
 def test_the_network_service_keeps_partial_reason_and_span(tmp_path: Path) -> None:
     """A recording served on Zenoh: a remote client's scans carry the fields too (the service
-    and the client encode with biris_hw.wire, both ways)."""
-    from biris_hw.net import connect, serve
+    and the client encode with biris_hw.io.wire, both ways)."""
+    from biris_hw.io.net import connect, serve
     from tests.net_helpers import endpoint, free_port, warm_up_zenoh
 
     warm_up_zenoh()
@@ -351,7 +352,7 @@ def test_warnings_reach_stderr_as_one_plain_line(capsys: pytest.CaptureFixture[s
         try:
             raise ValueError("bad\nreply")
         except ValueError:
-            logging.getLogger("biris_hw.net.service").exception("request\n  failed")
+            logging.getLogger("biris_hw.io.net.service").exception("request\n  failed")
     admin.warning("after the command: not ours to show")
     assert capsys.readouterr().err.splitlines() == [
         "biris: warning: scan 3 (CW): 2 acquisitions lost",

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from biris_hw import ros2
+from biris_hw.io import ros2
 from biris_hw.status import ServerState, ServerStatus
 from tests.conftest import idle_status
 from tests.test_record_support import cloud_xyz, points_of, synthetic_scans

@@ -33,7 +33,7 @@ from biris_hw import (
     Scan,
 )
 from biris_hw import protocol as p
-from biris_hw.scanfile import load_scans, save_scans
+from biris_hw.io.scanfile import load_scans, save_scans
 from biris_hw.server import BirisServer
 from biris_hw.server import messages as m
 from biris_hw.status import ServerState

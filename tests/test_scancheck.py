@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from biris_hw import wire
 from biris_hw.data import Direction, Scan
+from biris_hw.io import wire
+from biris_hw.io.scanfile import FORMAT_VERSION, load_scans, save_scans
 from biris_hw.scancheck import ScanChecker, check_scan, coverage_shortfall
-from biris_hw.scanfile import FORMAT_VERSION, load_scans, save_scans
 
 SAMPLES = 8
 
@@ -317,7 +317,7 @@ string acquisition
 bool partial
 """
 """biris_msgs/msg/Scan as the first release defined it (before partial_reason and span), written
-out here rather than derived from biris_hw.wire, so that the test holds the module to it."""
+out here rather than derived from biris_hw.io.wire, so that the test holds the module to it."""
 
 
 def _old_payload(scan: Scan) -> bytes:

@@ -17,7 +17,7 @@ from hypothesis.extra.numpy import arrays
 
 from biris_hw.data import Direction, Scan
 from biris_hw.geometry import Mount
-from biris_hw.scanfile import FORMAT_VERSION, SAVED_FIELDS, export_csv, load_scans, save_scans
+from biris_hw.io.scanfile import FORMAT_VERSION, SAVED_FIELDS, export_csv, load_scans, save_scans
 
 INT64 = st.integers(-(2**63), 2**63 - 1)
 COUNT = st.integers(0, 2**63 - 1)

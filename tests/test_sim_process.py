@@ -41,8 +41,8 @@ from biris_hw.bus.remote import (
     serve_request,
 )
 from biris_hw.errors import BusError
-from biris_hw.remote import attach
 from biris_hw.server import BirisServer
+from biris_hw.simlink import attach
 from regs.biexec import OFF_STATUS, BiexecCom
 from regs.layout import TargetImage, frame_size_for
 from sim import process

@@ -1,5 +1,5 @@
-"""``biris_hw.sweeps.sweeping`` against the simulator: every sweep in order, then the head at rest
-and both connections closed, however the block ends."""
+"""``biris_hw.io.sweeps.sweeping`` against the simulator: every sweep in order, then the head at
+rest and both connections closed, however the block ends."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from biris_hw import BirisServer, Direction, deg_to_counts
 from biris_hw.errors import RequestError
-from biris_hw.sweeps import sweeping
+from biris_hw.io.sweeps import sweeping
 
 WAIT_S = 30.0
 

@@ -1,4 +1,4 @@
-"""The CDR payload codec (biris_hw.wire): lossless round trips, and bad bytes are WireErrors."""
+"""The CDR payload codec (biris_hw.io.wire): lossless round trips, and bad bytes are WireErrors."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from biris_hw import wire
 from biris_hw.data import Direction, Point, Scan
 from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.geometry import Mount
+from biris_hw.io import wire
 from biris_hw.status import ConnectionStatus, ServerState, ServerStatus
 
 

@@ -7,5 +7,5 @@ work and returns the exit status. Modules are imported only when their command r
 uses (``biris sim`` and ``biris regdump`` too) live in :mod:`biris_hw.commands.argtypes`; shared
 flags, opening the sensor and turning errors into one line in :mod:`biris_hw.commands.common`.
 Library code the commands share with programs is not here: continuous sweeps are
-:mod:`biris_hw.sweeps`, scan files :mod:`biris_hw.scanfile`.
+:mod:`biris_hw.io.sweeps`, scan files :mod:`biris_hw.io.scanfile`.
 """

@@ -480,7 +480,7 @@ def _open_target(file: str | os.PathLike[str]) -> BirisHardware:
 
 
 def _attach(name: str) -> BirisHardware:
-    from biris_hw.remote import attach
+    from biris_hw.simlink import attach
 
     try:
         return attach(name)
@@ -605,7 +605,7 @@ def read_toml(file: str | os.PathLike[str]) -> dict[str, Any]:
 def _connect(args: argparse.Namespace) -> Iterator[Session]:
     """A session on a running service: nothing is started, homed or stopped on the way out."""
     try:
-        from biris_hw.net import RemoteSensor, tls_options
+        from biris_hw.io.net import RemoteSensor, tls_options
     except ImportError as exc:
         raise SetupError(
             f"--connect needs the net extra (pip install 'biris-hw[net]'): {exc}"

@@ -31,7 +31,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from biris_hw import scanfile
 from biris_hw.angles import counts_to_deg
 from biris_hw.commands.argtypes import add_simulator_arguments, degrees, path, seconds
 from biris_hw.commands.common import (
@@ -48,9 +47,10 @@ from biris_hw.commands.common import (
     quiet_collector,
 )
 from biris_hw.data import Direction, Scan
+from biris_hw.io import scanfile
+from biris_hw.io.sweeps import sweeping
 from biris_hw.records import BirisInitRecord
 from biris_hw.server import BirisServer
-from biris_hw.sweeps import sweeping
 
 if TYPE_CHECKING:
     from sim import SimulatedBiris
@@ -309,7 +309,7 @@ def _draw(
 ) -> list[Path]:
     import numpy as np
 
-    from biris_hw.plots import profile_points, save_3d_view, save_polar, save_top_view
+    from biris_hw.io.plots import profile_points, save_3d_view, save_polar, save_top_view
 
     scans = [latest[d] for d in Direction if d in latest]
     sweeps = ", ".join(f"{s.direction.name} #{s.seq}" for s in scans)

@@ -1,7 +1,7 @@
 """``biris record``: record a sensor to MCAP (ROS 2 message types) while it scans.
 
 ``biris record --sim --out run.mcap --duration 10 --cw -45 --ccw 45`` starts a server (or uses
-the sensor named by the session flags), opens a :class:`~biris_hw.record.Recorder` on it, sweeps
+the sensor named by the session flags), opens a :class:`~biris_hw.io.record.Recorder` on it, sweeps
 between the limits (``--to DEG``: one scan; neither: nothing is commanded, whatever the sensor
 does is recorded) and stops after ``--duration`` seconds or at Ctrl-C. The file is checked
 before the sensor is touched; it is closed with its summary however the run ends, and the
@@ -37,7 +37,7 @@ from biris_hw.commands.common import (
 )
 
 if TYPE_CHECKING:
-    from biris_hw.record import Recorder
+    from biris_hw.io.record import Recorder
 
 __all__ = ["add_arguments", "recording_metadata", "run"]
 
@@ -104,7 +104,7 @@ def recording_metadata(session: Session, args: argparse.Namespace) -> dict[str, 
 
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     """Record; 0 when done, 130 after Ctrl-C (the file complete either way)."""
-    from biris_hw.record import Recorder
+    from biris_hw.io.record import Recorder
 
     stream = out or sys.stdout
     _check(args)
@@ -138,7 +138,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
 def _scan(session: Session, args: argparse.Namespace, recorder: Recorder) -> None:
     """Command the head as asked while ``recorder`` runs, until the duration is over."""
     from biris_hw.angles import destination_counts
-    from biris_hw.sweeps import sweeping
+    from biris_hw.io.sweeps import sweeping
 
     end = None if args.duration is None else time.monotonic() + args.duration
 

@@ -1,6 +1,6 @@
 """``biris replay FILE``: play a recording back as a sensor; summaries, JSON, a picture.
 
-The recording is served by :class:`~biris_hw.replay.ReplayServer` through the same client API a
+The recording is served by :class:`~biris_hw.io.record.ReplayServer` through the same client API a
 live server offers, read here through a DATA connection that takes every completed scan
 (EVERY_BUFFER), so every recorded scan is printed (``--json``: one object per scan, as ``biris
 scan --json``) and ``--plot PATH`` draws them all, as ``biris scan --plot`` does for a live run.
@@ -14,7 +14,7 @@ rows): each violation on a line of its own, naming the scan (its place in the fi
 and ``seq``) and the row, then one summary line, ``FILE: checked N scans: OK`` or ``FILE: N
 violations in M scans (of K checked)``; the exit status is 1 if any scan broke a rule (or the
 file is damaged part way, after what came before was checked), 0 otherwise. It also takes a
-scan file (``.npz``, :mod:`biris_hw.scanfile`), which ``biris scan --save`` and ``biris demo``
+scan file (``.npz``, :mod:`biris_hw.io.scanfile`), which ``biris scan --save`` and ``biris demo``
 write.
 """
 
@@ -39,7 +39,7 @@ from biris_hw.commands.common import (
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Scan
 
 if TYPE_CHECKING:
-    from biris_hw.replay import ReplayServer
+    from biris_hw.io.record.replay import ReplayServer
 
 __all__ = ["add_arguments", "run"]
 
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     damaged part way (what came before is printed). With ``--check``: 0 when every scan keeps
     the invariants, 1 when one does not (or the file is damaged)."""
     from biris_hw.commands.scan import picture_suffixes, scan_summary, scan_to_json
-    from biris_hw.replay import ReplayError, ReplayServer
+    from biris_hw.io.record.replay import ReplayError, ReplayServer
 
     stream = out or sys.stdout
     if not Path(args.file).is_file():
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
             file=stream,
         )
     if args.plot is not None:
-        from biris_hw.plots import save_polar
+        from biris_hw.io.plots import save_polar
 
         args.plot.parent.mkdir(parents=True, exist_ok=True)
         print(f"picture: {save_polar(args.plot, scans)}", file=stream)
@@ -115,8 +115,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
 def _every_scan(replay: ReplayServer) -> Iterator[Scan]:
     """Every scan of the recording, in the order recorded: an EVERY_BUFFER connection, which
     makes the player wait for it (``speed=None``) so that none is dropped. Raises
-    :class:`~biris_hw.replay.ReplayError` where the file is damaged."""
-    from biris_hw.replay import EndOfRecording
+    :class:`~biris_hw.io.record.replay.ReplayError` where the file is damaged."""
+    from biris_hw.io.record.replay import EndOfRecording
 
     data = replay.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_BUFFER, depth=64)
     while True:
@@ -128,7 +128,7 @@ def _every_scan(replay: ReplayServer) -> Iterator[Scan]:
 
 def _check(args: argparse.Namespace, stream: TextIO) -> int:
     """``--check``: judge every scan of the file; 1 on any violation or a damaged file."""
-    from biris_hw.replay import ReplayError, ReplayServer
+    from biris_hw.io.record.replay import ReplayError, ReplayServer
     from biris_hw.scancheck import ScanChecker
 
     checker = ScanChecker()
@@ -138,7 +138,7 @@ def _check(args: argparse.Namespace, stream: TextIO) -> int:
             print(f"scan {checker.scans}, {text}", file=stream, flush=True)
 
     if Path(args.file).suffix == ".npz":
-        from biris_hw import scanfile
+        from biris_hw.io import scanfile
 
         try:
             scans = scanfile.load_scans(args.file)

@@ -7,12 +7,12 @@ every completed sweep is received (none skipped, and any that were would be coun
 sweep runs from where the head stands to the CW limit, so it is shorter than the others.
 
 ``--save PATH`` writes PATH.npz (every scan whole, for programs:
-:func:`biris_hw.scanfile.load_scans` reads it back into equal :class:`~biris_hw.Scan` objects)
+:func:`biris_hw.io.scanfile.load_scans` reads it back into equal :class:`~biris_hw.Scan` objects)
 and PATH.csv (one row per acquisition with its range profile, for spreadsheets); see
-:mod:`biris_hw.scanfile`. ``--save PATH.mcap`` writes that one MCAP file instead (extra
+:mod:`biris_hw.io.scanfile`. ``--save PATH.mcap`` writes that one MCAP file instead (extra
 ``.[record]``): each scan's ``sensor_msgs/msg/PointCloud2`` and its lossless record, which
 Foxglove, Lichtblick and ``ros2 bag`` open and ``biris replay`` plays back
-(:func:`biris_hw.record.write_scans`). ``--plot PATH`` draws every scan the command made. Both
+(:func:`biris_hw.io.record.write_scans`). ``--plot PATH`` draws every scan the command made. Both
 are checked before the sensor is touched, so a typo in a folder name costs nothing.
 
 An angle beyond _Scan_limit (+-360 degrees) is clamped by the server and the command says so; on
@@ -31,7 +31,6 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from biris_hw import scanfile
 from biris_hw.angles import destination_counts
 from biris_hw.commands.argtypes import degrees, path, positive_int
 from biris_hw.commands.common import (
@@ -50,8 +49,9 @@ from biris_hw.commands.common import (
     sweep_chosen,
 )
 from biris_hw.data import Direction, Scan
-from biris_hw.plots import closest_points_xy
-from biris_hw.sweeps import sweeping
+from biris_hw.io import scanfile
+from biris_hw.io.plots import closest_points_xy
+from biris_hw.io.sweeps import sweeping
 
 __all__ = [
     "DEFAULT_SWEEPS",
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         print(f"saved {' and '.join(map(str, saved))}", file=stream)
         written += saved
     if scans and args.plot is not None:
-        from biris_hw.plots import save_polar
+        from biris_hw.io.plots import save_polar
 
         args.plot.parent.mkdir(parents=True, exist_ok=True)
         picture = save_polar(args.plot, scans, outline)  # every sweep made, in order
@@ -290,7 +290,7 @@ def save_files(
     files = save_paths(path)
     files[0].parent.mkdir(parents=True, exist_ok=True)
     if files[0].suffix == ".mcap":
-        from biris_hw.record import write_scans
+        from biris_hw.io.record import write_scans
 
         return (write_scans(files[0], scans, metadata=metadata),)
     npz, table = files

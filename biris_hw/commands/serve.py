@@ -1,4 +1,4 @@
-"""``biris serve``: run the sensor as a long-running service on Zenoh (:mod:`biris_hw.net`).
+"""``biris serve``: run the sensor as a long-running service on Zenoh (:mod:`biris_hw.io.net`).
 
 Every other command starts a server of its own, and so homes the head each time (some 12 s of
 hardware time); on a robot the sensor runs once, as a service, several programs read it and one
@@ -19,12 +19,12 @@ continuous scan nobody controls any more does not sweep for ever.
 A fault of the sensor does not end the service: the server stays up in its fault, the service
 goes on answering (the status says ``fault:<kind>``) and publishes the fault, and once a
 controller has reset the sensor over the network it publishes the sensor's data again
-(:class:`~biris_hw.net.Service`); the ``--foxglove`` view shows the fault on ``/diagnostics``.
+(:class:`~biris_hw.io.net.Service`); the ``--foxglove`` view shows the fault on ``/diagnostics``.
 
 ``--foxglove PORT`` also shows the served sensor live in Foxglove or Lichtblick
-(:class:`~biris_hw.liveview.LiveView`) for as long as the service runs: one process, one server,
+(:class:`~biris_hw.io.liveview.LiveView`) for as long as the service runs: one process, one server,
 both views. ``--replay FILE`` serves a recording instead of a sensor
-(:class:`~biris_hw.replay.ReplayServer`), at the recorded pace times ``--speed``: clients
+(:class:`~biris_hw.io.record.ReplayServer`), at the recorded pace times ``--speed``: clients
 ``--connect`` to it as to a live sensor, and get the recorded Scans, equal; motion and
 configuration are refused with the replay's own error (a RequestError on the client). Playing
 begins when the first client opens a DATA connection, so that it sees the recording from its
@@ -177,7 +177,7 @@ def _sensor(args: argparse.Namespace) -> Iterator[Any]:
             quiet_collector()
             yield session.server
         return
-    from biris_hw.replay import ReplayError, ReplayServer
+    from biris_hw.io.record.replay import ReplayError, ReplayServer
 
     try:
         # autostart off: the service's own feeds open DATA connections at once, and would
@@ -214,7 +214,7 @@ def _live_view(args: argparse.Namespace, sensor: Any, stream: TextIO) -> Iterato
     if not 0 <= args.foxglove <= 65535:
         raise UsageError(f"--foxglove {args.foxglove}: not a TCP port")
     try:
-        from biris_hw.liveview import LiveView
+        from biris_hw.io.liveview import LiveView
     except ImportError as exc:
         raise SetupError(
             f"--foxglove needs the record extra (pip install 'biris-hw[record]'): {exc}"
@@ -254,7 +254,7 @@ def _tables(file: Any) -> tuple[dict[str, str] | None, dict[str, str] | None]:
 
 
 def _zenoh_options(args: argparse.Namespace) -> dict[str, Any]:
-    from biris_hw.net.zconfig import tls_options
+    from biris_hw.io.net.zconfig import tls_options
 
     if (args.tls_cert is None) != (args.tls_key is None):
         raise UsageError("--tls-cert and --tls-key go together")
@@ -275,7 +275,7 @@ def _multicast(args: argparse.Namespace, controllers: Mapping[str, str] | None) 
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     stream = out or sys.stdout
     try:
-        from biris_hw.net import serve
+        from biris_hw.io.net import serve
     except ImportError as exc:
         raise SetupError(
             f"biris serve needs the net extra (pip install 'biris-hw[net]'): {exc}"

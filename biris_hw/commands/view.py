@@ -1,7 +1,7 @@
 """``biris view``: the sensor live in Foxglove or Lichtblick (a Foxglove WebSocket server).
 
 ``biris view --sim --cw -45 --ccw 45`` starts a simulator and a server, sweeps between the
-limits and serves the live view (:class:`~biris_hw.liveview.LiveView`) on ``--port`` (8765)
+limits and serves the live view (:class:`~biris_hw.io.liveview.LiveView`) on ``--port`` (8765)
 until ``--duration`` is over or Ctrl-C; without limits nothing is commanded and whatever the
 sensor does is shown. ``biris view --replay run.mcap`` shows a recording instead (a file damaged
 part way is shown up to the damage, then the command stops with a one-line error, exit status
@@ -97,14 +97,14 @@ def run(
     after Ctrl-C. ``ready`` (tests), if given, is called with the :class:`LiveView` once it
     listens; ``stop`` (tests, an embedding program), if given, ends a sensor's view when set,
     as the end of ``--duration`` would."""
-    from biris_hw.liveview import LiveView
+    from biris_hw.io.liveview import LiveView
 
     stream = out or sys.stdout
     sweep = sweep_chosen(args)
     stop = stop or threading.Event()
     try:
         if args.replay is not None:
-            from biris_hw.replay import ReplayError, ReplayServer
+            from biris_hw.io.record.replay import ReplayError, ReplayServer
 
             if sweep:
                 raise UsageError("a replay cannot be commanded: --cw/--ccw go with a sensor")
@@ -155,7 +155,7 @@ def _serve(
 
     Returns the notice that followed the faults (its ``exit_status`` is the command's).
     """
-    from biris_hw.sweeps import sweeping
+    from biris_hw.io.sweeps import sweeping
 
     notice = FaultNotice(server, args, "the live view serves on and shows it on /diagnostics")
     end: float | None = None if args.duration is None else time.monotonic() + args.duration

@@ -42,8 +42,8 @@ from biris_hw.commands.common import (
 )
 from biris_hw.commands.faults import FaultNotice
 from biris_hw.errors import HardwareFault
+from biris_hw.io.sweeps import sweeping
 from biris_hw.status import ServerState, ServerStatus
-from biris_hw.sweeps import sweeping
 from regs.wiener_crate import CrateReading
 
 __all__ = ["add_arguments", "crate_summary", "run", "status_line", "status_table"]

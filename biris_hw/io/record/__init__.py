@@ -3,16 +3,16 @@
 ``with Recorder(server_or_remote, "run.mcap"):`` writes everything the sensor produces meanwhile
 -- standard ``sensor_msgs``/``tf2_msgs``/``diagnostic_msgs`` messages that ``ros2 bag``, Foxglove
 and Lichtblick open as they are, and lossless ``biris_msgs`` channels that
-:class:`biris_hw.replay.ReplayServer` turns back into equal :class:`~biris_hw.Scan` and
+:class:`biris_hw.io.record.ReplayServer` turns back into equal :class:`~biris_hw.Scan` and
 :class:`~biris_hw.Point` objects. :func:`write_scans` writes a list of scans (``biris scan --save
-x.mcap``). Topics and frames: :mod:`biris_hw.ros2`; the file's failure modes:
-:mod:`biris_hw.record.mcapfile`.
+x.mcap``). Topics and frames: :mod:`biris_hw.io.ros2`; the file's failure modes:
+:mod:`biris_hw.io.record.mcapfile`.
 """
 
 from __future__ import annotations
 
-from biris_hw.record.mcapfile import RecordError
-from biris_hw.record.recorder import (
+from biris_hw.io.record.mcapfile import RecordError
+from biris_hw.io.record.recorder import (
     RAW_POINT_TOPIC,
     RAW_SCAN_TOPIC,
     RAW_STATUS_TOPIC,
@@ -20,6 +20,7 @@ from biris_hw.record.recorder import (
     RecordSummary,
     write_scans,
 )
+from biris_hw.io.record.replay import ReplayServer
 
 __all__ = [
     "RAW_POINT_TOPIC",
@@ -28,5 +29,6 @@ __all__ = [
     "RecordError",
     "RecordSummary",
     "Recorder",
+    "ReplayServer",
     "write_scans",
 ]

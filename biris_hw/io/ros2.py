@@ -2,10 +2,10 @@
 
 Robotics tools (``ros2 bag``, Foxglove, Lichtblick) understand the standard ROS 2 message types,
 not our :class:`~biris_hw.Scan`; this module is the one translation, shared by the recorder
-(:mod:`biris_hw.record`) and the live view (:mod:`biris_hw.liveview`) so a file and a live stream
-carry the same bytes. Types and CDR come from rosbags' ROS 2 (Jazzy) typestore; the schema text
-of each type is what :meth:`rosbags.typesys.store.Typestore.generate_msgdef` gives -- the type's
-definition followed by those of its dependencies, each after a line of 80 ``=`` and ``MSG:
+(:mod:`biris_hw.io.record`) and the live view (:mod:`biris_hw.io.liveview`) so a file and a live
+stream carry the same bytes. Types and CDR come from rosbags' ROS 2 (Jazzy) typestore; the schema
+text of each type is what :meth:`rosbags.typesys.store.Typestore.generate_msgdef` gives -- the
+type's definition followed by those of its dependencies, each after a line of 80 ``=`` and ``MSG:
 pkg/Type``, the layout ``ros2 bag`` (rosbag2_storage_mcap) writes, without the comments of the
 ``.msg`` files (which a ROS install would add, and which no reader needs).
 
@@ -33,7 +33,7 @@ pan and tilt at each acquisition's time), ``/tf_static`` (the two static transfo
 ``/biris/sweep``: the acquisitions since its previous message, so that a 3D panel that keeps
 clouds for a while (its decay time) shows the sweep build up. The lossless channels the recorder
 adds beside them, and the replay reads, are :data:`RAW_SCAN_TOPIC`, :data:`RAW_POINT_TOPIC`
-and :data:`RAW_STATUS_TOPIC` (``biris_msgs`` types, :mod:`biris_hw.wire`).
+and :data:`RAW_STATUS_TOPIC` (``biris_msgs`` types, :mod:`biris_hw.io.wire`).
 
 Why a PointCloud2 for the profile and not a LaserScan: BIRIS measures depth along the optical
 axis, not slant range, and its rows are not a ray fan about an axis a LaserScan could name
@@ -129,8 +129,8 @@ TOPICS: Mapping[str, str] = {
 RAW_SCAN_TOPIC = "/biris/raw/scan"
 RAW_POINT_TOPIC = "/biris/raw/point"
 RAW_STATUS_TOPIC = "/biris/raw/status"
-"""The lossless channels of a recording (:mod:`biris_hw.wire` payloads): written by
-:mod:`biris_hw.record`, read by :mod:`biris_hw.replay`, named here, below both."""
+"""The lossless channels of a recording (:mod:`biris_hw.io.wire` payloads): written by
+:mod:`biris_hw.io.record`, read by :mod:`biris_hw.io.record.replay`, named here, below both."""
 
 _RAD_PER_COUNT = 2.0 * math.pi / 4096.0
 
@@ -160,7 +160,7 @@ CLOUD_FIELDS: tuple[tuple[str, int, int], ...] = (
 def typestore() -> Any:
     """rosbags' ROS 2 Jazzy typestore: the standard types, their CDR and schema text.
 
-    Imported on first use so that ``import biris_hw.ros2`` costs nothing without the
+    Imported on first use so that ``import biris_hw.io.ros2`` costs nothing without the
     ``.[record]`` extra.
     """
     from rosbags.typesys import Stores, get_typestore

@@ -7,15 +7,15 @@ the methods, results and errors of local ones. Reading is free unless the servic
 otherwise; motion and configuration need a controller's credentials
 (:class:`~biris_hw.errors.AccessDenied` otherwise). The key expressions, requests and payloads
 are written down for non-Python clients in ``docs/wire-format.md``; payloads are
-:mod:`biris_hw.wire`'s ROS 2 messages in CDR. Needs the ``net`` extra (eclipse-zenoh).
+:mod:`biris_hw.io.wire`'s ROS 2 messages in CDR. Needs the ``net`` extra (eclipse-zenoh).
 """
 
 from __future__ import annotations
 
-from biris_hw.net.protocol import Keys
-from biris_hw.net.remote import RemoteConnection, RemoteSensor, Subscription, connect
-from biris_hw.net.service import Sensor, Service, serve
-from biris_hw.net.zconfig import tls_options
+from biris_hw.io.net.keys import Keys
+from biris_hw.io.net.remote import RemoteConnection, RemoteSensor, Subscription, connect
+from biris_hw.io.net.service import Sensor, Service, serve
+from biris_hw.io.net.zconfig import tls_options
 
 __all__ = [
     "Keys",

@@ -1,6 +1,6 @@
 """Recording a sensor to MCAP: the standard ROS 2 channels, the lossless channels, metadata.
 
-A :class:`Recorder` reads a sensor through the client API (:class:`~biris_hw.ros2.SensorFeed`:
+A :class:`Recorder` reads a sensor through the client API (:class:`~biris_hw.io.ros2.SensorFeed`:
 one DATA connection for every acquisition, one for every completed scan, the status at a
 period, collected in batches by one thread that also encodes and writes them, so the
 recorder adds almost nothing to the moment an acquisition reaches the other clients) and
@@ -14,7 +14,7 @@ and drops).
 Nothing is dropped silently: what the recorder was too slow for is counted by the server on its
 connections and written in the file (every ``biris: recorder`` diagnostic and the end record)
 and in :class:`RecordSummary`. The file is valid however the run ends (see
-:mod:`biris_hw.record.mcapfile`).
+:mod:`biris_hw.io.record.mcapfile`).
 """
 
 from __future__ import annotations
@@ -32,10 +32,11 @@ from typing import Any
 
 import numpy as np
 
-from biris_hw import __version__, ros2, wire
+from biris_hw._version import __version__
 from biris_hw.data import Point, Scan
 from biris_hw.geometry import Frame, Mount
-from biris_hw.record.mcapfile import CHUNK_SIZE, McapFile, RecordError
+from biris_hw.io import ros2, wire
+from biris_hw.io.record.mcapfile import CHUNK_SIZE, McapFile, RecordError
 from biris_hw.status import ServerStatus
 
 __all__ = [
@@ -151,12 +152,12 @@ class Recorder:
     """Record everything a sensor produces, while the ``with`` block runs, into an MCAP file.
 
     ``source`` is a :class:`~biris_hw.BirisServer`, a network client's sensor, or anything with
-    ``open`` and ``status`` (:class:`~biris_hw.ros2.SensorSource`). ``frame`` is the frame of the
+    ``open`` and ``status`` (:class:`~biris_hw.io.ros2.SensorSource`). ``frame`` is the frame of the
     scan clouds (``"vehicle"`` or ``"sensor"``, as ``Scan.points``); ``profiles=False`` leaves
     the per-acquisition profile clouds out (a smaller file; the lossless points stay);
     ``metadata`` adds string (or JSON-able) entries to the ``biris`` metadata record: the target
     description, the scene. ``batch_s`` is how often what the sensor queued is collected and
-    written (:class:`~biris_hw.ros2.SensorFeed`). The recorder does not command the sensor: it
+    written (:class:`~biris_hw.io.ros2.SensorFeed`). The recorder does not command the sensor: it
     records whatever is done meanwhile.
 
     Raises:
@@ -359,7 +360,7 @@ def write_scans(
 ) -> Path:
     """Write scans to an MCAP file (``biris scan --save x.mcap``): per scan its cloud on
     ``/biris/points`` and the lossless scan, plus ``/tf_static`` and the ``biris`` metadata;
-    :class:`~biris_hw.replay.ReplayServer` serves them back equal. Returns the path.
+    :class:`~biris_hw.io.record.ReplayServer` serves them back equal. Returns the path.
 
     Raises:
         RecordError: the file cannot be written (it stays a valid MCAP file if it was begun).

@@ -10,7 +10,7 @@ receives the service's publications (every acquisition, every scan, status, faul
 **A service that goes away** is noticed through its liveliness token: every call waiting for a
 reply is woken and raises :class:`~biris_hw.errors.ConnectionClosed`, as soon as Zenoh notices
 the link is gone (the kernel closing a dead process's socket: well under a second), and at the
-latest after :data:`~biris_hw.net.protocol.MAX_WAIT_S` plus :data:`REPLY_MARGIN_S`. Blocking
+latest after :data:`~biris_hw.io.net.keys.MAX_WAIT_S` plus :data:`REPLY_MARGIN_S`. Blocking
 calls (``ready_for_data``, ``wait_idle``) wait in slices of at most ``MAX_WAIT_S`` for this
 reason, however long the caller's timeout.
 """
@@ -29,12 +29,12 @@ from typing import Any, Generic, Literal, cast, overload
 
 import zenoh
 
-from biris_hw import wire
 from biris_hw.angles import RealLike, counts_to_deg, destination_counts
 from biris_hw.client import POLL, D, checked_timeout
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
-from biris_hw.net.protocol import (
+from biris_hw.io import wire
+from biris_hw.io.net.keys import (
     CONTROL_OPS,
     MAX_WAIT_S,
     RESET_WAIT_S,
@@ -42,8 +42,8 @@ from biris_hw.net.protocol import (
     check_name,
     raise_error,
 )
-from biris_hw.net.warm import warm
-from biris_hw.net.zconfig import make_config
+from biris_hw.io.net.warm import warm
+from biris_hw.io.net.zconfig import make_config
 from biris_hw.records import MotorParams
 from biris_hw.status import ServerStatus
 
@@ -537,7 +537,7 @@ class RemoteConnection(Generic[D]):
     def reset(self) -> None:
         """Re-run the server's initialisation (see :meth:`biris_hw.client.Connection.reset`).
 
-        Waits as long as an initialisation may take (:data:`~biris_hw.net.protocol.
+        Waits as long as an initialisation may take (:data:`~biris_hw.io.net.keys.
         RESET_WAIT_S`), not a blocking read's slice: the reset carries on in the server
         whatever the caller does, and one that fails raises its HardwareFault here. A service
         that goes away meanwhile still raises ConnectionClosed at once.

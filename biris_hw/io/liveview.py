@@ -2,9 +2,9 @@
 
 Foxglove and Lichtblick connect to a ``foxglove.websocket.v1`` server and show what it
 advertises; :class:`LiveView` is that server (foxglove-sdk), fed through the client API
-(:class:`~biris_hw.ros2.SensorFeed`), so it works on a local server, a network client's sensor
+(:class:`~biris_hw.io.ros2.SensorFeed`), so it works on a local server, a network client's sensor
 or a replay alike. It publishes the recorder's standard channels, with the same ros2msg schemas
-and CDR bytes (:mod:`biris_hw.ros2`): ``/biris/profile`` and ``/tf`` per acquisition,
+and CDR bytes (:mod:`biris_hw.io.ros2`): ``/biris/profile`` and ``/tf`` per acquisition,
 ``/biris/points`` per completed scan, ``/diagnostics`` and ``/tf_static`` at the status period
 (static transforms are re-sent because a viewer may connect at any time and the WebSocket does
 not latch), and ``/biris/sweep``: the acquisitions that arrived since its previous message, in
@@ -17,7 +17,7 @@ sweep building up by keeping each message for a while: the 3D panel's *decay tim
 
 Messages are only built for channels a viewer subscribes to, so a live view nobody watches costs
 almost nothing; what is built is built in batches, in the feed's one thread and out of step
-with the acquisitions (:class:`~biris_hw.ros2.SensorFeed`), so a watched live view adds little
+with the acquisitions (:class:`~biris_hw.io.ros2.SensorFeed`), so a watched live view adds little
 to the moment an acquisition reaches the sensor's other clients. ``docs/foxglove-layout.json``
 opens the panels.
 
@@ -38,10 +38,10 @@ from collections.abc import Mapping
 from types import TracebackType
 from typing import Any
 
-from biris_hw import ros2
 from biris_hw.data import ConnectionKind, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
 from biris_hw.geometry import Frame, Mount
+from biris_hw.io import ros2
 
 __all__ = ["DEFAULT_PORT", "FAULT_POLL_S", "LiveView", "viewer_urls"]
 

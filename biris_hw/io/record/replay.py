@@ -2,7 +2,7 @@
 
 Code written against :class:`~biris_hw.BirisServer` runs unchanged on a recorded run::
 
-    from biris_hw.replay import ReplayServer
+    from biris_hw.io.record.replay import ReplayServer
     with ReplayServer("run.mcap", speed=1.0) as replay:
         data = replay.open(ConnectionKind.DATA, policy=DeliveryPolicy.EVERY_BUFFER)
         while True:
@@ -12,8 +12,8 @@ Code written against :class:`~biris_hw.BirisServer` runs unchanged on a recorded
                 break
 
 The player reads ``/biris/raw/scan``, ``/biris/raw/point`` and ``/biris/raw/status`` (written by
-:mod:`biris_hw.record` with :mod:`biris_hw.wire`) in log-time order and hands each item over as
-the server did: to every DATA connection by its delivery policy (LATEST keeps the newest,
+:mod:`biris_hw.io.record` with :mod:`biris_hw.io.wire`) in log-time order and hands each item
+over as the server did: to every DATA connection by its delivery policy (LATEST keeps the newest,
 EVERY_BUFFER and EVERY_ACQUISITION queue up to their depth, the oldest dropped and counted), and
 as the answer to REQUEST_POINT / REQUEST_SCAN_DATA. ``speed`` scales the recorded timing (2.0 is
 twice as fast); ``speed=None`` plays as fast as the readers take it: the player waits while a
@@ -47,13 +47,13 @@ from typing import Any, Generic, TypeVar
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
-from biris_hw import wire
 from biris_hw.client import checked_timeout as _seconds
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
+from biris_hw.io import wire
+from biris_hw.io.ros2 import RAW_POINT_TOPIC, RAW_SCAN_TOPIC, RAW_STATUS_TOPIC
+from biris_hw.protocol import check_policy
 from biris_hw.records import BirisInitRecord
-from biris_hw.ros2 import RAW_POINT_TOPIC, RAW_SCAN_TOPIC, RAW_STATUS_TOPIC
-from biris_hw.server.delivery import check_policy
 from biris_hw.status import ConnectionStatus, ServerState, ServerStatus
 
 __all__ = ["EndOfRecording", "ReplayConnection", "ReplayError", "ReplayRefused", "ReplayServer"]

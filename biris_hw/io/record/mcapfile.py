@@ -26,7 +26,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import DataEnd, Footer
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
-from biris_hw import __version__
+from biris_hw._version import __version__
 from biris_hw.errors import BirisError
 
 __all__ = ["CHUNK_SIZE", "McapFile", "RecordError"]

@@ -14,7 +14,7 @@ Threads and why:
   behind the sensor. Admitted requests run on one of two bounded pools (a full queue is "Busy"
   too): control operations on a small pool of their own, which blocking reads never reach, so
   that no number of readers waiting in READY_FOR_DATA or wait_idle (each held at most
-  :data:`~biris_hw.net.protocol.MAX_WAIT_S`) can delay a controller's ``stop_scan``; everything
+  :data:`~biris_hw.io.net.keys.MAX_WAIT_S`) can delay a controller's ``stop_scan``; everything
   else on the shared pool, where blocking reads are capped (:data:`MAX_BLOCKING`) below its
   size so that quick reads always find a worker.
 * A janitor thread releases the connections of clients whose liveliness token went (after
@@ -48,7 +48,6 @@ from typing import Any
 
 import zenoh
 
-from biris_hw import wire
 from biris_hw.client import Connection, Sensor, checked_timeout
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import (
@@ -58,7 +57,8 @@ from biris_hw.errors import (
     HardwareFault,
     RequestError,
 )
-from biris_hw.net.protocol import (
+from biris_hw.io import wire
+from biris_hw.io.net.keys import (
     BLOCKING_OPS,
     CONTROL_OPS,
     MAX_REQUEST,
@@ -71,8 +71,8 @@ from biris_hw.net.protocol import (
     check_token,
     error_payload,
 )
-from biris_hw.net.warm import warm_all
-from biris_hw.net.zconfig import make_config
+from biris_hw.io.net.warm import warm_all
+from biris_hw.io.net.zconfig import make_config
 from biris_hw.records import MotorParams
 from biris_hw.status import ServerState, ServerStatus
 
@@ -222,14 +222,14 @@ def _is_playback(sensor: object) -> bool:
     """Whether ``sensor`` is a recording that refuses motion and configuration itself.
 
     Asked of the sensor, never of the caller: a sensor says so with a ``playback`` attribute
-    (True), and a :class:`~biris_hw.replay.ReplayServer` is one. That class is looked up among
-    the modules already loaded, not imported (biris_hw.net and biris_hw.replay are siblings in
-    the layers): an object of that class exists only if the module has been loaded.
+    (True), and a :class:`~biris_hw.io.record.ReplayServer` is one. That class is looked up
+    among the modules already loaded, not imported (biris_hw.io.net and biris_hw.io.record are
+    siblings): an object of that class exists only if the module has been loaded.
     """
     flag = getattr(sensor, "playback", None)
     if isinstance(flag, bool):
         return flag
-    replay = sys.modules.get("biris_hw.replay")
+    replay = sys.modules.get("biris_hw.io.record.replay")
     kind = getattr(replay, "ReplayServer", None)
     return isinstance(kind, type) and isinstance(sensor, kind)
 
@@ -267,9 +267,9 @@ class Service:
             )
         self.playback = recording if playback is None else bool(playback)
         """The sensor is a recording that refuses motion and configuration itself (a
-        :class:`~biris_hw.replay.ReplayServer`): control operations are handed to it whoever asks,
-        so that a client hears the replay's own refusal, not a misleading AccessDenied. Decided
-        from the sensor: ``playback=True`` for one that can move is refused."""
+        :class:`~biris_hw.io.record.ReplayServer`): control operations are handed to it whoever
+        asks, so that a client hears the replay's own refusal, not a misleading AccessDenied.
+        Decided from the sensor: ``playback=True`` for one that can move is refused."""
         self.stop_when_controllers_leave = bool(stop_when_controllers_leave)
         """Dead-man: when the last controller's liveliness token goes, issue stop_scan."""
         self.dead_man_stops = 0
@@ -938,7 +938,7 @@ def serve(
         playback: (keyword) whether ``server`` is a recording that refuses motion and
             configuration itself (then control requests reach it whatever the credentials, and
             are answered with its refusal, a RequestError). Default: decided from the sensor (a
-            :class:`~biris_hw.replay.ReplayServer`, or any sensor with ``playback = True``);
+            :class:`~biris_hw.io.record.ReplayServer`, or any sensor with ``playback = True``);
             True for a sensor that can move raises RequestError. A recording served with
             ``speed=None`` is refused: one stalled reader would stall every client.
         stop_when_controllers_leave: (keyword) dead-man: when the last client that was granted

@@ -1,6 +1,6 @@
 """Paying the codec's one-time cost up front, never on the data path.
 
-:mod:`biris_hw.wire` builds a rosbags typestore the first time it is used (about 0.1 s of pure
+:mod:`biris_hw.io.wire` builds a rosbags typestore the first time it is used (about 0.1 s of pure
 Python, measured on the 2-core development machine, longer when it is loaded) and generates
 each message type's CDR (de)serialiser on its first use (another 10-20 ms each). All of it
 holds the interpreter lock. Paid lazily, it landed on the first acquisition: in the service
@@ -18,9 +18,9 @@ import functools
 
 import numpy as np
 
-from biris_hw import wire
 from biris_hw.data import Direction, Point, Scan
 from biris_hw.errors import HardwareFault
+from biris_hw.io import wire
 from biris_hw.status import ServerState, ServerStatus
 
 __all__ = ["warm", "warm_all"]

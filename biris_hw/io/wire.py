@@ -12,7 +12,7 @@ registered into a rosbags typestore built from ROS 2 Humble's standard types (fo
 Why custom types and not ``sensor_msgs/LaserScan``: a LaserScan holds float32 metres of one
 profile; a BIRIS scan is an int16 ``(n_acq, samples)`` grid with per-acquisition azimuths and
 times, and converting would lose exactly what a lossless recording must keep. Standard views
-(LaserScan, PointCloud2) are the business of :mod:`biris_hw.ros2`, derived from these.
+(LaserScan, PointCloud2) are the business of :mod:`biris_hw.io.ros2`, derived from these.
 
 Conventions: optional values travel as a value plus a ``has_*`` flag (CDR has no null); a 2-D
 array is flattened row-major with its row and column counts beside it; ``std_msgs/Header`` stamps

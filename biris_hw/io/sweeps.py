@@ -6,7 +6,7 @@ delivered buffer with READY_FOR_DATA, and at the end send BIRIS_STOP_SCAN_RQST, 
 sweep under way has finished and the head stands still, and close both connections.
 :func:`sweeping` is that recipe, once::
 
-    from biris_hw.sweeps import sweeping
+    from biris_hw.io.sweeps import sweeping
 
     with sweeping(server, cw_deg=-45.0, ccw_deg=45.0, timeout=10.0) as sweeps:
         for scan in sweeps:                      # READY_FOR_DATA, one complete sweep each

@@ -1,0 +1,11 @@
+"""The outside world: everything built on the sensor interface alone.
+
+The service on the network (:mod:`biris_hw.io.net`), recordings and their replay
+(:mod:`biris_hw.io.record`), the Foxglove live view (:mod:`biris_hw.io.liveview`), the ROS 2
+payloads (:mod:`biris_hw.io.wire`, :mod:`biris_hw.io.ros2`), scan files, plots and sweeps. A
+module here reaches the sensor through what any sensor offers -- a local
+:class:`~biris_hw.server.BirisServer`, a remote one or a replay -- and never imports the server,
+the hardware layers or the simulator (an import-linter contract in ``pyproject.toml``): a new
+adapter goes here, a new transport goes below (``biris_hw.bus``, ``biris_hw.irq``,
+``biris_hw.axes``). docs/design.md, "Where things go".
+"""
