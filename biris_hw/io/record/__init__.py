@@ -20,12 +20,13 @@ from biris_hw.io.record.recorder import (
     RecordSummary,
     write_scans,
 )
-from biris_hw.io.record.replay import ReplayServer
+from biris_hw.io.record.replay import EndOfRecording, ReplayServer
 
 __all__ = [
     "RAW_POINT_TOPIC",
     "RAW_SCAN_TOPIC",
     "RAW_STATUS_TOPIC",
+    "EndOfRecording",
     "RecordError",
     "RecordSummary",
     "Recorder",
