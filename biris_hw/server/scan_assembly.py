@@ -133,7 +133,12 @@ def point_of(acq: Acquisition, scan: ActiveScan, scan_seq: int, mount: Mount | N
 
 
 def build_scan(scan: ActiveScan, samples: int, seq: int, mount: Mount | None) -> Scan:
-    """The completed ``scan`` as buffer number ``seq`` of its direction."""
+    """The completed ``scan`` as buffer number ``seq`` of its direction.
+
+    Its frames are copied once, stacked straight into the scan's int16 arrays, and every array
+    is frozen here: :class:`~biris_hw.data.Scan` keeps a read-only array as it is given and
+    copies only a writable one, and the delivery code shares these arrays between connections.
+    """
     acqs = [scan.acqs[k] for k in sorted(scan.acqs)]
     n = len(acqs)
     azimuth = np.fromiter((a.azimuth for a in acqs), dtype=np.int32, count=n)
@@ -145,11 +150,13 @@ def build_scan(scan: ActiveScan, samples: int, seq: int, mount: Mount | None) ->
         origin = np.fromiter((a.t_origin for a in acqs), dtype=np.float64, count=n)
         t -= origin - origin.min()
     if n:
-        rng = np.stack([a.profile for a in acqs]).astype(np.int16)
-        inten = np.stack([a.intensity for a in acqs]).astype(np.int16)
+        rng = np.stack([a.profile for a in acqs], dtype=np.int16)
+        inten = np.stack([a.intensity for a in acqs], dtype=np.int16)
     else:
         rng = np.zeros((0, samples), dtype=np.int16)
         inten = np.zeros((0, samples), dtype=np.int16)
+    for array in (azimuth, closest, t, rng, inten):
+        array.flags.writeable = False
     # report mode: what BIRIS was asked for and neither kept nor dropped as standing was lost
     dropped = scan.lost if scan.ring else max(0, scan.n - n - scan.standing)
     if dropped:
