@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from benchmarks.harness import BenchContext, Figure, Target, benchmark, summaris
 from biris_hw import ConnectionKind
 from biris_hw.data import DeliveryPolicy, Point
 from biris_hw.errors import ConnectionClosed
+
+if TYPE_CHECKING:
+    from biris_hw.sensor import Sensor
 
 __all__ = ["net"]
 
@@ -258,7 +261,14 @@ class _Firehose:
             raise ConnectionClosed("only the point feed")
         return self
 
-    def status(self) -> Any:
+    playback = False
+    paced = True
+    record = None
+
+    def clock(self) -> float:
+        return float(self.acq)
+
+    def status(self, *, newer_than: int | None = None, timeout: float | None = None) -> Any:
         raise ConnectionClosed("no status")
 
     def close(self) -> None:
@@ -288,7 +298,8 @@ def _throughput(ctx: BenchContext) -> Figure:
     step_s = ctx.pick(full=2, quick=1)
     steps: dict[str, float] = {}
     ceiling = 0.0
-    with serve(hose, name="hose", listen=[where], multicast=False):
+    # the stand-in has the point feed only: not a whole Sensor, and the service needs no more
+    with serve(cast("Sensor", hose), name="hose", listen=[where], multicast=False):
         for rate in RATES:
             # the stand-in publishes no status: ready = subscribed, and the points before the
             # first one received are left out below

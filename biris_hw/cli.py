@@ -8,9 +8,9 @@ says so in one line.
 
 While a command runs, what the server says it is doing (homing, booting BIRIS, waiting for a
 command to finish) is shown on stderr when a person watches it
-(:func:`~biris_hw.commands.common.progress_to_stderr`), and what the driver warns about (a scan
+(:func:`~biris_hw.commands.console.progress_to_stderr`), and what the driver warns about (a scan
 that came out short, acquisitions lost) always is, one ``biris: warning: ...`` line each
-(:func:`~biris_hw.commands.common.log_to_stderr`; ``--debug`` shows the whole log instead);
+(:func:`~biris_hw.commands.console.log_to_stderr`; ``--debug`` shows the whole log instead);
 Ctrl-C is exit status 130, after the command has kept what it could.
 """
 
@@ -21,26 +21,19 @@ import contextlib
 import importlib
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import NoReturn, Protocol, cast
+from typing import NamedTuple, NoReturn, Protocol, cast
 
 from biris_hw import __version__
-from biris_hw.commands.common import (
-    EXIT_INTERRUPTED,
-    EXIT_USAGE,
-    add_debug_argument,
-    log_to_stderr,
-    progress_to_stderr,
-    report_error,
-    wants_progress,
-)
+from biris_hw.commands.console import log_to_stderr, progress_to_stderr, wants_progress
+from biris_hw.commands.failures import EXIT_INTERRUPTED, EXIT_USAGE, report_error
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
 
-@dataclass(frozen=True)
-class Command:
-    """A subcommand: its name, where its module lives, and what ``biris --help`` says."""
+class Command(NamedTuple):
+    """A subcommand: its name, where its module lives, and what ``biris --help`` says (a
+    NamedTuple rather than a dataclass: ``biris --help`` does not pay for importing
+    :mod:`dataclasses`)."""
 
     name: str
     module: str
@@ -186,6 +179,8 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     for command in COMMANDS:
         child = sub.add_parser(command.name, help=command.summary, description=command.description)
         if command.name == chosen:
+            from biris_hw.commands.options import add_debug_argument
+
             module = _load(command)
             module.add_arguments(child)
             with contextlib.suppress(argparse.ArgumentError):  # the module may declare it

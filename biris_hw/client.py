@@ -17,15 +17,25 @@ A DATA connection is generic in what READY_FOR_DATA hands out: ``Connection[Scan
 default, also what a bare ``Connection`` means) for the LATEST and EVERY_BUFFER policies,
 ``Connection[Point]`` for EVERY_ACQUISITION; ``BirisServer.open`` picks the right one from the
 policy, so a type checker knows what ``ready_for_data`` returns.
+
+``ready_for_data`` on an idle sensor costs the administrator nothing once it has said "nothing
+waits": the administrator publishes an epoch (:class:`biris_hw.protocol.Bulletin`) that moves
+after every message that may change an answer, and while it stays at the epoch of that answer a
+poll is answered here and a wait is spent here, waking when the epoch moves. A feed that polls,
+or waits in short slices, asks the server only when something has happened.
+
+:class:`Connection` is one of three classes that answer to the :class:`biris_hw.sensor.Connection`
+Protocol (with the network's and the replay's); :class:`~biris_hw.sensor.Sensor`, imported here
+for the callers that still name it ``biris_hw.client.Sensor``, is defined in :mod:`biris_hw.sensor`.
 """
 
 from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from fractions import Fraction
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, cast, overload
+from typing import cast
 
 from biris_hw import protocol as m
 from biris_hw.angles import RealLike, destination_counts, exact_real, is_real, shown
@@ -33,18 +43,11 @@ from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import ConnectionClosed, RequestError
 from biris_hw.ipc import Mailbox
 from biris_hw.records import MotorParams
-from biris_hw.status import ServerStatus
+from biris_hw.sensor import ConnectionBase, D
+from biris_hw.sensor import Sensor as Sensor
+from biris_hw.status import ServerStatus, check_change
 
-if TYPE_CHECKING:  # the default needs PEP 696; at run time a plain TypeVar does the same job
-    from typing_extensions import TypeVar
-
-    D = TypeVar("D", Scan, Point, default=Scan)
-else:
-    from typing import TypeVar
-
-    D = TypeVar("D", Scan, Point)
-
-__all__ = ["Connection", "Sensor", "checked_timeout"]
+__all__ = ["Connection", "D", "Sensor", "checked_timeout"]
 
 
 POLL = 0.0
@@ -91,7 +94,7 @@ def checked_timeout(value: object) -> float | None:
     return max(float(seconds), math.ulp(0.0))  # a positive deadline, however small, is not a poll
 
 
-class Connection(Generic[D]):
+class Connection(ConnectionBase[D]):
     """A client's connection to the BIRIS server (NORMAL or DATA)."""
 
     def __init__(
@@ -101,28 +104,19 @@ class Connection(Generic[D]):
         kind: ConnectionKind,
         policy: DeliveryPolicy = DeliveryPolicy.LATEST,
         depth: int = 1,
+        bulletin: m.Bulletin | None = None,
     ) -> None:
+        super().__init__(ident, kind, policy, depth)
         self._inbox = inbox
-        self.ident = ident
-        self.kind = kind
-        self.policy = policy
-        """What READY_FOR_DATA delivers and what a slow client loses (DATA connections)."""
-        self.depth = depth
-        """How many buffers (or points) wait for the client at most."""
-        self.dropped = 0
-        """Buffers (points) this DATA connection missed, as of its last READY_FOR_DATA: replaced
-        or pushed out of a full queue because the client was not ready in time, or (points)
-        lost by the server. ``server.status()`` has the running figure."""
-        self._closed = False
-
-    def __repr__(self) -> str:
-        state = "closed" if self._closed else "open"
-        policy = f" {self.policy.name}" if self.kind is ConnectionKind.DATA else ""
-        return f"<Connection {self.ident} {self.kind.name}{policy} {state}>"
+        self._bulletin = bulletin
+        """The administrator's epoch (:class:`biris_hw.protocol.Bulletin`), when the server gave
+        it: lets a poll that cannot have a different answer be answered here."""
+        self._empty_at: int | None = None
+        """The epoch at which the administrator last answered this connection's poll with
+        "nothing waits"."""
 
     def _call(self, message: object, timeout: float | None = None) -> object:
-        if self._closed:
-            raise ConnectionClosed(f"connection {self.ident} is closed")
+        self._check_open()
         return self._inbox.send(message, timeout=timeout)
 
     # -- data --------------------------------------------------------------------------------
@@ -178,15 +172,69 @@ class Connection(Generic[D]):
             TimeoutError: nothing came within ``timeout`` seconds (at once for a poll).
         """
         seconds = checked_timeout(timeout)
-        if seconds == POLL:
-            result = self._call(m.ReadyForData(self.ident, poll=True))
-        else:
-            result = self._call(m.ReadyForData(self.ident), seconds)
+        result = self._poll() if seconds == POLL else self._wait(seconds)
         assert isinstance(result, tuple)
         item, dropped = result
         self.dropped = int(dropped)
         assert isinstance(item, (Scan, Point))
         return cast(D, item)  # the server sends what the policy says
+
+    def _unchanged(self) -> int | None:
+        """The administrator's epoch now, if it is the one at which this connection was last
+        told that nothing waits for it (so nothing can have come since); else None."""
+        bulletin = self._bulletin
+        if bulletin is None or self._inbox.closed:
+            return None
+        epoch = bulletin.epoch
+        return epoch if epoch == self._empty_at else None
+
+    def _moved_from(self, epoch: int) -> Callable[[], bool]:
+        """Whether the administrator's epoch has moved from ``epoch`` (or the server stopped)."""
+        bulletin, inbox = self._bulletin, self._inbox
+        assert bulletin is not None
+        return lambda: bulletin.epoch != epoch or inbox.closed
+
+    def _poll(self) -> object:
+        """READY_FOR_DATA as a poll: the administrator's answer, or, when it said "nothing
+        waits" at the epoch that still holds, that answer again without asking.
+
+        The epoch is read before the request is sent, so a change that races the answer moves
+        it on and the next poll asks again: a poll answered here is one whose answer could not
+        have been different (nothing was delivered, nothing faulted or closed since).
+        """
+        self._check_open()
+        if self._unchanged() is not None:
+            raise TimeoutError(f"no data waiting for connection {self.ident}")  # as the server says
+        epoch = None if self._bulletin is None else self._bulletin.epoch
+        try:
+            return self._call(m.ReadyForData(self.ident, poll=True))
+        except TimeoutError:
+            self._empty_at = epoch
+            raise
+
+    def _wait(self, seconds: float | None) -> object:
+        """READY_FOR_DATA with a deadline (or none): parked in the administrator until data
+        come, as the report has it -- unless the last wait ran out at the epoch that still
+        holds. Then nothing can have come since, and the wait is spent here, for the epoch to
+        move, before the administrator is asked again: a reader that waits on an idle sensor in
+        short slices (a feed) posts nothing while nothing happens."""
+        bulletin = self._bulletin
+        while True:
+            self._check_open()
+            unchanged = self._unchanged()
+            if unchanged is not None:
+                assert bulletin is not None
+                try:
+                    seconds = bulletin.wait_until(self._moved_from(unchanged), seconds)
+                except TimeoutError:
+                    raise TimeoutError(f"no data for connection {self.ident} in time") from None
+                continue
+            epoch = None if bulletin is None else bulletin.epoch
+            try:
+                return self._call(m.ReadyForData(self.ident), seconds)
+            except TimeoutError:
+                self._empty_at = epoch
+                raise
 
     # -- control -----------------------------------------------------------------------------
     def single_scan(self, to_deg: RealLike) -> int:
@@ -370,68 +418,67 @@ class Connection(Generic[D]):
         """
         self._call(m.ResetRequest(self.ident))
 
-    # -- lifecycle ---------------------------------------------------------------------------
-    @property
-    def closed(self) -> bool:
-        return self._closed
+    def status(
+        self, *, newer_than: int | None = None, timeout: RealLike | None = None
+    ) -> ServerStatus:
+        """The server's status (as :meth:`BirisServer.status <biris_hw.BirisServer.status>`),
+        asked on this connection: a wait for a newer one (``newer_than``) also ends, with
+        ConnectionClosed, when this connection is closed from another thread.
 
-    def close(self) -> None:
-        """CLOSE_REQUEST; calling it again does nothing."""
-        if self._closed:
-            return
+        Raises:
+            ConnectionClosed: this connection or the server is closed.
+            RequestError: a ``newer_than`` that is not a whole number, or a bad timeout.
+            TimeoutError: no newer status within ``timeout`` (at once for a poll).
+        """
+        self._check_open()
+        return status_request(self._inbox, self.ident, newer_than, timeout, self._bulletin)
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def _close(self) -> None:
         try:
             self._call(m.CloseRequest(self.ident))
         except ConnectionClosed:
             pass
-        finally:
-            self._closed = True
-
-    def __enter__(self) -> Connection[D]:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
-class Sensor(Protocol):
-    """What a program needs of a sensor, wherever it is: a local
-    :class:`~biris_hw.BirisServer`, a service reached over the network
-    (:class:`biris_hw.io.net.RemoteSensor`) or a replayed recording
-    (:class:`biris_hw.io.record.ReplayServer`). The service, the recorder and every ``biris``
-    command take any of them; their connections have the methods of :class:`Connection`."""
+def status_request(
+    inbox: Mailbox,
+    conn: int | None,
+    newer_than: int | None,
+    timeout: RealLike | None,
+    bulletin: m.Bulletin | None = None,
+) -> ServerStatus:
+    """STATUS sent to ``inbox``: now, or (``newer_than``) once the status has changed since.
 
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: Literal[DeliveryPolicy.EVERY_ACQUISITION],
-        depth: int | None = ...,
-    ) -> Any: ...
+    Shared by :meth:`Connection.status` and ``BirisServer.status``, which differ only in the
+    connection the request belongs to. With the administrator's ``bulletin`` the wait for a
+    change is spent on it, and the administrator is asked once the change has come (or, for a
+    request that names a connection, once that connection may have closed): a watcher costs
+    nothing while nothing changes. Without one, the request is parked in the administrator.
 
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: Literal[DeliveryPolicy.LATEST, DeliveryPolicy.EVERY_BUFFER] = ...,
-        depth: int | None = ...,
-    ) -> Any: ...
-
-    @overload
-    def open(
-        self,
-        kind: ConnectionKind = ...,
-        *,
-        policy: DeliveryPolicy,
-        depth: int | None = ...,
-    ) -> Any: ...
-
-    def status(self) -> ServerStatus: ...
-
-    def close(self) -> None: ...
+    Raises:
+        RequestError: a ``newer_than`` that is not a whole number, or a bad timeout.
+        TimeoutError: no newer status within ``timeout`` (at once for a poll).
+    """
+    seconds = checked_timeout(timeout)
+    after = check_change(newer_than)
+    if after is not None and bulletin is not None and bulletin.change <= after:
+        if seconds == POLL:
+            raise TimeoutError(f"the status has not changed since {after}")
+        try:
+            seconds = bulletin.wait_until(lambda: bulletin.change > after or inbox.closed, seconds)
+        except TimeoutError:
+            raise TimeoutError(f"no status newer than change {after} in {timeout} s") from None
+    if newer_than is None:
+        result = inbox.send(m.StatusRequest(conn))
+    elif seconds == POLL:
+        result = inbox.send(m.StatusRequest(conn, newer_than, poll=True))
+    else:
+        try:
+            result = inbox.send(m.StatusRequest(conn, newer_than), seconds)
+        except TimeoutError:
+            raise TimeoutError(
+                f"no status newer than change {newer_than} in {seconds:g} s"
+            ) from None
+    assert isinstance(result, ServerStatus)
+    return result

@@ -16,6 +16,7 @@ __all__ = [
     "HardwareFault",
     "LineClosed",
     "RequestError",
+    "SetupError",
     "UnknownKind",
 ]
 
@@ -78,3 +79,14 @@ class ConnectionClosed(BirisError):
 class AccessDenied(BirisError):
     """A remote client without control rights asked for motion or configuration (or, on a service
     that requires credentials for reading, for data); nothing was changed."""
+
+
+class SetupError(BirisError):
+    """The sensor could not be reached as described: a target, init or credentials file that
+    cannot be read or says something impossible, a device node that will not open, no
+    simulator process or service of that name, a recording that cannot be played, or the extra
+    a kind needs (``net``, ``record``) is not installed (:func:`biris_hw.sensor.open_sensor`).
+
+    Something on this side must be fixed; the hardware has not failed (that is a
+    :class:`HardwareFault`). The error met on the way is the ``__cause__``.
+    """

@@ -17,12 +17,17 @@ work (:mod:`biris_hw.client`).
 from __future__ import annotations
 
 import operator
+import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from biris_hw.angles import shown
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction
 from biris_hw.errors import RequestError
 from biris_hw.records import MotorParams
+from biris_hw.status import check_change
+from biris_hw.timebase import HwCondition, TimeBase
 
 
 def _counts(message: object, name: str) -> None:
@@ -217,4 +222,89 @@ class ResetRequest:
 
 @dataclass(frozen=True, slots=True)
 class StatusRequest:
+    """The server's status. With ``newer_than``, the push: parked, as READY_FOR_DATA is until
+    there are data, until the status's change number (:attr:`ServerStatus.change
+    <biris_hw.status.ServerStatus.change>`) is above it, so that a watcher hears of a change as
+    it happens and asks nothing while nothing changes. ``poll`` (with ``newer_than``): answer at
+    once, a newer status or a TimeoutError. ``conn``: the connection the request belongs to; a
+    parked request ends with ConnectionClosed when that connection closes, so that its owner can
+    stop a watch from another thread."""
+
     conn: int | None = None
+    newer_than: int | None = None
+    poll: bool = False
+
+    def __post_init__(self) -> None:
+        _check_poll(self.poll)
+        object.__setattr__(self, "newer_than", check_change(self.newer_than))
+        if self.poll and self.newer_than is None:
+            raise RequestError("poll: only a status request with newer_than waits, or polls")
+
+
+class Bulletin:
+    """What a client may read of the administrator's state without a round trip.
+
+    Written by the administrator alone (:meth:`advance`), after every message that may change
+    what a client would be told (anything but a request that only reads): :attr:`epoch` grows
+    by one each time, and :attr:`change` is then the status's change number
+    (:attr:`ServerStatus.change <biris_hw.status.ServerStatus.change>`). A client that was told
+    "nothing waits for you" at one epoch would be told the same while the epoch stays, and one
+    that waits for a status newer than ``c`` has nothing to ask while :attr:`change` is ``c``:
+    both wait here (:meth:`wait_until`) and ask the administrator once there is something to
+    ask for, so an idle sensor's readers and watchers cost it nothing
+    (:class:`biris_hw.client.Connection`). The numbers are ints, read whole, so a reader needs
+    no lock; waiting goes through the rig's time base, so a wait here is a wait of its domain.
+    """
+
+    __slots__ = ("_cond", "_scale", "_timebase", "_waiting", "change", "epoch")
+
+    def __init__(self, timebase: TimeBase | None = None) -> None:
+        self.epoch = 0
+        self.change = 0
+        self._timebase = timebase
+        self._cond: HwCondition | threading.Condition = (
+            timebase.Condition() if timebase is not None else threading.Condition()
+        )
+        self._scale = timebase.timeout_hw(1.0) if timebase is not None else 1.0
+        """Hardware seconds per second of a caller's timeout."""
+        self._waiting = 0
+
+    def __repr__(self) -> str:
+        return f"<Bulletin epoch={self.epoch} change={self.change}>"
+
+    def advance(self, change: int | None = None) -> None:
+        """The epoch moves on (and the status's change number is ``change``, if given); whoever
+        waits is woken. A lock hand-over: the administrator never waits here."""
+        with self._cond:
+            self.epoch += 1
+            if change is not None:
+                self.change = change
+            if self._waiting:
+                self._cond.notify_all()
+
+    def _now(self) -> float:
+        return self._timebase.now() if self._timebase is not None else time.monotonic()
+
+    def wait_until(self, ready: Callable[[], bool], timeout: float | None) -> float | None:
+        """Block until ``ready()`` (asked again each time the bulletin moves); returns what is
+        left of ``timeout`` (the caller's seconds; None for no deadline).
+
+        Raises:
+            TimeoutError: ``timeout`` seconds passed first.
+        """
+        scale = self._scale
+        deadline = None if timeout is None else self._now() + timeout * scale
+        with self._cond:
+            self._waiting += 1
+            try:
+                while not ready():
+                    left = None if deadline is None else deadline - self._now()
+                    if left is not None and left <= 0:
+                        raise TimeoutError("nothing has changed in the server")
+                    if isinstance(self._cond, HwCondition):
+                        self._cond.wait(left, what="the administrator's bulletin")
+                    else:
+                        self._cond.wait(left)
+            finally:
+                self._waiting -= 1
+        return None if deadline is None else max(0.0, (deadline - self._now()) / scale)

@@ -13,14 +13,22 @@ made has gone (:class:`Accounts`).
 from __future__ import annotations
 
 import enum
+import operator
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from biris_hw.errors import FaultKind
+from biris_hw.errors import FaultKind, RequestError
 from regs.wiener_crate import CrateReading
 
-__all__ = ["Accounts", "ConnectionStatus", "ServerState", "ServerStatus"]
+__all__ = [
+    "Accounts",
+    "ConnectionStatus",
+    "ServerState",
+    "ServerStatus",
+    "StatusChanges",
+    "check_change",
+]
 
 
 class ServerState(enum.Enum):
@@ -151,7 +159,9 @@ class ServerStatus(_ReadsAsMapping):
     interrupts: Mapping[str, int] = field(default_factory=dict)
     """Interrupts raised per logical kind (filled in by the server, outside the administrator)."""
     azimuth_live: int | None = None
-    """Counts: the pan encoder now; None while initialising or if the board cannot be read."""
+    """Counts: the pan encoder, read for this status (or a reading at most 0.1 hardware s old
+    while an axis moves, 1 s at rest: :mod:`biris_hw.server.encoders`); None while
+    initialising or if the board cannot be read."""
     elevation_live: int | None = None
     acquisitions_in_progress: int = 0
     """Acquisitions read and held by the scan under way (and a finished sweep's turn-around
@@ -175,6 +185,34 @@ class ServerStatus(_ReadsAsMapping):
     poll fails: :attr:`crate_error` then says so, and ``crate.read_at`` how old it is."""
     crate_error: str | None = None
     """Why the last poll of the crate failed (it did not answer, a malformed frame), else None."""
+    change: int = 0
+    """This status's change number: it grows each time what :meth:`signature` covers changes, so
+    ``sensor.status(newer_than=status.change)`` waits until there is something new to say
+    (the push a service or a live view needs instead of polling). Numbered by the sensor that
+    answers: a :class:`~biris_hw.BirisServer`'s administrator, or a network client or a replay
+    for what it has seen; compare it only with numbers from the same sensor object."""
+
+    def signature(self) -> tuple[Any, ...]:
+        """What a watcher acts on, as one comparable value; :attr:`change` counts its changes.
+
+        The state (fault kind included), where the axes were sent, the calibration, the scanning
+        and acquisition modes, and which connections are open. Not the counters, the live
+        encoder readings nor the crate's reading: those move while nothing a watcher decides on
+        does (every acquisition, every step of the head), and a watcher that wants them fresh
+        asks at its own pace.
+        """
+        return (
+            self.state,
+            self.fault,
+            self.azimuth,
+            self.elevation,
+            self.calibration,
+            self.continuous,
+            self.acquisition,
+            self.acquisition_pending,
+            self.ring,
+            tuple(self.connections),
+        )
 
     def accounts(self) -> Accounts:
         """The acquisition counters reconciled (:class:`Accounts`): ``accounts().adds_up``
@@ -206,4 +244,46 @@ class ServerStatus(_ReadsAsMapping):
         return super().__getitem__(key)
 
     def __repr__(self) -> str:
-        return f"<ServerStatus {self.state_name} az={self.azimuth} el={self.elevation}>"
+        return (
+            f"<ServerStatus {self.state_name} az={self.azimuth} el={self.elevation} "
+            f"change={self.change}>"
+        )
+
+
+class StatusChanges:
+    """Numbers the changes of a status's :meth:`~ServerStatus.signature` as they are seen.
+
+    One per sensor: :meth:`see` is given every signature the sensor learns, in order, and
+    :attr:`change` is then the number to stamp on the latest status. Not thread-safe: its owner
+    calls it under its own lock (or from its one thread, as the administrator does).
+    """
+
+    def __init__(self) -> None:
+        self.change = 0
+        self._last: tuple[Any, ...] | None = None
+
+    def see(self, signature: tuple[Any, ...]) -> bool:
+        """Note ``signature``; True (and :attr:`change` one up) when it differs from the last."""
+        if signature == self._last:
+            return False
+        self._last = signature
+        self.change += 1
+        return True
+
+
+def check_change(value: object, name: str = "newer_than") -> int | None:
+    """A ``newer_than`` argument checked: None, or a change number as a plain int (any integer
+    type passes; a bool, a float or a string is a mistake, not a number).
+
+    Raises:
+        RequestError: anything else.
+    """
+    if value is None:
+        return None
+    wanted = f"{name}: must be a status's change number (a whole number)"
+    if isinstance(value, bool):
+        raise RequestError(f"{wanted}, not a bool")
+    try:
+        return operator.index(value)  # type: ignore[arg-type]  # any integer type
+    except TypeError:
+        raise RequestError(f"{wanted}, not {type(value).__name__}") from None

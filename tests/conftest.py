@@ -593,9 +593,9 @@ Run = Callable[..., tuple[int, str, str]]
 @pytest.fixture
 def no_target_env(monkeypatch: pytest.MonkeyPatch) -> None:
     """No BIRIS_TARGET from the shell running the tests: a command without --target means it."""
-    from biris_hw.commands import common
+    from biris_hw.commands.options import TARGET_ENV
 
-    monkeypatch.delenv(common.TARGET_ENV, raising=False)
+    monkeypatch.delenv(TARGET_ENV, raising=False)
 
 
 SCALED_TIME_SCALE = 10.0

@@ -318,12 +318,19 @@ if __name__ == "__main__":
 class _NoSensor:
     """A sensor that is already closed: enough for a service to start and stop."""
 
+    playback = False
+    paced = True
+    record = None
+
+    def clock(self) -> float:
+        return 0.0
+
     def open(self, *args: object, **kwargs: object) -> object:
         from biris_hw.errors import ConnectionClosed
 
         raise ConnectionClosed("no sensor")
 
-    def status(self) -> object:
+    def status(self, **_wait: object) -> object:
         from biris_hw.errors import ConnectionClosed
 
         raise ConnectionClosed("no sensor")
@@ -339,8 +346,14 @@ class FakeSensor:
     takes what :meth:`feed` is given (a Scan, or an exception to raise); a LATEST DATA
     connection's ``ready_for_data`` blocks (counted in :attr:`blocked`) until :meth:`free`, its
     timeout or its close; ``reset`` takes :attr:`reset_s` seconds, then raises
-    :attr:`reset_fault` if set. Every wait is on one condition, woken by whatever ends it.
+    :attr:`reset_fault` if set. Its status never changes: a wait for a newer one lasts its
+    timeout (or until its connection closes). Every wait is on one condition, woken by whatever
+    ends it.
     """
+
+    playback = False
+    paced = True
+    record = None
 
     def __init__(self) -> None:
         self.cond = threading.Condition()
@@ -380,9 +393,16 @@ class FakeSensor:
             self.opened.append(conn)
         return conn
 
-    def status(self) -> Any:
+    def clock(self) -> float:
+        return 0.0
+
+    def status(self, *, newer_than: int | None = None, timeout: float | None = None) -> Any:
         from tests.conftest import idle_status
 
+        if newer_than is not None:
+            with self.cond:
+                self.cond.wait(timeout)
+            raise TimeoutError("the fake's status never changes")
         if self.status_error is not None:
             error, self.status_error = self.status_error, None
             raise error
@@ -442,6 +462,17 @@ class FakeConnection:
             if self.closed:
                 raise ConnectionClosed(f"connection {self.ident} is closed")
             raise TimeoutError("no point")
+
+    def status(self, *, newer_than: int | None = None, timeout: float | None = None) -> Any:
+        from biris_hw.errors import ConnectionClosed
+
+        if newer_than is not None:  # never changes: waits out its timeout, or its close
+            with self.sensor.cond:
+                self.sensor.cond.wait_for(lambda: self.closed, timeout)
+            if self.closed:
+                raise ConnectionClosed(f"connection {self.ident} is closed")
+            raise TimeoutError("the fake's status never changes")
+        return self.sensor.status()
 
     def request_point(self) -> None:
         self._record("request_point")

@@ -21,7 +21,8 @@ import pytest
 from biris_hw import cli
 from biris_hw.cli import COMMANDS, Command
 from biris_hw.client import Connection
-from biris_hw.commands import argtypes, common
+from biris_hw.commands import argtypes, options
+from biris_hw.commands import session as cli_session
 from biris_hw.io.plots import closest_points_xy
 from biris_hw.io.scanfile import load_scans
 from biris_hw.records import BirisInitRecord
@@ -469,7 +470,7 @@ def test_no_sensor_given(biris: Run) -> None:
 def test_the_environment_names_the_target(
     biris: Run, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    monkeypatch.setenv(common.TARGET_ENV, str(tmp_path / "robot.toml"))
+    monkeypatch.setenv(options.TARGET_ENV, str(tmp_path / "robot.toml"))
     line = _error(biris("home"), 2, "biris home: cannot read target file ")
     assert "robot.toml" in line and "No such file" in line
 
@@ -513,7 +514,7 @@ def test_a_bad_init_record(biris: Run, tmp_path: Path) -> None:
 def faulty_rig(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Callable[[SimulatedBiris], None]]]:
     """Faults to inject into the simulator each command starts."""
     injections: list[Callable[[SimulatedBiris], None]] = []
-    start = common._start_rig
+    start = cli_session._start_rig
 
     def start_and_break(args: object) -> SimulatedBiris:
         rig = start(args)  # type: ignore[arg-type]
@@ -521,7 +522,7 @@ def faulty_rig(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Callable[[Simul
             inject(rig)
         return rig
 
-    monkeypatch.setattr(common, "_start_rig", start_and_break)
+    monkeypatch.setattr(cli_session, "_start_rig", start_and_break)
     yield injections
 
 

@@ -22,7 +22,8 @@ from websockets.sync.client import connect
 
 from biris_hw.commands import scan as scan_command
 from biris_hw.commands.scan import scan_to_json
-from biris_hw.io import ros2, wire
+from biris_hw.io import codec as ros2
+from biris_hw.io import codec as wire
 from tests.conftest import Run
 from tests.test_record_support import cloud_xyz, damaged_recording, read_decoded, synthetic_scans
 

@@ -25,9 +25,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from biris_hw import opening
 from biris_hw.cli import build_parser
-from biris_hw.commands import argtypes, common, demo, watch
-from biris_hw.commands.common import EXIT_INTERRUPTED, HALF_TURN_COUNTS
+from biris_hw.commands import argtypes, console, demo, failures, options, watch
+from biris_hw.commands import session as cli_session
+from biris_hw.commands.failures import EXIT_INTERRUPTED
+from biris_hw.commands.session import HALF_TURN_COUNTS
 from biris_hw.errors import HardwareFault
 from biris_hw.hardware import BirisHardware
 from biris_hw.io.scanfile import load_scans
@@ -46,14 +49,14 @@ pytestmark = pytest.mark.usefixtures("no_target_env")
 def rigs(monkeypatch: pytest.MonkeyPatch) -> list[SimulatedBiris]:
     """The simulators the commands start with --sim, for the test to look at (or break)."""
     started: list[SimulatedBiris] = []
-    start = common._start_rig
+    start = cli_session._start_rig
 
     def keep(args: argparse.Namespace) -> SimulatedBiris:
         rig = start(args)
         started.append(rig)
         return rig
 
-    monkeypatch.setattr(common, "_start_rig", keep)
+    monkeypatch.setattr(cli_session, "_start_rig", keep)
     return started
 
 
@@ -68,7 +71,7 @@ def target(monkeypatch: pytest.MonkeyPatch, no_leaks: None) -> Iterator[list[Sim
         started.append(rig)
         return rig.hardware
 
-    monkeypatch.setattr(common, "_open_target", open_target)
+    monkeypatch.setattr(opening, "_open_target", open_target)
     yield started
     for rig in started:
         rig.close()
@@ -130,7 +133,7 @@ def test_continuous_reaches_the_server_on_every_command(
         records.append(record)
         return BirisServer(hardware, record)
 
-    monkeypatch.setattr(common, "BirisServer", spy)
+    monkeypatch.setattr("biris_hw.server.BirisServer", spy)
     code, _, err = biris(*command, "--continuous", *SIM)
     # watch runs on scaled time: a host too loaded for the time scale may make BIRIS late, and
     # the fault then says the simulator was behind its clock (the point here is the record)
@@ -150,16 +153,16 @@ def test_the_demo_takes_continuous() -> None:
 def says_progress(monkeypatch: pytest.MonkeyPatch, rigs: list[SimulatedBiris]) -> None:
     """stderr is a terminal, and the server says something on the progress logger as soon as
     its simulator has started (the sentence is the test's, not the server's)."""
-    monkeypatch.setattr(common, "stderr_is_terminal", lambda: True)
-    start = common._start_rig
+    monkeypatch.setattr(console, "stderr_is_terminal", lambda: True)
+    start = cli_session._start_rig
 
     def start_and_say(args: argparse.Namespace) -> SimulatedBiris:
         rig = start(args)
-        logging.getLogger(common.PROGRESS_LOGGER).info("testing the progress line")
-        logging.getLogger(common.PROGRESS_LOGGER).info("%d things done.", 2)
+        logging.getLogger(console.PROGRESS_LOGGER).info("testing the progress line")
+        logging.getLogger(console.PROGRESS_LOGGER).info("%d things done.", 2)
         return rig
 
-    monkeypatch.setattr(common, "_start_rig", start_and_say)
+    monkeypatch.setattr(cli_session, "_start_rig", start_and_say)
 
 
 def test_progress_is_shown_while_a_command_waits(biris: Run, says_progress: None) -> None:
@@ -169,7 +172,7 @@ def test_progress_is_shown_while_a_command_waits(biris: Run, says_progress: None
     assert "biris home: 2 things done." in _lines(err)
     assert "testing" not in out  # stdout stays the command's data
     # the handler is gone once the command has ended
-    assert not logging.getLogger(common.PROGRESS_LOGGER).handlers
+    assert not logging.getLogger(console.PROGRESS_LOGGER).handlers
 
 
 def test_progress_is_not_shown_when_quiet(biris: Run, says_progress: None) -> None:
@@ -180,7 +183,7 @@ def test_progress_is_not_shown_when_quiet(biris: Run, says_progress: None) -> No
 
 def test_progress_is_not_shown_when_nobody_watches_stderr(biris: Run) -> None:
     """Not a terminal (a log, a pipe, a script): stderr keeps its one-line error contract."""
-    logging.getLogger(common.PROGRESS_LOGGER).info("not for a pipe")  # outside any command
+    logging.getLogger(console.PROGRESS_LOGGER).info("not for a pipe")  # outside any command
     code, _, err = biris("home", *SIM)
     assert code == 0, err
     assert _lines(err) == []
@@ -188,12 +191,12 @@ def test_progress_is_not_shown_when_nobody_watches_stderr(biris: Run) -> None:
 
 def test_a_fault_names_the_biris_command_not_its_code() -> None:
     fault = HardwareFault("timeout", "BIRIS still busy after 4.0 s (COMMAND 7): it does not answer")
-    line = common.error_line(fault)
+    line = failures.error_line(fault)
     assert "COMMAND 7 (BI_STOP_CONTINUOUS)" in line
-    hex_code = common.error_line(HardwareFault("protocol", "command 0x05 and COMMAND 08 refused"))
+    hex_code = failures.error_line(HardwareFault("protocol", "command 0x05 and COMMAND 08 refused"))
     assert "command 0x05 (BI_ACQUIRE) and COMMAND 08 (BI_LOAD_LUT) refused" in hex_code
     named = HardwareFault("timeout", "BIRIS did not respond to BI_ACQUIRE (COMMAND 5)")
-    assert common.error_line(named) == f"hardware fault (timeout): {named.message}"
+    assert failures.error_line(named) == f"hardware fault (timeout): {named.message}"
 
 
 def test_a_timeout_names_the_command_biris_still_holds() -> None:
@@ -202,13 +205,13 @@ def test_a_timeout_names_the_command_biris_still_holds() -> None:
         devices=SimpleNamespace(link=SimpleNamespace(command=lambda: 7))
     )
     fault = HardwareFault("timeout", "BIRIS did not respond for 4 s of hardware time")
-    named = common._name_unanswered(fault, hardware)
+    named = opening._name_unanswered(fault, hardware)
     assert named.kind == "timeout"
     assert named.message.endswith("(waiting for BIRIS to finish BI_STOP_CONTINUOUS)")
     idle: Any = SimpleNamespace(devices=SimpleNamespace(link=SimpleNamespace(command=lambda: 0)))
-    assert common._name_unanswered(fault, idle) is fault  # nothing outstanding: nothing to add
+    assert opening._name_unanswered(fault, idle) is fault  # nothing outstanding: nothing to add
     stall = HardwareFault("motor_stall", "the shaft did not follow")
-    assert common._name_unanswered(stall, hardware) is stall
+    assert opening._name_unanswered(stall, hardware) is stall
 
 
 def test_a_hung_biris_is_reported_by_the_command_it_was_waiting_for(
@@ -238,10 +241,10 @@ def test_a_hung_biris_is_reported_by_the_command_it_was_waiting_for(
 def test_biris_sim_defaults_to_the_time_scale_of_the_other_commands() -> None:
     sim_args = build_parser("sim").parse_args(["sim", "--shm", "x"])
     scan_args = build_parser("scan").parse_args(["scan", "--sim", "--to", "10"])
-    common.check_target_arguments(scan_args)
+    options.check_target_arguments(scan_args)
     demo_args = build_parser("demo").parse_args(["demo"])
     assert sim_args.time_scale == scan_args.time_scale == demo_args.time_scale
-    assert sim_args.time_scale == argtypes.DEFAULT_TIME_SCALE == common.DEFAULT_TIME_SCALE
+    assert sim_args.time_scale == argtypes.DEFAULT_TIME_SCALE
 
 
 # -- 4. clamped destinations and long moves --------------------------------------------------------
@@ -317,11 +320,11 @@ def test_home_asks_only_for_a_head_more_than_half_a_turn_away() -> None:
 
     move = [("driving home to 0\N{DEGREE SIGN}", 0)]
     no = argparse.Namespace(yes=False)
-    common.confirm_moves(session(HALF_TURN_COUNTS), no, move)  # exactly half a turn: fine
-    with pytest.raises(common.UsageError, match="driving home to 0° turns the head 190°"):
-        common.confirm_moves(session(-2162), no, move)
-    common.confirm_moves(session(-2162), argparse.Namespace(yes=True), move)
-    common.confirm_moves(session(-2162, simulated=True), no, move)
+    cli_session.confirm_moves(session(HALF_TURN_COUNTS), no, move)  # exactly half a turn: fine
+    with pytest.raises(failures.UsageError, match="driving home to 0° turns the head 190°"):
+        cli_session.confirm_moves(session(-2162), no, move)
+    cli_session.confirm_moves(session(-2162), argparse.Namespace(yes=True), move)
+    cli_session.confirm_moves(session(-2162, simulated=True), no, move)
 
 
 # -- 5. output paths, checked before anything starts -----------------------------------------------
@@ -549,11 +552,11 @@ def test_watch_shows_the_server_again_once_it_is_reset(
     """A fault in the middle of ``watch --cw --ccw``, then a reset from another thread (as a
     controller elsewhere would): watch shows the fault, then the server again, sweeps again
     once it is idle, and ends with status 0."""
-    sessions: list[common.Session] = []
-    open_session = common.open_session
+    sessions: list[cli_session.Session] = []
+    open_session = cli_session.open_session
 
     @contextlib.contextmanager
-    def keep(args: argparse.Namespace) -> Iterator[common.Session]:
+    def keep(args: argparse.Namespace) -> Iterator[cli_session.Session]:
         with open_session(args) as session:
             sessions.append(session)
             yield session
@@ -661,7 +664,7 @@ def test_the_lag_watch_needs_two_looks_in_a_row(
     looks: list[bool], warned: bool, capsys: pytest.CaptureFixture[str], no_leaks: None
 ) -> None:
     rig = _LaggingRig(looks)
-    lag = common.LagWatch(rig, "biris test", every_s=0.001).start()
+    lag = cli_session.LagWatch(rig, "biris test", every_s=0.001).start()
     assert rig.done.wait(5.0)
     lag.stop()
     err = capsys.readouterr().err
@@ -679,7 +682,7 @@ def test_the_lag_watch_needs_two_looks_in_a_row(
 def test_a_command_warns_once_when_the_simulator_falls_behind(
     biris: Run, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(common, "LAG_CHECK_S", 0.005)
+    monkeypatch.setattr(cli_session, "LAG_CHECK_S", 0.005)
     monkeypatch.setattr(SimulatedBiris, "behind", lambda self: True)
     monkeypatch.setattr(SimulatedBiris, "lag_s", lambda self: 0.25)
     code, _, err = biris("home", *SIM)

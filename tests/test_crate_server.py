@@ -19,8 +19,7 @@ from biris_hw import BirisServer, Direction
 from biris_hw.commands.watch import crate_summary, status_line
 from biris_hw.crate import CrateMonitor
 from biris_hw.errors import RequestError
-from biris_hw.io.ros2 import diagnostics, typestore
-from biris_hw.io.wire import decode_status, encode_status
+from biris_hw.io.codec import decode_status, diagnostics, encode_status, typestore
 from biris_hw.server.crate_watch import CrateWatch
 from biris_hw.status import ServerState
 from biris_hw.target import load_target

@@ -76,7 +76,7 @@ def test_the_server_the_initialiser_and_status_share_the_bundles_drivers(
             assert init.board is server.board is devices.board
             assert init.coupler is server.coupler is devices.coupler
             assert init.link is server.link is devices.link
-        live = server.status().azimuth_live  # read through the same driver, in this thread
+        live = server.status().azimuth_live  # read through the same driver (encoder_reader)
         assert live is not None and abs(live - devices.azimuth.actual_position()) <= 1
 
 

@@ -22,9 +22,10 @@ from websockets.sync.client import connect
 
 from biris_hw import BirisServer
 from biris_hw.cli import build_parser
-from biris_hw.commands import common
+from biris_hw.commands import session as cli_session
 from biris_hw.commands import view as view_command
-from biris_hw.io import liveview, ros2
+from biris_hw.io import codec as ros2
+from biris_hw.io import liveview
 from biris_hw.io.liveview import FAULT_POLL_S, LiveView
 from biris_hw.io.record.replay import ReplayServer
 from biris_hw.status import ServerState
@@ -249,13 +250,13 @@ def test_biris_view_serves_on_through_a_fault(
     a reset (from another thread, as a controller elsewhere would) brings the sweep back, and
     the view ends with status 0."""
     rigs: list[SimulatedBiris] = []
-    start_rig = common._start_rig
+    start_rig = cli_session._start_rig
 
     def keep(args: argparse.Namespace) -> SimulatedBiris:
         rigs.append(start_rig(args))
         return rigs[-1]
 
-    monkeypatch.setattr(common, "_start_rig", keep)
+    monkeypatch.setattr(cli_session, "_start_rig", keep)
     stop = threading.Event()
     failure: list[BaseException] = []
     helpers: list[threading.Thread] = []

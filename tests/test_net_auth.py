@@ -67,7 +67,8 @@ def test_cli_reaches_a_service_behind_link_authentication(
     import io
 
     from biris_hw.commands import watch
-    from biris_hw.commands.common import LINK_PASSWORD_ENV, UsageError
+    from biris_hw.commands.failures import UsageError
+    from biris_hw.commands.options import LINK_PASSWORD_ENV
 
     dictionary = tmp_path / "zenoh-users.txt"
     dictionary.write_text("robot:link-pw\n")

@@ -135,7 +135,7 @@ def test_biris_serve_replay_with_live_view(
     from websockets.sync.client import connect as ws_connect
     from websockets.typing import Subprotocol
 
-    from biris_hw.io import ros2
+    from biris_hw.io import codec as ros2
 
     path, scans = recording
     where = endpoint(free_port())

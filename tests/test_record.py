@@ -17,7 +17,9 @@ from rosbags.typesys import Stores, get_typestore
 
 from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy
 from biris_hw.data import Scan
-from biris_hw.io import ros2, wire
+from biris_hw.io import codec as ros2
+from biris_hw.io import codec as wire
+from biris_hw.io.feed import SensorFeed
 from biris_hw.io.record import Recorder, RecordError, mcapfile, write_scans
 from biris_hw.io.record.replay import ReplayServer
 from sim import Scene, SimulatedBiris
@@ -216,7 +218,7 @@ def test_feed_keeps_the_callback_error(tmp_path: Path) -> None:
             failed.set()
             raise ValueError("callback broke")
 
-        feed = ros2.SensorFeed(source, on_scans=boom).start()
+        feed = SensorFeed(source, on_scans=boom).start()
         source.start()
         assert feed.failed.wait(WAIT) and failed.is_set()
         feed.stop()

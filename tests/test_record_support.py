@@ -15,7 +15,7 @@ import numpy as np
 
 from biris_hw.data import Direction, Point, Scan
 from biris_hw.geometry import Mount
-from biris_hw.io import wire
+from biris_hw.io import codec
 from biris_hw.io.record import RAW_POINT_TOPIC, RAW_SCAN_TOPIC
 from biris_hw.io.record.mcapfile import McapFile
 
@@ -77,20 +77,20 @@ def write_raw(path: Path, scans: list[Scan], chunk_size: int = 1 << 20) -> Path:
     file = McapFile(path, chunk_size=chunk_size)
     for scan in scans:
         for point in points_of(scan):
-            data = wire.encode_point(point)
+            data = codec.encode_point(point)
             file.write(
                 RAW_POINT_TOPIC,
-                wire.POINT,
-                wire.full_definition(wire.POINT),
+                codec.POINT,
+                codec.full_definition(codec.POINT),
                 data,
                 round(point.t * 1e9),
             )
         assert scan.t_delivered is not None
         file.write(
             RAW_SCAN_TOPIC,
-            wire.SCAN,
-            wire.full_definition(wire.SCAN),
-            wire.encode_scan(scan),
+            codec.SCAN,
+            codec.full_definition(codec.SCAN),
+            codec.encode_scan(scan),
             round(scan.t_delivered * 1e9),
         )
     assert file.close()

@@ -16,10 +16,10 @@ import pytest
 
 from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy, Direction
 from biris_hw import protocol as p
-from biris_hw.commands.common import log_to_stderr
+from biris_hw.commands.console import log_to_stderr
 from biris_hw.commands.scan import scan_summary, scan_to_json
 from biris_hw.data import Point, Scan
-from biris_hw.io import wire
+from biris_hw.io import codec as wire
 from biris_hw.io.record import RAW_SCAN_TOPIC, Recorder, write_scans
 from biris_hw.io.record.mcapfile import McapFile
 from biris_hw.io.record.replay import EndOfRecording, ReplayServer
@@ -306,7 +306,7 @@ def test_point_says_when_the_scan_that_made_it_is_partial(
     import contextlib
 
     from biris_hw.commands import point as command
-    from biris_hw.commands.common import Session
+    from biris_hw.commands.session import Session
 
     whole = synthetic_scans(2)[1]  # CCW, -200 .. 200
     reason = "ended 50 counts (4.4 deg) short of its destination 114"

@@ -1,4 +1,4 @@
-"""ROS 2 messages from scans and points: standard schemas, decodable CDR, the right geometry."""
+"""The standard views of biris_hw.io.codec: standard schemas, decodable CDR, the right geometry."""
 
 from __future__ import annotations
 
@@ -8,29 +8,29 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from biris_hw.io import ros2
+from biris_hw.io import codec
 from biris_hw.status import ServerState, ServerStatus
 from tests.conftest import idle_status
 from tests.test_record_support import cloud_xyz, points_of, synthetic_scans
 
 STANDARD = get_typestore(Stores.ROS2_HUMBLE)
-"""Another ROS 2 distribution's store than the module's (Jazzy): the same standard text."""
+"""Another ROS 2 distribution's store than the codec's (Jazzy): the same standard text."""
 
 
-@pytest.mark.parametrize("msgtype", sorted(set(ros2.TOPICS.values())))
+@pytest.mark.parametrize("msgtype", sorted(set(codec.TOPICS.values())))
 def test_schema_text_is_the_standard_definition(msgtype: str) -> None:
     text, _ = STANDARD.generate_msgdef(msgtype, ros_version=2)
-    assert ros2.schema_text(msgtype) == text
-    assert "MSG: std_msgs/Header" in text or msgtype == ros2.TF_MESSAGE
+    assert codec.schema_text(msgtype) == text
+    assert "MSG: std_msgs/Header" in text or msgtype == codec.TF_MESSAGE
 
 
 @pytest.mark.parametrize("frame", ["vehicle", "sensor"])
 def test_scan_cloud_holds_scan_points(frame: str) -> None:
     scan = synthetic_scans(1)[0]
-    encoded = ros2.scan_cloud(scan, frame)  # type: ignore[arg-type]
-    msg = STANDARD.deserialize_cdr(encoded.data, ros2.POINT_CLOUD2)
-    assert msg.header.frame_id == ros2.cloud_frame_id(frame)  # type: ignore[arg-type]
-    assert [f.name for f in msg.fields] == [f[0] for f in ros2.CLOUD_FIELDS]
+    encoded = codec.scan_cloud(scan, frame)  # type: ignore[arg-type]
+    msg = STANDARD.deserialize_cdr(encoded.data, codec.POINT_CLOUD2)
+    assert msg.header.frame_id == codec.cloud_frame_id(frame)  # type: ignore[arg-type]
+    assert [f.name for f in msg.fields] == [f[0] for f in codec.CLOUD_FIELDS]
     want = scan.points(frame)  # type: ignore[arg-type]
     assert msg.width == len(want) and msg.is_dense
     np.testing.assert_allclose(cloud_xyz(msg), want, rtol=0, atol=1e-6 * 8)
@@ -55,17 +55,17 @@ def _matrix(tf: object) -> np.ndarray:
 
 def test_profile_through_the_transform_chain_lands_on_point_points() -> None:
     point = points_of(synthetic_scans(1)[0])[5]
-    profile = STANDARD.deserialize_cdr(ros2.profile_cloud(point).data, ros2.POINT_CLOUD2)
-    assert profile.header.frame_id == ros2.SENSOR_FRAME
+    profile = STANDARD.deserialize_cdr(codec.profile_cloud(point).data, codec.POINT_CLOUD2)
+    assert profile.header.frame_id == codec.SENSOR_FRAME
     chain = {}
-    for encoded in (ros2.static_transforms(point.mount), ros2.transforms(point)):
-        for tf in STANDARD.deserialize_cdr(encoded.data, ros2.TF_MESSAGE).transforms:
+    for encoded in (codec.static_transforms(point.mount), codec.transforms(point)):
+        for tf in STANDARD.deserialize_cdr(encoded.data, codec.TF_MESSAGE).transforms:
             chain[tf.child_frame_id] = (tf.header.frame_id, _matrix(tf))
-    frame, m = ros2.SENSOR_FRAME, np.eye(4)
+    frame, m = codec.SENSOR_FRAME, np.eye(4)
     while frame in chain:
         parent, step = chain[frame]
         m, frame = step @ m, parent
-    assert frame == ros2.VEHICLE_FRAME
+    assert frame == codec.VEHICLE_FRAME
     xyz = cloud_xyz(profile)
     placed = (m[:3, :3] @ xyz.T).T + m[:3, 3]
     np.testing.assert_allclose(placed, point.points("vehicle"), atol=1e-5)
@@ -75,28 +75,28 @@ def test_diagnostics_levels_follow_the_state() -> None:
     def status(state: ServerState, fault: str | None = None) -> ServerStatus:
         return idle_status(state=state, fault=fault, counters={"scans": 3})
 
-    def levels(encoded: ros2.Encoded) -> list[tuple[str, int]]:
-        msg = STANDARD.deserialize_cdr(encoded.data, ros2.DIAGNOSTIC_ARRAY)
+    def levels(encoded: codec.Encoded) -> list[tuple[str, int]]:
+        msg = STANDARD.deserialize_cdr(encoded.data, codec.DIAGNOSTIC_ARRAY)
         return [(s.name, s.level) for s in msg.status]
 
-    ok = ros2.diagnostics(status(ServerState.IDLE), 1.0, extra={"recorder": {"dropped_points": 0}})
+    ok = codec.diagnostics(status(ServerState.IDLE), 1.0, extra={"recorder": {"dropped_points": 0}})
     assert levels(ok) == [("biris: server", 0), ("biris: recorder", 0)]
-    bad = ros2.diagnostics(
+    bad = codec.diagnostics(
         status(ServerState.FAULT, "bus"), 1.0, extra={"recorder": {"dropped_points": 2}}
     )
     assert levels(bad) == [("biris: server", 2), ("biris: recorder", 1)]
-    assert levels(ros2.diagnostics(None, 1.0, error="gone")) == [("biris: server", 2)]
-    assert ros2.stamp_ns(1.5) == 1_500_000_000 and ros2.stamp_ns(-1.0) == 0
-    assert math.isclose(ros2.stamp_ns(2.25) / 1e9, 2.25)
+    assert levels(codec.diagnostics(None, 1.0, error="gone")) == [("biris: server", 2)]
+    assert codec.stamp_ns(1.5) == 1_500_000_000 and codec.stamp_ns(-1.0) == 0
+    assert math.isclose(codec.stamp_ns(2.25) / 1e9, 2.25)
 
 
 def test_hand_encoded_cdr_is_what_rosbags_writes() -> None:
-    """The per-acquisition messages are encoded by hand (ros2._Cdr); rosbags, decoding and
+    """The per-acquisition messages are encoded by hand (codec._Cdr); rosbags, decoding and
     encoding them again, gives the same bytes: canonical CDR, alignment and all."""
     scans = synthetic_scans(2)
-    encoded = [ros2.transforms(p) for s in scans for p in points_of(s)]
-    encoded += ros2.profile_clouds([p for s in scans for p in points_of(s)])
-    encoded += [ros2.scan_cloud(s, f) for s in scans for f in ("vehicle", "sensor")]  # type: ignore[arg-type]
+    encoded = [codec.transforms(p) for s in scans for p in points_of(s)]
+    encoded += codec.profile_clouds([p for s in scans for p in points_of(s)])
+    encoded += [codec.scan_cloud(s, f) for s in scans for f in ("vehicle", "sensor")]  # type: ignore[arg-type]
     for message in encoded:
         decoded = STANDARD.deserialize_cdr(message.data, message.msgtype)
         assert bytes(STANDARD.serialize_cdr(decoded, message.msgtype)) == message.data
@@ -106,12 +106,12 @@ def test_batched_profiles_equal_one_at_a_time() -> None:
     """profile_clouds projects a batch at once (mixed profile lengths too); each message is the
     one profile_cloud makes alone, and point_rows' per-point origins are kept."""
     points = points_of(synthetic_scans(1)[0]) + points_of(synthetic_scans(1, samples=32)[0])
-    batch = ros2.profile_clouds(points)
-    assert [m.data for m in batch] == [ros2.profile_cloud(p).data for p in points]
+    batch = codec.profile_clouds(points)
+    assert [m.data for m in batch] == [codec.profile_cloud(p).data for p in points]
     starts = [p.t - 1.0 for p in points]
-    rows = ros2.point_rows(points, "vehicle", starts)
+    rows = codec.point_rows(points, "vehicle", starts)
     for p, got, t0 in zip(points, rows, starts, strict=True):
-        assert got.tobytes() == ros2.sweep_rows(p, t0).tobytes()
+        assert got.tobytes() == codec.sweep_rows(p, t0).tobytes()
         assert len(got) == int((p.profile > 0).sum())
 
 
@@ -121,25 +121,12 @@ def test_sweep_pieces_put_together_are_the_scan_cloud() -> None:
     cloud: numpy's concatenate must not pack the rows' padding away) hold the same points."""
     for scan in synthetic_scans(2):
         points = points_of(scan)
-        assert ros2.sweep_cloud(points).data == ros2.scan_cloud(scan).data
-        pieces = [ros2.sweep_cloud(points[i : i + 5]) for i in range(0, len(points), 5)]
+        assert codec.sweep_cloud(points).data == codec.scan_cloud(scan).data
+        pieces = [codec.sweep_cloud(points[i : i + 5]) for i in range(0, len(points), 5)]
         decoded = [STANDARD.deserialize_cdr(m.data, m.msgtype) for m in pieces]
         assert all(len(m.data) == m.width * m.point_step for m in decoded)
         xyz = np.concatenate([cloud_xyz(m) for m in decoded])
         np.testing.assert_allclose(xyz, scan.points(), rtol=1e-6, atol=1e-6)
         first = decoded[1].header.stamp
         assert first.sec + first.nanosec / 1e9 == pytest.approx(points[5].t)
-        assert pieces[1].log_time_ns == ros2.stamp_ns(points[9].t)
-
-
-def test_sensor_time_is_the_hardware_clock_else_the_last_seen() -> None:
-    class Hardware:
-        @staticmethod
-        def clock() -> float:
-            return 42.5
-
-    class Local:
-        hardware = Hardware()
-
-    assert ros2.sensor_time(Local(), 3.0) == 42.5
-    assert ros2.sensor_time(object(), 3.0) == 3.0
+        assert pieces[1].log_time_ns == codec.stamp_ns(points[9].t)

@@ -13,7 +13,7 @@ import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from biris_hw.data import Direction, Scan
-from biris_hw.io import wire
+from biris_hw.io import codec
 from biris_hw.io.scanfile import FORMAT_VERSION, load_scans, save_scans
 from biris_hw.scancheck import ScanChecker, check_scan, coverage_shortfall
 
@@ -317,7 +317,7 @@ string acquisition
 bool partial
 """
 """biris_msgs/msg/Scan as the first release defined it (before partial_reason and span), written
-out here rather than derived from biris_hw.io.wire, so that the test holds the module to it."""
+out here rather than derived from biris_hw.io.codec, so that the test holds the module to it."""
 
 
 def _old_payload(scan: Scan) -> bytes:
@@ -325,12 +325,12 @@ def _old_payload(scan: Scan) -> bytes:
     new fields hold."""
     store = get_typestore(Stores.ROS2_HUMBLE)
     types: dict[str, Any] = {}
-    types.update(get_types_from_msg(wire.MSG_DEFINITIONS[wire.MOUNT], wire.MOUNT))
-    types.update(get_types_from_msg(OLD_SCAN_DEFINITION, wire.SCAN))
+    types.update(get_types_from_msg(codec.MSG_DEFINITIONS[codec.MOUNT], codec.MOUNT))
+    types.update(get_types_from_msg(OLD_SCAN_DEFINITION, codec.SCAN))
     store.register(types)
     cls = store.types
     stamp = cls["builtin_interfaces/msg/Time"](sec=10, nanosec=0)
-    msg = cls[wire.SCAN](
+    msg = cls[codec.SCAN](
         header=cls["std_msgs/msg/Header"](stamp=stamp, frame_id="biris"),
         direction=int(scan.direction),
         seq=scan.seq,
@@ -346,11 +346,11 @@ def _old_payload(scan: Scan) -> bytes:
         has_t_delivered=False,
         t_delivered=0.0,
         has_mount=False,
-        mount=cls[wire.MOUNT](offset_m=np.zeros(3), head_height_m=0.0, head_offset_m=0.0),
+        mount=cls[codec.MOUNT](offset_m=np.zeros(3), head_height_m=0.0, head_offset_m=0.0),
         acquisition=scan.acquisition,
         partial=scan.partial,
     )
-    return bytes(store.serialize_cdr(msg, wire.SCAN))
+    return bytes(store.serialize_cdr(msg, codec.SCAN))
 
 
 def test_the_wire_keeps_the_new_fields() -> None:
@@ -360,31 +360,31 @@ def test_the_wire_keeps_the_new_fields() -> None:
         _scan([], partial=True, partial_reason="no acquisition", span=(0, 400)),
         _scan(),  # unknown span stays unknown, not (0, 0)
     ):
-        back = wire.decode_scan(wire.encode_scan(scan))
+        back = codec.decode_scan(codec.encode_scan(scan))
         assert (back.partial, back.partial_reason, back.span) == (
             scan.partial,
             scan.partial_reason,
             scan.span,
         )
         assert np.array_equal(back.azimuth, scan.azimuth) and back.seq == scan.seq
-    with pytest.raises(wire.WireError):
-        wire.encode_scan(_scan(span=(0, 2**31)))  # beyond int32: refused, not wrapped
+    with pytest.raises(codec.WireError):
+        codec.encode_scan(_scan(span=(0, 2**31)))  # beyond int32: refused, not wrapped
 
 
 def test_a_payload_of_the_old_definition_still_decodes() -> None:
     scan = _scan(partial=True, acquisition="continuous", seq=9, dropped=2)
     old = _old_payload(scan)
-    assert old != wire.encode_scan(scan)  # truly the old layout
-    back = wire.decode_scan(old)
+    assert old != codec.encode_scan(scan)  # truly the old layout
+    back = codec.decode_scan(old)
     assert (back.partial, back.partial_reason, back.span) == (True, "", None)
     assert (back.seq, back.dropped, back.acquisition) == (9, 2, "continuous")
     for key in ("azimuth", "range_mm", "closest_mm", "intensity", "t"):
         assert np.array_equal(getattr(back, key), getattr(scan, key)), key
     # neither layout: the error is the current type's, and cut payloads of either are errors
-    new = wire.encode_scan(_scan(span=(0, 400)))
+    new = codec.encode_scan(_scan(span=(0, 400)))
     for bad in (old[:-3], new[:-3], new + b"\0" * 16, b"\0\1\0\0garbage"):
-        with pytest.raises(wire.WireError, match="biris_msgs/msg/Scan"):
-            wire.decode_scan(bad)
+        with pytest.raises(codec.WireError, match="biris_msgs/msg/Scan"):
+            codec.decode_scan(bad)
 
 
 def test_the_documented_definition_is_the_codecs() -> None:
@@ -394,7 +394,7 @@ def test_the_documented_definition_is_the_codecs() -> None:
     documented = [line.split("#")[0].strip() for line in block.splitlines()[1:]]
     defined = [
         line.strip()
-        for line in wire.MSG_DEFINITIONS[wire.SCAN].splitlines()
+        for line in codec.MSG_DEFINITIONS[codec.SCAN].splitlines()
         if line.strip() and not line.startswith("#")
     ]
     assert [line for line in documented if line] == defined

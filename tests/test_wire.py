@@ -1,4 +1,5 @@
-"""The CDR payload codec (biris_hw.io.wire): lossless round trips, and bad bytes are WireErrors."""
+"""The lossless half of biris_hw.io.codec (the biris_msgs payloads): round trips keep every field,
+and bad bytes are WireErrors."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from hypothesis.extra import numpy as hnp
 from biris_hw.data import Direction, Point, Scan
 from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.geometry import Mount
-from biris_hw.io import wire
+from biris_hw.io import codec
 from biris_hw.status import ConnectionStatus, ServerState, ServerStatus
 
 
@@ -63,7 +64,7 @@ def assert_points_equal(a: Point, b: Point) -> None:
 
 def test_scan_round_trip_keeps_every_field() -> None:
     scan = _scan()
-    back = wire.decode_scan(wire.encode_scan(scan))
+    back = codec.decode_scan(codec.encode_scan(scan))
     assert_scans_equal(scan, back)
     assert not back.range_mm.flags.writeable  # still a Scan's read-only arrays
 
@@ -73,7 +74,7 @@ def test_scan_without_options_and_empty_scan() -> None:
         _scan(t_delivered=None, mount=None, acquisition="single", partial=False),
         _scan(n_acq=0, samples=128),
     ):
-        assert_scans_equal(scan, wire.decode_scan(wire.encode_scan(scan)))
+        assert_scans_equal(scan, codec.decode_scan(codec.encode_scan(scan)))
 
 
 @settings(max_examples=40, deadline=None)
@@ -98,7 +99,7 @@ def test_scan_round_trip_any_shape(
     t = times.draw(hnp.arrays(np.float64, n_acq, elements=st.floats(allow_nan=True)))
     scan = _scan(n_acq, samples, seq=seq, dropped=dropped, elevation=elevation, t=t)
     scan = Scan(**{**scan.__dict__, "direction": direction})
-    assert_scans_equal(scan, wire.decode_scan(wire.encode_scan(scan)))
+    assert_scans_equal(scan, codec.decode_scan(codec.encode_scan(scan)))
 
 
 @settings(max_examples=30, deadline=None)
@@ -125,7 +126,7 @@ def test_point_round_trip(
         mount=Mount() if acq % 2 else None,
         acquisition="continuous" if acq % 3 else "single",
     )
-    assert_points_equal(point, wire.decode_point(wire.encode_point(point)))
+    assert_points_equal(point, codec.decode_point(codec.encode_point(point)))
 
 
 def test_status_round_trip() -> None:
@@ -159,7 +160,7 @@ def test_status_round_trip() -> None:
         tasks_down=("az_scan_start", "biris_cmd_notifier"),
         task_failures={"az_scan_start": 2, "biris_cmd_notifier": 1},
     )
-    back = wire.decode_status(wire.encode_status(status, t=3.25))
+    back = codec.decode_status(codec.encode_status(status, t=3.25))
     assert back.tasks_down == status.tasks_down
     assert dict(back.task_failures) == dict(status.task_failures)
     assert back.state_name == "fault:bus" and back["state"] == "fault:bus"
@@ -177,78 +178,78 @@ def test_status_round_trip() -> None:
 
 
 def test_fault_round_trip() -> None:
-    back = wire.decode_fault(wire.encode_fault(HardwareFault("parity", "PERR on level 2"), t=1.0))
+    back = codec.decode_fault(codec.encode_fault(HardwareFault("parity", "PERR on level 2"), t=1.0))
     assert (back.kind, back.message) == ("parity", "PERR on level 2")
 
 
 def test_definitions_are_registered_and_complete() -> None:
-    store = wire.typestore()
-    for msgtype in wire.MSG_DEFINITIONS:
+    store = codec.typestore()
+    for msgtype in codec.MSG_DEFINITIONS:
         assert msgtype in store.types
-        text = wire.full_definition(msgtype)
-        assert text.startswith(wire.MSG_DEFINITIONS[msgtype].splitlines()[1][:0])
-    assert "MSG: std_msgs/Header" in wire.full_definition(wire.SCAN)
-    assert wire.typestore() is store  # cached
+        text = codec.full_definition(msgtype)
+        assert text.startswith(codec.MSG_DEFINITIONS[msgtype].splitlines()[1][:0])
+    assert "MSG: std_msgs/Header" in codec.full_definition(codec.SCAN)
+    assert codec.typestore() is store  # cached
 
 
 @pytest.mark.parametrize(
     ("decode", "payload"),
     [
-        (wire.decode_scan, b""),
-        (wire.decode_scan, b"\x00\x01\x00\x00"),
-        (wire.decode_scan, b"\x07\x07\x00\x00" + bytes(64)),
-        (wire.decode_scan, b"\x00\x01\x00\x00" + b"\xff" * 64),
-        (wire.decode_point, b"\x00\x01\x00\x00" + bytes(3)),
-        (wire.decode_status, b"garbage"),
-        (wire.decode_fault, b"\x00\x01\x00\x00" + bytes(40)),
+        (codec.decode_scan, b""),
+        (codec.decode_scan, b"\x00\x01\x00\x00"),
+        (codec.decode_scan, b"\x07\x07\x00\x00" + bytes(64)),
+        (codec.decode_scan, b"\x00\x01\x00\x00" + b"\xff" * 64),
+        (codec.decode_point, b"\x00\x01\x00\x00" + bytes(3)),
+        (codec.decode_status, b"garbage"),
+        (codec.decode_fault, b"\x00\x01\x00\x00" + bytes(40)),
     ],
 )
 def test_malformed_bytes_are_wire_errors(decode: object, payload: bytes) -> None:
-    with pytest.raises(wire.WireError):
+    with pytest.raises(codec.WireError):
         decode(payload)  # type: ignore[operator]
 
 
 def test_truncated_extended_and_wrong_type_are_wire_errors() -> None:
-    data = wire.encode_scan(_scan())
+    data = codec.encode_scan(_scan())
     for cut in (1, 5, 17, len(data) // 2, len(data) - 4):
-        with pytest.raises(wire.WireError):
-            wire.decode_scan(data[:cut])
-    with pytest.raises(wire.WireError):
-        wire.decode_scan(data + bytes(16))
-    with pytest.raises(wire.WireError):
-        wire.decode_point(data)
-    point = wire.encode_point(Point(0, 0, np.zeros(4, np.int16), np.zeros(4, np.int16), 0.0, 0, 0))
-    with pytest.raises(wire.WireError):
-        wire.decode_scan(point)
-    assert issubclass(wire.WireError, BirisError) and issubclass(wire.WireError, ValueError)
+        with pytest.raises(codec.WireError):
+            codec.decode_scan(data[:cut])
+    with pytest.raises(codec.WireError):
+        codec.decode_scan(data + bytes(16))
+    with pytest.raises(codec.WireError):
+        codec.decode_point(data)
+    point = codec.encode_point(Point(0, 0, np.zeros(4, np.int16), np.zeros(4, np.int16), 0.0, 0, 0))
+    with pytest.raises(codec.WireError):
+        codec.decode_scan(point)
+    assert issubclass(codec.WireError, BirisError) and issubclass(codec.WireError, ValueError)
 
 
 def test_inconsistent_shapes_and_values_are_wire_errors() -> None:
-    store = wire.typestore()
-    msg: Any = store.deserialize_cdr(wire.encode_scan(_scan()), wire.SCAN)
+    store = codec.typestore()
+    msg: Any = store.deserialize_cdr(codec.encode_scan(_scan()), codec.SCAN)
     msg.samples += 1  # the grid no longer adds up
-    with pytest.raises(wire.WireError, match="samples"):
-        wire.decode_scan(bytes(store.serialize_cdr(msg, wire.SCAN)))
-    msg = store.deserialize_cdr(wire.encode_scan(_scan()), wire.SCAN)
+    with pytest.raises(codec.WireError, match="samples"):
+        codec.decode_scan(bytes(store.serialize_cdr(msg, codec.SCAN)))
+    msg = store.deserialize_cdr(codec.encode_scan(_scan()), codec.SCAN)
     msg.acquisition = "sometimes"
-    with pytest.raises(wire.WireError, match="acquisition"):
-        wire.decode_scan(bytes(store.serialize_cdr(msg, wire.SCAN)))
+    with pytest.raises(codec.WireError, match="acquisition"):
+        codec.decode_scan(bytes(store.serialize_cdr(msg, codec.SCAN)))
     msg.acquisition, msg.direction = "single", 9
-    with pytest.raises(wire.WireError):
-        wire.decode_scan(bytes(store.serialize_cdr(msg, wire.SCAN)))
+    with pytest.raises(codec.WireError):
+        codec.decode_scan(bytes(store.serialize_cdr(msg, codec.SCAN)))
 
 
 def test_oversized_payload_refused_before_parsing(monkeypatch: pytest.MonkeyPatch) -> None:
-    data = wire.encode_scan(_scan(n_acq=50, samples=128))
-    monkeypatch.setattr(wire, "MAX_PAYLOAD", len(data) - 1)
-    with pytest.raises(wire.WireError, match="exceeds"):
-        wire.decode_scan(data)
-    with pytest.raises(wire.WireError):
-        wire.decode_scan("not bytes")  # type: ignore[arg-type]
+    data = codec.encode_scan(_scan(n_acq=50, samples=128))
+    monkeypatch.setattr(codec, "MAX_PAYLOAD", len(data) - 1)
+    with pytest.raises(codec.WireError, match="exceeds"):
+        codec.decode_scan(data)
+    with pytest.raises(codec.WireError):
+        codec.decode_scan("not bytes")  # type: ignore[arg-type]
 
 
 def test_values_outside_the_wire_types_are_wire_errors() -> None:
-    with pytest.raises(wire.WireError):
-        wire.encode_scan(_scan(seq=2**64))
-    with pytest.raises(wire.WireError):
-        wire.encode_scan("scan")  # type: ignore[arg-type]
+    with pytest.raises(codec.WireError):
+        codec.encode_scan(_scan(seq=2**64))
+    with pytest.raises(codec.WireError):
+        codec.encode_scan("scan")  # type: ignore[arg-type]

@@ -32,27 +32,26 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from biris_hw.angles import counts_to_deg
-from biris_hw.commands.argtypes import add_simulator_arguments, degrees, path, seconds
-from biris_hw.commands.common import (
+from biris_hw.commands.argtypes import (
     DEFAULT_TIME_SCALE,
-    EXIT_INTERRUPTED,
-    LagWatch,
-    SetupError,
+    add_simulator_arguments,
+    degrees,
+    path,
+    seconds,
+)
+from biris_hw.commands.console import is_terminal
+from biris_hw.commands.failures import EXIT_INTERRUPTED, SetupError
+from biris_hw.commands.options import (
     add_continuous_argument,
     add_debug_argument,
     add_quiet_argument,
     check_output_folder,
-    is_terminal,
-    make_scene,
-    quiet_collector,
 )
+from biris_hw.commands.session import LagWatch, make_scene, quiet_collector
 from biris_hw.data import Direction, Scan
-from biris_hw.io import scanfile
-from biris_hw.io.sweeps import sweeping
-from biris_hw.records import BirisInitRecord
-from biris_hw.server import BirisServer
 
 if TYPE_CHECKING:
+    from biris_hw.sensor import Sensor
     from sim import SimulatedBiris
 
 __all__ = ["DemoConfig", "DemoResult", "DemoStatus", "add_arguments", "run", "run_demo"]
@@ -193,6 +192,8 @@ def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
 
     check_output_folder("--out", config.out)
     _make_folder(config.out)
+    from biris_hw.io import scanfile
+    from biris_hw.opening import open_sensor
     from sim import SimulatedBiris
 
     scene = make_scene(config.scene)
@@ -207,8 +208,8 @@ def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
     ):
         watch = LagWatch(rig, "biris demo").start()
         try:
-            record = BirisInitRecord(continuous_acquisition=config.continuous)
-            with BirisServer(rig.hardware, record) as server:  # homes and boots first
+            # homes and boots first
+            with open_sensor(sim=rig, continuous=config.continuous) as server:
                 quiet_collector()
                 started = time.monotonic()
                 _sweep(server, rig, status, latest, view, started)
@@ -236,7 +237,7 @@ def _make_folder(folder: Path) -> None:
 
 
 def _sweep(
-    server: BirisServer,
+    server: Sensor,
     rig: SimulatedBiris,
     status: DemoStatus,
     latest: dict[Direction, Scan],
@@ -246,6 +247,8 @@ def _sweep(
     """Sweep until the deadline, or until Ctrl-C (``status.interrupted``): caught outside
     :func:`sweeping`, so the sweep under way is abandoned, not waited for, and what completed
     stays in ``latest`` for the pictures."""
+    from biris_hw.io.sweeps import sweeping
+
     config = status.config
     deadline = started + config.duration_s
     wait_s = max(30.0, 60.0 / config.time_scale)
@@ -278,7 +281,7 @@ def _sweep(
 
 
 def _refresh(
-    status: DemoStatus, server: BirisServer | None, rig: SimulatedBiris, started: float
+    status: DemoStatus, server: Sensor | None, rig: SimulatedBiris, started: float
 ) -> None:
     status.elapsed_s = time.monotonic() - started
     status.hardware_s = rig.clock.now()

@@ -7,7 +7,7 @@ sensor for as long as a person wants therefore shows the fault too and goes on, 
 ending: ending would hide the very state a person is watching for, and lose the view of the
 sensor coming back. :class:`FaultNotice` says on stderr, once per fault, what the fault is
 (the server's own message) and how to recover, and once that the server has left it; at the
-end it gives the exit status: 1 (:data:`~biris_hw.commands.common.EXIT_FAULT`) when the server
+end it gives the exit status: 1 (:data:`~biris_hw.commands.failures.EXIT_FAULT`) when the server
 was in a fault as the command ended, else 0, so that a script still learns that the sensor
 needs attention.
 """
@@ -17,10 +17,16 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import sys
+from typing import TYPE_CHECKING
 
-from biris_hw.commands.common import EXIT_FAULT, Sensor, error_line, prog_of
+from biris_hw.commands.console import prog_of
+from biris_hw.commands.failures import EXIT_FAULT, error_line
 from biris_hw.errors import BirisError, HardwareFault
-from biris_hw.status import ServerState, ServerStatus
+from biris_hw.status import ServerState
+
+if TYPE_CHECKING:
+    from biris_hw.sensor import Sensor
+    from biris_hw.status import ServerStatus
 
 __all__ = ["FaultNotice", "fault_of", "recovery_hint"]
 

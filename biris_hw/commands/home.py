@@ -14,13 +14,8 @@ import sys
 from typing import TextIO
 
 from biris_hw.angles import counts_to_deg
-from biris_hw.commands.common import (
-    add_target_arguments,
-    add_timeout_argument,
-    add_yes_argument,
-    confirm_moves,
-    open_session,
-)
+from biris_hw.commands.options import add_target_arguments, add_timeout_argument, add_yes_argument
+from biris_hw.commands.session import confirm_moves, open_session
 
 __all__ = ["add_arguments", "run"]
 

@@ -21,13 +21,9 @@ from typing import TextIO
 
 from biris_hw.angles import counts_to_deg
 from biris_hw.commands.argtypes import integer, path
-from biris_hw.commands.common import (
-    UsageError,
-    add_target_arguments,
-    add_timeout_argument,
-    check_output_file,
-    open_session,
-)
+from biris_hw.commands.failures import UsageError
+from biris_hw.commands.options import add_target_arguments, add_timeout_argument, check_output_file
+from biris_hw.commands.session import open_session
 from biris_hw.errors import RequestError
 from biris_hw.records import MotorParams
 from regs.hctl1000 import Reg, accel_from_reg, sample_period

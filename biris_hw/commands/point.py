@@ -23,16 +23,14 @@ import numpy as np
 
 from biris_hw.angles import counts_to_deg, destination_counts
 from biris_hw.commands.argtypes import degrees
-from biris_hw.commands.common import (
-    Session,
+from biris_hw.commands.console import note_clamped
+from biris_hw.commands.options import (
     add_continuous_argument,
     add_target_arguments,
     add_timeout_argument,
     add_yes_argument,
-    confirm_moves,
-    note_clamped,
-    open_session,
 )
+from biris_hw.commands.session import Session, confirm_moves, open_session
 from biris_hw.data import Direction, Point, Scan
 
 __all__ = ["add_arguments", "point_summary", "point_to_json", "run"]

@@ -19,22 +19,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from biris_hw.commands.argtypes import degrees, path, positive_float
-from biris_hw.commands.common import (
-    EXIT_INTERRUPTED,
-    Session,
-    UsageError,
+from biris_hw.commands.console import note_clamped, prog_of
+from biris_hw.commands.failures import EXIT_INTERRUPTED, UsageError
+from biris_hw.commands.options import (
     add_continuous_argument,
     add_target_arguments,
     add_timeout_argument,
     add_yes_argument,
     check_output_file,
-    confirm_moves,
-    note_clamped,
-    open_session,
-    prog_of,
-    quiet_collector,
     sweep_chosen,
 )
+from biris_hw.commands.session import Session, confirm_moves, open_session, quiet_collector
 
 if TYPE_CHECKING:
     from biris_hw.io.record import Recorder

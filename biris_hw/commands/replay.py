@@ -28,14 +28,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from biris_hw.commands.argtypes import path, positive_float
-from biris_hw.commands.common import (
-    EXIT_FAULT,
-    UsageError,
-    add_debug_argument,
-    check_output_file,
-    prog_of,
-    report_error,
-)
+from biris_hw.commands.console import prog_of
+from biris_hw.commands.failures import EXIT_FAULT, UsageError, report_error
+from biris_hw.commands.options import add_debug_argument, check_output_file
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Scan
 
 if TYPE_CHECKING:
@@ -75,7 +70,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     damaged part way (what came before is printed). With ``--check``: 0 when every scan keeps
     the invariants, 1 when one does not (or the file is damaged)."""
     from biris_hw.commands.scan import picture_suffixes, scan_summary, scan_to_json
-    from biris_hw.io.record.replay import ReplayError, ReplayServer
+    from biris_hw.io.record.replay import ReplayError
+    from biris_hw.opening import open_sensor
 
     stream = out or sys.stdout
     if not Path(args.file).is_file():
@@ -87,7 +83,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     if args.plot is not None:
         check_output_file("--plot", args.plot, suffixes=picture_suffixes())
     scans: list[Scan] = []
-    with ReplayServer(args.file, speed=args.speed) as replay:
+    with open_sensor(replay=args.file, speed=args.speed) as replay:
         try:
             for scan in _every_scan(replay):
                 scans.append(scan)
@@ -128,7 +124,8 @@ def _every_scan(replay: ReplayServer) -> Iterator[Scan]:
 
 def _check(args: argparse.Namespace, stream: TextIO) -> int:
     """``--check``: judge every scan of the file; 1 on any violation or a damaged file."""
-    from biris_hw.io.record.replay import ReplayError, ReplayServer
+    from biris_hw.io.record.replay import ReplayError
+    from biris_hw.opening import open_sensor
     from biris_hw.scancheck import ScanChecker
 
     checker = ScanChecker()
@@ -148,7 +145,7 @@ def _check(args: argparse.Namespace, stream: TextIO) -> int:
         for scan in scans:
             judge(scan)
     else:
-        with ReplayServer(args.file, speed=args.speed) as replay:
+        with open_sensor(replay=args.file, speed=args.speed) as replay:
             try:
                 for scan in _every_scan(replay):
                     judge(scan)

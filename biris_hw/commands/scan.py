@@ -33,25 +33,18 @@ import numpy as np
 
 from biris_hw.angles import destination_counts
 from biris_hw.commands.argtypes import degrees, path, positive_int
-from biris_hw.commands.common import (
-    EXIT_INTERRUPTED,
-    Session,
-    UsageError,
+from biris_hw.commands.console import note_clamped, prog_of
+from biris_hw.commands.failures import EXIT_INTERRUPTED, UsageError
+from biris_hw.commands.options import (
     add_continuous_argument,
     add_target_arguments,
     add_timeout_argument,
     add_yes_argument,
     check_output_file,
-    confirm_moves,
-    note_clamped,
-    open_session,
-    prog_of,
     sweep_chosen,
 )
+from biris_hw.commands.session import Session, confirm_moves, open_session
 from biris_hw.data import Direction, Scan
-from biris_hw.io import scanfile
-from biris_hw.io.plots import closest_points_xy
-from biris_hw.io.sweeps import sweeping
 
 __all__ = [
     "DEFAULT_SWEEPS",
@@ -194,6 +187,8 @@ def _sweeps(session: Session, args: argparse.Namespace, stream: TextIO, scans: l
     than waited for (the server, closed next, stops the head) and the sweeps completed so far
     stay in ``scans`` for the caller to write.
     """
+    from biris_hw.io.sweeps import sweeping
+
     wanted = args.sweeps or DEFAULT_SWEEPS
     limits = [
         (f"--cw {args.cw:g}", destination_counts(args.cw, "--cw")),
@@ -247,6 +242,8 @@ def scan_summary(scan: Scan) -> str:
 
 def scan_to_json(scan: Scan) -> dict[str, Any]:
     """Everything in a scan, as plain JSON values (azimuths in counts and degrees)."""
+    from biris_hw.io.plots import closest_points_xy
+
     return {
         "direction": scan.direction.name,
         "seq": scan.seq,
@@ -293,6 +290,8 @@ def save_files(
         from biris_hw.io.record import write_scans
 
         return (write_scans(files[0], scans, metadata=metadata),)
+    from biris_hw.io import scanfile
+
     npz, table = files
     return scanfile.save_scans(npz, scans), scanfile.export_csv(table, scans)
 

@@ -44,15 +44,9 @@ from types import FrameType
 from typing import Any, TextIO
 
 from biris_hw.commands.argtypes import path, positive_float, seconds
-from biris_hw.commands.common import (
-    SetupError,
-    UsageError,
-    add_target_arguments,
-    open_session,
-    parse_zenoh_options,
-    quiet_collector,
-    read_toml,
-)
+from biris_hw.commands.failures import SetupError, UsageError
+from biris_hw.commands.options import add_target_arguments, parse_zenoh_options, read_toml
+from biris_hw.commands.session import open_session, quiet_collector
 from biris_hw.errors import BirisError
 
 __all__ = ["add_arguments", "run"]
@@ -177,15 +171,11 @@ def _sensor(args: argparse.Namespace) -> Iterator[Any]:
             quiet_collector()
             yield session.server
         return
-    from biris_hw.io.record.replay import ReplayError, ReplayServer
+    from biris_hw.opening import open_sensor
 
-    try:
-        # autostart off: the service's own feeds open DATA connections at once, and would
-        # start it before any client is there; _start_playing decides when
-        replay = ReplayServer(args.replay, speed=args.speed, autostart=False)
-    except ReplayError as exc:
-        raise SetupError(str(exc)) from exc
-    with replay:
+    # autostart off: the service's own feeds open DATA connections at once, and would start it
+    # before any client is there; _start_playing decides when
+    with open_sensor(replay=args.replay, speed=args.speed, autostart=False) as replay:
         yield replay
 
 

@@ -22,28 +22,25 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from biris_hw.commands.argtypes import degrees, path, positive_float
-from biris_hw.commands.common import (
-    EXIT_FAULT,
-    EXIT_INTERRUPTED,
-    Sensor,
-    UsageError,
+from biris_hw.commands.console import prog_of
+from biris_hw.commands.failures import EXIT_FAULT, EXIT_INTERRUPTED, UsageError, report_error
+from biris_hw.commands.faults import FaultNotice
+from biris_hw.commands.options import (
     add_continuous_argument,
     add_target_arguments,
     add_timeout_argument,
     add_yes_argument,
-    confirm_moves,
-    open_session,
-    prog_of,
-    quiet_collector,
-    report_error,
     sweep_chosen,
 )
-from biris_hw.commands.faults import FaultNotice
+from biris_hw.commands.session import confirm_moves, open_session, quiet_collector
 from biris_hw.errors import HardwareFault
 from biris_hw.status import ServerState
+
+if TYPE_CHECKING:
+    from biris_hw.sensor import Sensor
 
 __all__ = ["add_arguments", "run"]
 
@@ -104,14 +101,17 @@ def run(
     stop = stop or threading.Event()
     try:
         if args.replay is not None:
-            from biris_hw.io.record.replay import ReplayError, ReplayServer
+            from biris_hw.io.record.replay import ReplayError
+            from biris_hw.opening import open_sensor
 
             if sweep:
                 raise UsageError("a replay cannot be commanded: --cw/--ccw go with a sensor")
             if not Path(args.replay).is_file():
                 raise UsageError(f"--replay {args.replay}: no such file")
-            replay = ReplayServer(args.replay, speed=args.speed, autostart=False)
-            with replay, LiveView(replay, host=args.host, port=args.port, frame=args.frame) as view:
+            with (
+                open_sensor(replay=args.replay, speed=args.speed, autostart=False) as replay,
+                LiveView(replay, host=args.host, port=args.port, frame=args.frame) as view,
+            ):
                 replay.start()
                 _announce(view, stream, ready)
                 _wait(args.duration, view.failed)  # a damaged file ends the view

@@ -23,28 +23,26 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from biris_hw.angles import counts_to_deg, destination_counts
 from biris_hw.commands.argtypes import degrees, seconds
-from biris_hw.commands.common import (
-    Sensor,
-    UsageError,
+from biris_hw.commands.console import is_terminal, note_clamped
+from biris_hw.commands.failures import UsageError
+from biris_hw.commands.faults import FaultNotice
+from biris_hw.commands.options import (
     add_continuous_argument,
     add_target_arguments,
     add_timeout_argument,
     add_yes_argument,
-    confirm_moves,
-    is_terminal,
-    note_clamped,
-    open_session,
-    quiet_collector,
 )
-from biris_hw.commands.faults import FaultNotice
+from biris_hw.commands.session import confirm_moves, open_session, quiet_collector
 from biris_hw.errors import HardwareFault
-from biris_hw.io.sweeps import sweeping
 from biris_hw.status import ServerState, ServerStatus
 from regs.wiener_crate import CrateReading
+
+if TYPE_CHECKING:
+    from biris_hw.sensor import Sensor
 
 __all__ = ["add_arguments", "crate_summary", "run", "status_line", "status_table"]
 
@@ -141,6 +139,8 @@ class _Watcher:
                 self._watch_until(lambda: sweep and self._idle(), look_first=self._sweeps == 0)
 
     def _sweep(self) -> None:
+        from biris_hw.io.sweeps import sweeping
+
         args = self._args
         first = self._sweeps == 0
         self._sweeps += 1

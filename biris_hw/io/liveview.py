@@ -1,47 +1,48 @@
 """The live view: a Foxglove WebSocket server publishing the sensor as ROS 2 messages.
 
 Foxglove and Lichtblick connect to a ``foxglove.websocket.v1`` server and show what it
-advertises; :class:`LiveView` is that server (foxglove-sdk), fed through the client API
-(:class:`~biris_hw.io.ros2.SensorFeed`), so it works on a local server, a network client's sensor
-or a replay alike. It publishes the recorder's standard channels, with the same ros2msg schemas
-and CDR bytes (:mod:`biris_hw.io.ros2`): ``/biris/profile`` and ``/tf`` per acquisition,
-``/biris/points`` per completed scan, ``/diagnostics`` and ``/tf_static`` at the status period
-(static transforms are re-sent because a viewer may connect at any time and the WebSocket does
-not latch), and ``/biris/sweep``: the acquisitions that arrived since its previous message, in
-``vehicle``, at most one message every ``sweep_period_s`` (what came meanwhile waits for the
-next, and the status period sends what is left). Each message holds only the new points, so the
-work per message is bounded by the data rate, however long a sweep lasts (a message carrying the
-whole sweep so far would make the work grow with the square of its length); a viewer shows the
-sweep building up by keeping each message for a while: the 3D panel's *decay time*, which
+advertises; :class:`LiveView` is that server (foxglove-sdk), a sink of the sensor's feed
+(:mod:`biris_hw.io.feed`), so it works on a local server, a network client's sensor or a replay
+alike, and shares the reading and the encoding of every acquisition with whatever else serves or
+records the same sensor in the process. It publishes the recorder's standard channels, the very
+bytes the feed encoded once (:mod:`biris_hw.io.codec`): ``/biris/profile`` and ``/tf`` per
+acquisition, ``/biris/points`` per completed scan, ``/diagnostics`` and ``/tf_static`` at the
+status period (static transforms are re-sent because a viewer may connect at any time and the
+WebSocket does not latch), and ``/biris/sweep``: the acquisitions that arrived since its
+previous message, in ``vehicle``, at most one message every ``sweep_period_s`` (what came
+meanwhile waits for the next). Each message holds only the new points, so the work per message
+is bounded by the data rate, however long a sweep lasts (a message carrying the whole sweep so
+far would make the work grow with the square of its length); a viewer shows the sweep building
+up by keeping each message for a while: the 3D panel's *decay time*, which
 ``docs/foxglove-layout.json`` sets for this topic.
 
-Messages are only built for channels a viewer subscribes to, so a live view nobody watches costs
-almost nothing; what is built is built in batches, in the feed's one thread and out of step
-with the acquisitions (:class:`~biris_hw.io.ros2.SensorFeed`), so a watched live view adds little
-to the moment an acquisition reaches the sensor's other clients. ``docs/foxglove-layout.json``
-opens the panels.
+Messages are only built for channels a viewer subscribes to (the feed asks, batch by batch), so
+a live view nobody watches costs almost nothing; what is built is built in batches, out of step
+with the acquisitions, and published from the view's own thread, so a watched live view adds
+little to the moment an acquisition reaches the sensor's other clients.
+``docs/foxglove-layout.json`` opens the panels.
 
 A sensor in a fault keeps the view up: the WebSocket stays open, ``/diagnostics`` says ERROR
 with the fault's kind and the server's message (at once when the fault is met, then at the
 status period), and the data come back by themselves once the sensor has been reset. Meanwhile
-the sensor is asked for data only every :data:`FAULT_POLL_S` (each ask would only hear the
-fault again), not at the batch rate (twenty times a second on each of its two connections),
-which would load a sensor reached over the network for nothing.
+the feed asks the sensor for data only every :data:`FAULT_POLL_S` (each ask would only hear the
+fault again), not at the batch rate, which would load a sensor reached over the network for
+nothing.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-import time
-from collections.abc import Mapping
 from types import TracebackType
 from typing import Any
 
-from biris_hw.data import ConnectionKind, Point, Scan
+from biris_hw.data import ConnectionKind
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
 from biris_hw.geometry import Frame, Mount
-from biris_hw.io import ros2
+from biris_hw.io import codec, feed
+from biris_hw.sensor import Sensor
+from biris_hw.status import ServerStatus
 
 __all__ = ["DEFAULT_PORT", "FAULT_POLL_S", "LiveView", "viewer_urls"]
 
@@ -50,8 +51,12 @@ log = logging.getLogger(__name__)
 DEFAULT_PORT = 8765
 """Foxglove's usual WebSocket port."""
 
-FAULT_POLL_S = 0.5
-"""While the sensor is in a fault, the pause between two asks for data (real seconds)."""
+FAULT_POLL_S = feed.FAULT_POLL_S
+"""While the sensor is in a fault, the pause between two asks for data (real seconds): the
+feed's."""
+
+_TOPICS = frozenset({codec.PROFILE_TOPIC, codec.TF_TOPIC, codec.SWEEP_TOPIC, codec.POINTS_TOPIC})
+"""What the view takes from the feed; it makes ``/tf_static`` and ``/diagnostics`` itself."""
 
 
 def viewer_urls(host: str, port: int) -> dict[str, str]:
@@ -77,7 +82,7 @@ class LiveView:
 
     def __init__(
         self,
-        source: ros2.SensorSource,
+        source: Sensor,
         *,
         host: str = "127.0.0.1",
         port: int = DEFAULT_PORT,
@@ -85,46 +90,38 @@ class LiveView:
         name: str = "biris",
         status_period_s: float = 1.0,
         sweep_period_s: float = 0.1,
-        batch_s: float = ros2.BATCH_S,
+        batch_s: float = feed.BATCH_S,
     ) -> None:
-        ros2.cloud_frame_id(frame)
+        codec.cloud_frame_id(frame)
         self.source = source
         self.host = host
         self.frame: Frame = frame
         self.name = name
         self._wanted_port = port
-        self._sweep_period = sweep_period_s
-        self._feed = ros2.SensorFeed(
-            source,
-            on_points=self._points,
-            on_scans=self._scans,
-            on_status=self._status,
-            on_fault=self._fault_met,
-            status_period_s=status_period_s,
-            batch_s=batch_s,
-            point_depth=1024,
-            scan_depth=8,
-        )
+        self._options: dict[str, Any] = {
+            "name": "liveview",
+            "topics": _TOPICS,
+            "frame": frame,
+            "wants": self._wanted,
+            "status_period_s": status_period_s,
+            "batch_s": batch_s,
+            "sweep_period_s": sweep_period_s,
+            "point_depth": 1024,
+            "scan_depth": 8,
+        }
+        self._sink: feed.Sink | None = None
+        self._failed = threading.Event()
         self._server: Any = None
         self._context: Any = None
         self._channels: dict[str, Any] = {}
-        self._lock = threading.Lock()
-        record = getattr(source, "record", None)
-        self._mount: Mount | None = getattr(record, "mount", None)
-        self._now = 0.0
-        self._sweep: list[Point] = []
-        """Acquisitions not yet sent on ``/biris/sweep`` (at most one sweep period's worth)."""
-        self._sweep_sent = 0.0
+        record = source.record
+        self._mount: Mount | None = None if record is None else record.mount
         self.published: dict[str, int] = {}
         """Messages published per topic (to at least one subscriber)."""
-        self._closing = threading.Event()
-        """Set by :meth:`close`: ends the pause between two asks for data during a fault."""
         self._fault: HardwareFault | None = None
         """The fault the sensor is in, as the feed last met it; None outside a fault."""
-        self._fault_asked = -float("inf")
-        """When the feed last asked for data and met the fault (monotonic seconds)."""
         self.faults_met = 0
-        """Asks for data that met a fault (each pauses the feed: :data:`FAULT_POLL_S`)."""
+        """Asks for data that met a fault (the feed pauses after each: :data:`FAULT_POLL_S`)."""
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> LiveView:
@@ -135,15 +132,15 @@ class LiveView:
         self._server = foxglove.start_server(
             name=self.name, host=self.host, port=self._wanted_port, context=self._context
         )
-        for topic, msgtype in ros2.TOPICS.items():
+        for topic, msgtype in codec.TOPICS.items():
             schema = foxglove.Schema(
-                name=msgtype, encoding="ros2msg", data=ros2.schema_text(msgtype).encode()
+                name=msgtype, encoding="ros2msg", data=codec.schema_text(msgtype).encode()
             )
             self._channels[topic] = foxglove.Channel(
                 topic, schema=schema, message_encoding="cdr", context=self._context
             )
         try:
-            self._feed.start()
+            self._sink = feed.attach(self.source, self._batch, **self._options)
         except BaseException:
             self._server.stop()
             raise
@@ -162,20 +159,20 @@ class LiveView:
     @property
     def error(self) -> BaseException | None:
         """Why publishing stopped early, or None."""
-        return self._feed.error
+        return self._sink.error if self._sink is not None else None
 
     @property
     def failed(self) -> threading.Event:
         """Set when publishing stopped on its own (the source failed: a damaged recording, a
-        callback's error): :attr:`error` says why."""
-        return self._feed.failed
+        publication's error): :attr:`error` says why."""
+        return self._sink.failed if self._sink is not None else self._failed
 
     def close(self) -> None:
-        """Stop reading and publishing, close the server. Idempotent."""
-        self._closing.set()  # first: the feed may be pausing in a fault
-        self._feed.stop()
+        """Stop reading (the last acquisitions handed over are published) and publishing,
+        close the server. Idempotent."""
+        if self._sink is not None:
+            self._sink.detach()
         if self._server is not None:
-            self._send_sweep()  # the last acquisitions the feed handed over
             for channel in self._channels.values():
                 channel.close()
             self._server.stop()
@@ -192,68 +189,44 @@ class LiveView:
     ) -> None:
         self.close()
 
-    # -- publishing --------------------------------------------------------------------------
+    # -- publishing (the view's own thread, in batches) ----------------------------------------
     def _wanted(self, topic: str) -> bool:
+        """Whether a viewer subscribes to ``topic`` now (the feed asks before it encodes)."""
         channel = self._channels.get(topic)
         return channel is not None and bool(channel.has_sinks())
 
-    def _publish(self, message: ros2.Encoded, log_time_ns: int | None = None) -> None:
-        t = message.log_time_ns if log_time_ns is None else log_time_ns
-        self._channels[message.topic].log(message.data, log_time=t)
+    def _publish(self, message: codec.Encoded) -> None:
+        self._channels[message.topic].log(message.data, log_time=message.log_time_ns)
         self.published[message.topic] = self.published.get(message.topic, 0) + 1
 
-    def _points(self, points: list[Point]) -> None:
-        self._now = max(self._now, points[-1].t)
-        self._mount = points[-1].mount
-        if self._wanted("/biris/profile"):
-            for message in ros2.profile_clouds(points):
-                self._publish(message)
-        if self._wanted("/tf"):
-            for point in points:
-                self._publish(ros2.transforms(point))
-        if not self._wanted("/biris/sweep"):
-            self._sweep = []
-            return
-        self._sweep += points
-        self._send_sweep(when_due=True)
-
-    def _send_sweep(self, when_due: bool = False) -> None:
-        """The acquisitions waiting for ``/biris/sweep`` as one cloud (see the module); with
-        ``when_due``, only once ``sweep_period_s`` has passed since the last."""
-        if when_due and time.monotonic() - self._sweep_sent < self._sweep_period:
-            return
-        pending, self._sweep = self._sweep, []
-        if not pending or not self._wanted("/biris/sweep"):
-            return
-        self._sweep_sent = time.monotonic()
-        self._publish(ros2.sweep_cloud(pending))
-
-    def _scans(self, scans: list[Scan]) -> None:
-        for scan in scans:
+    def _batch(self, batch: feed.Batch) -> None:
+        """Publish what the feed encoded for the view; then a fault met, a status read."""
+        if batch.points:
+            self._mount = batch.points[-1].mount
+        for scan in batch.scans:
             if scan.mount is not None:
                 self._mount = scan.mount
-            if self._wanted("/biris/points"):
-                self._publish(ros2.scan_cloud(scan, self.frame))
+        for message in batch.messages:
+            if self._wanted(message.topic):
+                self._publish(message)
+        for fault in batch.faults:
+            self._fault_met(fault)
+        if batch.status is not None:
+            self._status(batch.status)
 
-    def _fault_met(self, exc: BaseException) -> None:
-        """The feed asked for data and met a fault (it goes on reading, see SensorFeed).
-
-        The first time, the fault is put on ``/diagnostics`` at once rather than at the next
-        status period; every time, the feed's thread pauses until :data:`FAULT_POLL_S` has
-        passed since its previous ask, since nothing but the fault will come until a reset.
-        """
+    def _fault_met(self, exc: HardwareFault) -> None:
+        """The feed asked for data and met a fault (it pauses, then goes on reading): the first
+        time, the fault is put on ``/diagnostics`` at once rather than at the next status
+        period."""
         self.faults_met += 1
-        if isinstance(exc, HardwareFault) and self._learn(exc):
+        if self._learn(exc):
+            t = feed.sensor_time(self.source, 0.0)
             try:
-                self._status(self.source.status(), None)
+                self._status(feed.StatusReading(self.source.status(), None, t))
             except ConnectionClosed:
                 pass
             except BirisError as failure:
-                self._status(None, str(failure))
-        pause = self._fault_asked + FAULT_POLL_S - time.monotonic()
-        if pause > 0:
-            self._closing.wait(pause)
-        self._fault_asked = time.monotonic()
+                self._status(feed.StatusReading(None, str(failure), t))
 
     def _learn(self, fault: HardwareFault) -> bool:
         """Keep ``fault`` as the one the sensor is in; True (and logged) if it is news."""
@@ -276,8 +249,9 @@ class LiveView:
             pass
         return None
 
-    def _status(self, status: Mapping[str, Any] | None, error: str | None) -> None:
-        self._send_sweep(when_due=True)  # what waited for the period, if no data came since
+    def _status(self, reading: feed.StatusReading) -> None:
+        status: ServerStatus | None = reading.status
+        error = reading.error
         if status is not None:
             state = str(status["state"])
             fault = self._fault
@@ -291,14 +265,14 @@ class LiveView:
                         fault = asked
                 if fault is not None and state == f"fault:{fault.kind}":
                     error = fault.message
-        t = ros2.sensor_time(self.source, self._now)
-        if self._wanted("/tf_static"):
-            self._publish(ros2.static_transforms(self._mount, t))
-        if self._wanted("/diagnostics"):
+        if self._wanted(codec.TF_STATIC_TOPIC):
+            self._publish(codec.static_transforms(self._mount, reading.t))
+        if self._wanted(codec.DIAGNOSTICS_TOPIC):
+            sink = self._sink
             extra = {
                 "live view": {
-                    "dropped_points": self._feed.dropped_points,
-                    "dropped_scans": self._feed.dropped_scans,
+                    "dropped_points": 0 if sink is None else sink.dropped_points,
+                    "dropped_scans": 0 if sink is None else sink.dropped_scans,
                 }
             }
-            self._publish(ros2.diagnostics(status, t, extra=extra, error=error))
+            self._publish(codec.diagnostics(status, reading.t, extra=extra, error=error))

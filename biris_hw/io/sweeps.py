@@ -15,9 +15,9 @@ sweep under way has finished and the head stands still, and close both connectio
                 break
     # here the scan is stopped, the head idle and both connections closed
 
-It uses nothing but the client API (``server.open``, ``server.status`` and the
-:class:`~biris_hw.client.Connection` methods), so it works on anything that hands out
-connections the way :class:`~biris_hw.BirisServer` does.
+It uses nothing but the sensor interface (:class:`biris_hw.sensor.Sensor`: ``open``,
+``status`` and the :class:`~biris_hw.sensor.Connection` methods), so it works on a local
+server, a remote one and a replay alike.
 
 If the block ends with an exception, the scan is still asked to stop and both connections are
 closed, but nothing is waited for: the exception (a fault, a timeout, Ctrl-C) is what matters,
@@ -27,12 +27,12 @@ and the server, closed next, stops the head in any case.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping
-from typing import Any, Protocol
+from collections.abc import Iterator
+from typing import TypeAlias
 
-from biris_hw.client import Connection
 from biris_hw.data import ConnectionKind, Scan
 from biris_hw.errors import BirisError
+from biris_hw.sensor import Connection, Sensor
 
 __all__ = ["DEFAULT_TIMEOUT_S", "SweepSource", "Sweeps", "sweeping"]
 
@@ -40,12 +40,8 @@ DEFAULT_TIMEOUT_S = 60.0
 """Longest wait, in real seconds, for one sweep or for the head to come to rest."""
 
 
-class SweepSource(Protocol):
-    """What :func:`sweeping` needs of a server: connections and its status."""
-
-    def open(self, kind: ConnectionKind = ...) -> Connection[Scan]: ...
-
-    def status(self) -> Mapping[str, Any]: ...
+SweepSource: TypeAlias = Sensor
+"""What :func:`sweeping` needs: any sensor (a local server, a remote one, a replay)."""
 
 
 class Sweeps:

@@ -20,7 +20,15 @@ Its state lives in components that own their fields and expose named operations:
   direction, the latest point;
 * :class:`~biris_hw.server.elevation.TiltControl` -- SET_ELEVATION's tilts;
 * :class:`~biris_hw.server.continuous_mode.Ring` -- Appendix D's continuous acquisition;
-* :class:`~biris_hw.server.connections.Connections` -- clients and every hand-over of data.
+* :class:`~biris_hw.server.connections.Connections` -- clients and every hand-over of data;
+* :class:`~biris_hw.server.encoders.Encoders` -- the encoder readings a status carries, taken
+  by the ``encoder_reader`` worker when a status needs a fresher one.
+
+After every message that may change what a client would be told, the administrator moves the
+epoch of its :class:`~biris_hw.protocol.Bulletin` on and numbers a change of the status's
+signature (:attr:`ServerStatus.change <biris_hw.status.ServerStatus.change>`): a STATUS request
+with ``newer_than`` is parked until then (the push), and clients read the bulletin to know,
+without asking, that nothing has happened since they last asked.
 
 The administrator coordinates them: the cases below are the report's, and what follows the end
 of a BIRIS command or of a motion is found through the command's or order's *purpose*
@@ -29,7 +37,7 @@ of a BIRIS command or of a motion is found through the command's or order's *pur
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from biris_hw import protocol as p
@@ -61,6 +69,7 @@ from biris_hw.server.continuous_mode import Ring
 from biris_hw.server.counters import Counters
 from biris_hw.server.delivery import ClientConn
 from biris_hw.server.elevation import Tilt, TiltControl, TiltPhase
+from biris_hw.server.encoders import Encoders
 from biris_hw.server.faults import Lifecycle, Phase, fail_quietly, log
 from biris_hw.server.initialiser import InitResult
 from biris_hw.server.motion import ARRIVAL_TOLERANCE_COUNTS, AxisState, Motion, MotionPurpose
@@ -69,7 +78,7 @@ from biris_hw.server.scan_assembly import ActiveScan
 from biris_hw.server.scan_timing import ScanTiming, data_rate_mismatch
 from biris_hw.server.scanning import AcquisitionFate, ScanSequencer
 from biris_hw.server.start_schedule import StartSchedule
-from biris_hw.status import ServerState, ServerStatus
+from biris_hw.status import ServerState, ServerStatus, StatusChanges
 from biris_hw.timebase import timebase_of
 from regs.biexec import BiCommand, BiStatus
 from regs.tech80 import Axis
@@ -77,6 +86,21 @@ from regs.tech80 import Axis
 __all__ = ["Administrator"]
 
 Case = Callable[[Envelope, Any], None]
+
+_READS: frozenset[type] = frozenset(
+    {
+        p.StatusRequest,
+        p.ReadyForData,
+        p.RequestPoint,
+        p.RequestScanData,
+        p.WaitIdle,
+        m.EncoderReading,
+    }
+)
+"""Messages that change nothing a client could be told but the answer to the sender itself (a
+parked wait, a buffer taken from the sender's own queue, a reading of the encoders): after any
+other message the administrator moves its epoch on (:class:`biris_hw.protocol.Bulletin`) and
+looks whether the status has changed."""
 
 LAG_NOTE_S = 0.005
 """Hardware seconds of lag (:attr:`BirisHardware.lag`) beyond which a timeout or motor_stall
@@ -99,6 +123,7 @@ class Administrator:
         recheck_motion: Callable[[], None] | None = None,
         recheck_biris: Callable[[], None] | None = None,
         lag: Callable[[], float] | None = None,
+        extras: Callable[[], Mapping[str, Any]] | None = None,
     ) -> None:
         self.record = record
         self._recheck_motion = recheck_motion
@@ -130,6 +155,17 @@ class Administrator:
         self._lag = lag
         """How far behind its clock the hardware has been running (a simulator on a host that
         cannot keep up), said in a fault's message; None on the real target."""
+        self._extras = extras
+        """The status's parts kept outside the administrator (interrupt counts, tasks down,
+        the crate's reading): read from memory the server's other parts keep, never the bus."""
+        self.bulletin = p.Bulletin(timebase_of(clock, time_scale))
+        """The epoch clients read without a round trip (see :data:`_READS`)."""
+        self.changes = StatusChanges()
+        """The status's change number (:attr:`ServerStatus.change`)."""
+        self.encoders = Encoders()
+        """The encoder readings a status carries, and the worker that takes them."""
+        self._status_waiters: list[tuple[Envelope, int | None, int]] = []
+        """Parked STATUS requests: (envelope, connection, the change they wait to pass)."""
         self._handlers = self._cases()
 
     def _cases(self) -> dict[type, Case]:
@@ -151,6 +187,7 @@ class Administrator:
             m.MotionRechecked: self._on_motion_rechecked,
             m.BirisRechecked: self._on_biris_rechecked,
             m.TaskFailed: self._on_task_failed,
+            m.EncoderReading: self._on_encoder_reading,  # beyond the report: for status()
             m.BirisBusErr: lambda env, msg: self._task_fault(  # BIRIS_BUS_ERR
                 env, "bus", "bus error on the BIRIS VMEbus"
             ),
@@ -220,12 +257,19 @@ class Administrator:
             except Exception:  # the fault path itself is broken: the phase still says so
                 log.exception("administrator: could not enter the internal fault")
                 self.life.enter_fault(fault.kind, fault.message)
+        if type(env.message) not in _READS:
+            self._after_change()
 
     def shutdown(self) -> None:
         """Called by the server after this thread has ended: nobody may stay blocked."""
         self._cancel_schedule()
+        self.bulletin.advance()
         stopped = ConnectionClosed("the BIRIS server has stopped")
-        for env in self.life.idle_waiters + self.life.init_waiters:
+        waiting = [env for env, _conn, _change in self._status_waiters]
+        self._status_waiters = []
+        for env in self.life.idle_waiters + self.life.init_waiters + waiting:
+            fail_quietly(env, stopped)
+        for env in self.encoders.worker_gone():
             fail_quietly(env, stopped)
         self.clients.fail_waiting(stopped, forget=False)
 
@@ -284,6 +328,11 @@ class Administrator:
     def _on_close(self, env: Envelope, msg: p.CloseRequest) -> None:
         self.clients.close(msg.conn)
         env.reply(None)
+        closed = [w for w in self._status_waiters if w[1] == msg.conn]
+        if closed:
+            self._status_waiters = [w for w in self._status_waiters if w[1] != msg.conn]
+            for waiter, _conn, _change in closed:
+                fail_quietly(waiter, ConnectionClosed(f"connection {msg.conn} was closed"))
 
     def _on_request_point(self, env: Envelope, msg: p.RequestPoint) -> None:
         conn = self._usable_conn(msg.conn)
@@ -306,8 +355,77 @@ class Administrator:
         else:
             self.life.idle_waiters.append(env)
 
+    # ============================================================================ status
     def _on_status(self, env: Envelope, msg: p.StatusRequest) -> None:
-        env.reply(self.status())
+        """STATUS: answered now, or (``newer_than``) parked until the status has changed since.
+
+        Parked requests whose sender has given up (a timeout) are dropped here, so a watcher
+        that times out every second leaves nothing behind while nothing changes."""
+        if msg.conn is not None:
+            self._conn(msg.conn)
+        self._status_waiters = [w for w in self._status_waiters if w[0].waiting]
+        if msg.newer_than is None or self.changes.change > msg.newer_than:
+            self._answer_status(env)
+        elif msg.poll:  # timeout=0: answered now, never parked
+            env.fail(TimeoutError(f"the status has not changed since {msg.newer_than}"))
+        else:
+            self._status_waiters.append((env, msg.conn, msg.newer_than))
+
+    def _answer_status(self, env: Envelope) -> None:
+        """Reply the status, with encoder readings fresh enough: the held ones, or after the
+        reader has read again (:mod:`biris_hw.server.encoders`). None while initialising,
+        when the head's position is not known, and nothing to read without a reader."""
+        encoders = self.encoders
+        moving = self.az.busy() or self.el.busy()
+        now = self.clock()
+        if self.life.initialising or not encoders.available or encoders.fresh(now, moving):
+            env.reply(self.status())
+        else:
+            encoders.want(env, now, moving)
+
+    def _on_encoder_reading(self, env: Envelope, msg: m.EncoderReading) -> None:
+        """ENCODER_READING: the reader parks again with what it read; the statuses that waited
+        for it are answered."""
+        self._reply_statuses(self.encoders.report(env, msg))
+
+    def _reply_statuses(self, waiters: list[Envelope]) -> None:
+        if not waiters:
+            return
+        status = self.status()  # one status for all of them: it is immutable
+        for waiter in waiters:
+            if waiter.waiting:
+                waiter.reply(status)
+
+    def _after_change(self) -> None:
+        """After a message that may have changed something: the epoch moves on, and a status
+        whose signature changed is pushed to the requests parked for it."""
+        changed = self.changes.see(self._signature())
+        self.bulletin.advance(self.changes.change)
+        if not changed or not self._status_waiters:
+            return
+        change = self.changes.change
+        due = [w for w in self._status_waiters if change > w[2]]
+        self._status_waiters = [w for w in self._status_waiters if change <= w[2]]
+        for env, _conn, _after in due:
+            if env.waiting:
+                self._answer_status(env)
+
+    def _signature(self) -> tuple[Any, ...]:
+        """:meth:`ServerStatus.signature` of the status now, without building the status (this
+        runs after every message)."""
+        fault = self.life.fault
+        return (
+            self.state(),
+            fault.kind if fault is not None else None,
+            self.az.position,
+            self.el.position,
+            self.tilt.lut,
+            self.scans.continuous is not None,
+            self.ring.name,
+            self.ring.pending_name,
+            self.ring.state.value,
+            self.clients.idents(),
+        )
 
     def state(self) -> ServerState:
         """What the server is doing, for status(): the most telling of its activities."""
@@ -326,9 +444,13 @@ class Administrator:
         return ServerState.IDLE
 
     def status(self) -> ServerStatus:
+        """The status now, the encoders as last read (:meth:`_answer_status` sees to it that
+        the reading is fresh enough), and the parts kept outside the administrator."""
         counters = self.counters.as_dict()
         counters["dropped_deliveries"] = self.clients.dropped()
         fault = self.life.fault
+        homed = not self.life.initialising
+        extras = self._extras() if self._extras is not None else {}
         return ServerStatus(
             state=self.state(),
             fault=fault.kind if fault is not None else None,
@@ -342,6 +464,10 @@ class Administrator:
             counters=counters,
             acquisitions_in_progress=self.scans.in_progress(),
             connections=self.clients.summaries(),
+            azimuth_live=self.encoders.azimuth if homed else None,
+            elevation_live=self.encoders.elevation if homed else None,
+            change=self.changes.change,
+            **extras,
         )
 
     # ============================================================================ scans
@@ -665,6 +791,7 @@ class Administrator:
 
     # ============================================================================ motion
     def _submit_motion(self, axis: AxisState, job: Motion) -> None:
+        self.encoders.moved()
         axis.submit(job)
         self._pump_motion(axis)
 
@@ -703,6 +830,7 @@ class Administrator:
         ARRIVAL_TOLERANCE_COUNTS); otherwise it is a motor_stall fault, never a completed
         scan."""
         env.reply(None)
+        self.encoders.moved()
         job = axis.current
         if not axis.ends_current(msg.token) or job is None:
             self.counters.spurious_motor_end += 1
@@ -819,6 +947,8 @@ class Administrator:
         the next reset, which restarts it."""
         env.reply(None)
         self._fault(_fault_kind(msg.kind), f"{msg.task}: {msg.text}")
+        if msg.task == "encoder_reader":  # no reading will come until the reset restarts it
+            self._reply_statuses(self.encoders.worker_gone())
 
     # -- BIRIS_HOME and BIRIS_MOTOR_PARAMS ---------------------------------------------------
     def _on_motor_params(self, env: Envelope, msg: p.BirisMotorParams) -> None:
@@ -1084,6 +1214,7 @@ class Administrator:
         if msg.conn:
             self._conn(msg.conn)
         self.life.begin_reset(env)
+        self.encoders.moved()  # the initialiser homes both axes
         self._clear_activity()
         # the ring is forgotten (the initialiser stops BIRIS) and the acquisition mode is the init
         # record's again, a pending START_CONTINUOUS dropped: like the motor parameters, what a
@@ -1139,6 +1270,7 @@ class Administrator:
             log.info("%s", mismatch)
         self.az.position = 0
         self.el.position = 0
+        self.encoders.moved()
         # the chips now run the init record's parameters: so does the server (a reset undoes
         # BIRIS_MOTOR_PARAMS; a client that wants its own set sends it again)
         self.az.motor = self.record.motor

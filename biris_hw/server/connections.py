@@ -137,6 +137,10 @@ class Connections:
         """Deliveries dropped so far, by open and closed connections alike."""
         return self._closed_drops + sum(c.dropped for c in self._conns.values())
 
+    def idents(self) -> tuple[int, ...]:
+        """The open connections' numbers, in the order ``summaries`` lists them."""
+        return tuple(self._conns)
+
     def summaries(self) -> dict[int, ConnectionStatus]:
         """Each open connection's part of ``server.status()``."""
         return {c.ident: c.summary() for c in self._conns.values()}

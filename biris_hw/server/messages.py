@@ -216,6 +216,18 @@ class TaskFailed:
 
 
 @dataclass(frozen=True, slots=True)
+class EncoderReading:
+    """ENCODER_READING (beyond the report): the encoder reader is ready, with the pan and tilt
+    encoders as its last order read them (None for an axis it could not read, the board gone
+    or the drive silent). Its first report, before any order, carries ``read=False``. The reply
+    is its next order (:class:`ReadEncoders`)."""
+
+    azimuth: int | None = None
+    elevation: int | None = None
+    read: bool = True
+
+
+@dataclass(frozen=True, slots=True)
 class InitSync:
     """From the initialiser, before it looks at COMMAND: replied once the command-transfer
     worker is parked. A command the administrator handed the worker just before a reset may
@@ -290,6 +302,11 @@ class MoveOrder:
     schedule: StartSchedule | None = None
     """A report-mode scan's move: started when the schedule says (BI_ACQUIRE's write plus the
     start-up), not at once; nothing starts if the schedule is cancelled meanwhile."""
+
+
+@dataclass(frozen=True, slots=True)
+class ReadEncoders:
+    """To encoder_reader: read both axes' encoders now and report them."""
 
 
 @dataclass(frozen=True, slots=True)

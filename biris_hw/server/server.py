@@ -13,22 +13,21 @@ initialiser, ``status()`` and the CLI.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
 import logging
 import threading
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any, Literal, overload
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 from biris_hw.affinity import check_cpus, pinned
-from biris_hw.axes.base import MotionAxis
-from biris_hw.client import Connection
+from biris_hw.angles import RealLike
+from biris_hw.client import Connection, status_request
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
 from biris_hw.hardware import BirisHardware
 from biris_hw.ipc import Mailbox, TaskStopped
-from biris_hw.protocol import OpenRequest, ResetRequest, StatusRequest
+from biris_hw.protocol import OpenRequest, ResetRequest
 from biris_hw.records import BirisInitRecord
 from biris_hw.server import tasks
 from biris_hw.server.acquisition import AcquisitionReader
@@ -43,9 +42,12 @@ from biris_hw.server.messages import (
     MotorWatchdogErr,
 )
 from biris_hw.server.task_table import TASKS, Starts, TaskSpec, task
-from biris_hw.status import ServerState, ServerStatus
+from biris_hw.status import ServerStatus
 from biris_hw.timebase import HwThread
 from regs.tech80 import Axis
+
+if TYPE_CHECKING:
+    from biris_hw.sensor import Sensor
 
 __all__ = ["BirisServer"]
 
@@ -113,6 +115,7 @@ class BirisServer:
             self.level3.recheck,
             self.level2.recheck,
             hw.lag,
+            self._status_extras,
         )
         self.level2.attach_recheck(
             tasks.BirisRecheck(self.inbox, self.reader, self.link, self.ledger)
@@ -192,6 +195,7 @@ class BirisServer:
                 self.el_moves,
             ),
             "el_scan_start": lambda: tasks.el_scan_start(inbox, self.elevation, self.el_moves),
+            "encoder_reader": lambda: tasks.encoder_reader(inbox, self.azimuth, self.elevation),
             "az_watchdog": self.motor_watchdog.run,
             "el_watchdog": self.elevation_watchdog.run,
             "level2_isr": level2.serve,  # serve, not run: a lost line is raised, and reported
@@ -315,43 +319,61 @@ class BirisServer:
         answer = self.inbox.send(OpenRequest(kind, owner, policy, depth))
         assert isinstance(answer, tuple)
         number, chosen, used = answer
+        bulletin = self.admin.bulletin
         if chosen is DeliveryPolicy.EVERY_ACQUISITION:
-            return Connection[Point](self.inbox, number, ConnectionKind(kind), chosen, used)
-        return Connection[Scan](self.inbox, number, ConnectionKind(kind), chosen, used)
+            return Connection[Point](
+                self.inbox, number, ConnectionKind(kind), chosen, used, bulletin
+            )
+        return Connection[Scan](self.inbox, number, ConnectionKind(kind), chosen, used, bulletin)
 
-    def status(self) -> ServerStatus:
+    def status(
+        self, *, newer_than: int | None = None, timeout: RealLike | None = None
+    ) -> ServerStatus:
         """What the server is doing and has done (:class:`biris_hw.status.ServerStatus`).
 
         ``state`` (a :class:`~biris_hw.status.ServerState`; ``status["state"]`` reads
         initialising, idle, scanning, homing, tilting, busy or fault:<kind>), ``fault`` (the kind),
         ``azimuth`` and ``elevation`` (counts: where the axes were last sent),
-        ``azimuth_live`` and ``elevation_live`` (counts: the encoders now, None while
-        initialising or if the board cannot be read), ``counters``, ``interrupts`` by logical
+        ``azimuth_live`` and ``elevation_live`` (counts: the encoders, None while initialising
+        or if the board cannot be read), ``counters``, ``interrupts`` by logical
         kind, the tasks that failed and wait for a reset (``tasks_down``, ``task_failures``),
         the VME crate's last reading when the hardware has a crate monitor (``crate``,
-        ``crate_error``), and per connection its policy, queue, deliveries, drops and
-        delivery-latency histogram with p50 and p99 (see the README).
+        ``crate_error``), per connection its policy, queue, deliveries, drops and
+        delivery-latency histogram with p50 and p99 (see the README), and ``change``.
+
+        The administrator answers; nothing is read from the bus in the caller's thread. The
+        encoders are read for it by a worker, at most 10 times a hardware second while an axis
+        moves and once a second at rest, whatever the rate of asking
+        (:mod:`biris_hw.server.encoders`).
+
+        Args:
+            newer_than: a status's ``change``: return once the status has changed since (the
+                state, a fault, where the axes were sent, the modes, the connections: what
+                :meth:`ServerStatus.signature <biris_hw.status.ServerStatus.signature>`
+                covers), at once if it has already. None: now.
+            timeout: how long to wait for that (None: as long as it takes; 0: a poll).
 
         Raises:
             ConnectionClosed: the server has stopped.
+            RequestError: a ``newer_than`` that is not a whole number, or a bad timeout.
+            TimeoutError: no newer status within ``timeout`` (at once for a poll).
         """
         if self._closed:
             raise ConnectionClosed("the BIRIS server has stopped")
-        result = self.inbox.send(StatusRequest())
-        assert isinstance(result, ServerStatus)
-        homed = result.state is not ServerState.INITIALISING
-        return dataclasses.replace(
-            result,
-            interrupts={
+        return status_request(self.inbox, None, newer_than, timeout, self.admin.bulletin)
+
+    def _status_extras(self) -> dict[str, Any]:
+        """The status's parts that live outside the administrator, for it to add (in its
+        thread; each is a copy under a short lock, none reads the bus)."""
+        return {
+            "interrupts": {
                 **{k.name: v for k, v in self.level2.counts.items()},
                 **{k.name: v for k, v in self.level3.counts.items()},
             },
-            azimuth_live=self._encoder(self.azimuth) if homed else None,
-            elevation_live=self._encoder(self.elevation) if homed else None,
-            tasks_down=tuple(sorted(self.supervisor.down)),
-            task_failures=self.supervisor.failure_counts(),
+            "tasks_down": tuple(sorted(self.supervisor.down)),
+            "task_failures": self.supervisor.failure_counts(),
             **self._crate(),
-        )
+        }
 
     def _crate(self) -> dict[str, Any]:
         """``crate`` and ``crate_error`` for status(), from what the poller holds (no wait)."""
@@ -360,17 +382,15 @@ class BirisServer:
         reading, error = self.crate_watch.latest()
         return {"crate": reading, "crate_error": error}
 
-    @staticmethod
-    def _encoder(axis: MotionAxis) -> int | None:
-        """Where the axis is now, by its encoder, not where it was sent: ``azimuth`` is the
-        latter. Read here, in the caller's thread, because the administrator never waits on the
-        bus; None when the board cannot be read (the fault is reported by the tasks that hit it).
-        """
-        # ``axis`` is the bundle's shared driver (self.devices): its position latch holds here too
-        try:
-            return axis.actual_position()
-        except BirisError:
-            return None
+    def clock(self) -> float:
+        """Hardware seconds now (the hardware bundle's clock)."""
+        return float(self.hardware.clock())
+
+    playback = False
+    """A live sensor: it carries out motion and configuration (:class:`biris_hw.sensor.Sensor`)."""
+
+    paced = True
+    """Its data come at the hardware's pace, whatever the readers do."""
 
     def reset(self) -> None:
         """Re-run initialisation (the way back after a HardwareFault).
@@ -402,6 +422,7 @@ class BirisServer:
             except Exception:  # the hardware may be what failed; closing must still finish
                 log.debug("could not quiet the hardware on close", exc_info=True)
         self.inbox.close()
+        self.admin.bulletin.advance()  # a reader waiting for the epoch looks, and finds it closed
         self.level2.close()
         self.level3.close()
         self.biris_timeout.stop()
@@ -424,3 +445,9 @@ class BirisServer:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+if TYPE_CHECKING:
+
+    def _is_a_sensor(server: BirisServer) -> Sensor:
+        return server  # mypy holds BirisServer to biris_hw.sensor.Sensor

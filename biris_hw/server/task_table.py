@@ -27,9 +27,9 @@ that carries out a reset. The initialiser is not restarted (``Restart.NEVER``): 
 reset, and a failure is its INIT_DONE's error.
 
 The order is the creation order, Appendix B's for the report's eight tasks (its global indices,
-``index``), then the tilt's future tasks and the watchdogs, then the two interrupt service
-routines (every notifier is already waiting on its logical line when they start), then the
-administrator (everything it orders exists), then the initialiser.
+``index``), then the tilt's future tasks, the watchdogs and the encoder reader, then the two
+interrupt service routines (every notifier is already waiting on its logical line when they
+start), then the administrator (everything it orders exists), then the initialiser.
 
 **biris_data_notifier runs in level2_isr's thread.** Decided by measurement. Every-acquisition
 latency: from the simulator raising the data interrupt to a client thread holding the Point (a
@@ -276,6 +276,18 @@ TASKS: tuple[TaskSpec, ...] = (
         sends="MotorWatchdogErr (elevation)",
         thread="el_watchdog",
         why="Beyond the report: as az_watchdog, for the tilt.",
+    ),
+    TaskSpec(
+        "encoder_reader",
+        TaskKind.WORKER,
+        waits_on="the administrator's reply to ENCODER_READING (the order to read again)",
+        sends="ENCODER_READING with both axes' encoder positions (None for one it cannot read)",
+        thread="encoder_reader",
+        why="Beyond the report: status() says where the head is now, and the administrator "
+        "never touches a register, so a worker reads the encoders when a status wants a "
+        "fresher reading than the one held (at most 10 times a hardware second while an axis "
+        "moves, once a second at rest: biris_hw.server.encoders). Its own thread: a reading "
+        "crosses the bus (a USB round trip, a CAN SDO) and no status waits behind a scan.",
     ),
     TaskSpec(
         "level2_isr",

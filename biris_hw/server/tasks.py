@@ -9,10 +9,11 @@ Notifiers block on an interrupt and *send* to the administrator: ``biris_cmd_not
 BIRIS_DATA_DEV and which therefore *posts one-way* (it must never wait on the administrator).
 Workers report ready and block until the administrator *replies* with an order:
 ``biris_cmd_transfer`` (writes the next BIRIS command), ``az_scan_start`` and ``el_scan_start``
-(start the next pan or tilt trapezoid). ``biris_timeout`` and the motor watchdogs are timers
-(:class:`DeadlineTimer`). Every task ends when its line is closed or the administrator's mailbox
-stops. ``el_scan_notifier`` and ``el_scan_start`` are the report's "future tasks" for a tilt
-axis, "similar to [the azimuth ones] except that they apply to the elevation scan".
+(start the next pan or tilt trapezoid), ``encoder_reader`` (reads both encoders for a status).
+``biris_timeout`` and the motor watchdogs are timers (:class:`DeadlineTimer`). Every task ends
+when its line is closed or the administrator's mailbox stops. ``el_scan_notifier`` and
+``el_scan_start`` are the report's "future tasks" for a tilt axis, "similar to [the azimuth
+ones] except that they apply to the elevation scan".
 
 What a notifier has drained from BIRIS memory (NEW_POINT, CONTINUOUS_LIVE, SWEEP_DATA_DONE) is
 always posted one-way, under the reader's lock: so the inbox holds it in the reader's order,
@@ -61,6 +62,7 @@ from biris_hw.server.messages import (
     ContinuousLive,
     ElReady,
     ElScanDone,
+    EncoderReading,
     MoveOrder,
     NewPoint,
     ParamsOrder,
@@ -88,6 +90,7 @@ __all__ = [
     "biris_parity_err",
     "el_scan_notifier",
     "el_scan_start",
+    "encoder_reader",
     "failure_kind",
 ]
 
@@ -756,6 +759,33 @@ def el_scan_start(admin: Mailbox, axis: MotionAxis, moves: MoveLedger | None = N
     """EL_READY, then start the tilt the reply carries; forever (the report's future
     _el_scan_start)."""
     _axis_worker(admin, axis, lambda error, kind: ElReady(error, kind), None, moves)
+
+
+def encoder_reader(admin: Mailbox, azimuth: MotionAxis, elevation: MotionAxis) -> None:
+    """ENCODER_READING, then read both encoders when the reply orders it; forever.
+
+    Beyond the report: ``status()`` says where the head is now (``azimuth_live``,
+    ``elevation_live``), and the administrator never touches a register, so a worker reads the
+    encoders for it, when a status asks for a reading fresher than the one it holds (at a
+    bounded rate: :mod:`biris_hw.server.encoders`). An axis that cannot be read is reported as
+    None and the worker carries on: the fault, if there is one, is reported by the task whose
+    work needs that axis, and a status must still be answered.
+    """
+    reading = EncoderReading(read=False)
+    while True:
+        try:
+            admin.send(reading)
+        except TaskStopped:
+            return
+        reading = EncoderReading(_position(azimuth), _position(elevation))
+
+
+def _position(axis: MotionAxis) -> int | None:
+    """Where ``axis`` is now by its encoder; None when it cannot be read."""
+    try:
+        return axis.actual_position()
+    except BirisError:
+        return None
 
 
 # --- timers --------------------------------------------------------------------------------------

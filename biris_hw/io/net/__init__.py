@@ -7,7 +7,7 @@ the methods, results and errors of local ones. Reading is free unless the servic
 otherwise; motion and configuration need a controller's credentials
 (:class:`~biris_hw.errors.AccessDenied` otherwise). The key expressions, requests and payloads
 are written down for non-Python clients in ``docs/wire-format.md``; payloads are
-:mod:`biris_hw.io.wire`'s ROS 2 messages in CDR. Needs the ``net`` extra (eclipse-zenoh).
+:mod:`biris_hw.io.codec`'s ROS 2 messages in CDR. Needs the ``net`` extra (eclipse-zenoh).
 """
 
 from __future__ import annotations

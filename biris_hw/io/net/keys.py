@@ -2,8 +2,8 @@
 
 Kept in one small module, apart from the code that serves or calls, so that the contract
 ``docs/wire-format.md`` writes down for non-Python clients is one page of Python too. Requests are
-JSON objects (small, and every language has a parser); the sensor's data are CDR (:mod:`biris_hw.
-wire`), since they are large and must come back bit for bit.
+JSON objects (small, and every language has a parser); the sensor's data are CDR
+(:mod:`biris_hw.io.codec`), since they are large and must come back bit for bit.
 """
 
 from __future__ import annotations

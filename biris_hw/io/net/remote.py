@@ -7,6 +7,12 @@ bad one never leaves the process and changes nothing), each call is one Zenoh qu
 reply is turned back into the same value or exception. Besides, :meth:`RemoteSensor.subscribe`
 receives the service's publications (every acquisition, every scan, status, faults).
 
+A :class:`RemoteSensor` is a :class:`biris_hw.sensor.Sensor`: when it connects it asks the
+service once what it serves (``playback``, ``paced``, the init record); ``status(newer_than=...)``
+waits for the service's status publications (published when the status changes), so a watcher
+asks nothing while nothing changes; ``clock()`` is the newest hardware time seen in a status
+reply or a datum's stamp.
+
 **A service that goes away** is noticed through its liveliness token: every call waiting for a
 reply is woken and raises :class:`~biris_hw.errors.ConnectionClosed`, as soon as Zenoh notices
 the link is gone (the kernel closing a dead process's socket: well under a second), and at the
@@ -18,6 +24,7 @@ reason, however long the caller's timeout.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import struct
 import threading
@@ -25,7 +32,7 @@ import time
 import uuid
 from collections.abc import Callable, Sequence
 from types import TracebackType
-from typing import Any, Generic, Literal, cast, overload
+from typing import TYPE_CHECKING, Any, Literal, cast, overload
 
 import zenoh
 
@@ -33,7 +40,7 @@ from biris_hw.angles import RealLike, counts_to_deg, destination_counts
 from biris_hw.client import POLL, D, checked_timeout
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
-from biris_hw.io import wire
+from biris_hw.io import codec
 from biris_hw.io.net.keys import (
     CONTROL_OPS,
     MAX_WAIT_S,
@@ -44,8 +51,12 @@ from biris_hw.io.net.keys import (
 )
 from biris_hw.io.net.warm import warm
 from biris_hw.io.net.zconfig import make_config
-from biris_hw.records import MotorParams
-from biris_hw.status import ServerStatus
+from biris_hw.records import BirisInitRecord, MotorParams
+from biris_hw.sensor import ConnectionBase
+from biris_hw.status import ServerStatus, StatusChanges, check_change
+
+if TYPE_CHECKING:
+    from biris_hw.sensor import Sensor
 
 __all__ = ["RemoteConnection", "RemoteSensor", "Subscription", "connect"]
 
@@ -128,6 +139,20 @@ class RemoteSensor:
         self._waiters: set[_Waiter] = set()
         self._lock = threading.Lock()
         self._connections: list[RemoteConnection[Any]] = []
+        self._news = threading.Condition()
+        """Guards what the status publications tell (:meth:`status` with ``newer_than`` waits
+        on it), and is notified when the service goes, this object closes, or a connection
+        closes under a wait."""
+        self._changes = StatusChanges()
+        self._latest: ServerStatus | None = None
+        self._clock_s = 0.0
+        self.playback = False
+        """The service serves a recording (it says so when we connect)."""
+        self.paced = True
+        """The service's sensor keeps its own pace (it says so when we connect)."""
+        self.record: BirisInitRecord | None = None
+        """The init record of the service's sensor, as the service said when we connected."""
+        self._status_sub: Any = None
         endpoints = list(endpoints or [])
         config = make_config(
             connect=endpoints,
@@ -150,9 +175,77 @@ class RemoteSensor:
                 raise ConnectionClosed(
                     f"no BIRIS service {self.name!r} answered within {timeout:g} s ({where})"
                 )
+            self._status_sub = self._session.declare_subscriber(
+                self.keys.status, self._on_status_sample
+            )
+            self._learn()
         except BaseException:
             self._session.close()  # type: ignore[no-untyped-call]
             raise
+
+    def _learn(self) -> None:
+        """Ask the service what it serves (a recording? paced? its init record) and take its
+        status as the one the publications are compared with. A service that says nothing of
+        the kind (an older one) serves a live sensor whose record is unknown."""
+        try:
+            payload, _, attachment = self._query("status", {"info": True})
+        except (BirisError, TimeoutError):  # a service that wants reader credentials we do not
+            return  # send, a sensor closed behind it: the calls that need them will say so
+        info = self._attachment(attachment)
+        playback, paced = info.get("playback"), info.get("paced")
+        self.playback = playback if isinstance(playback, bool) else False
+        self.paced = paced if isinstance(paced, bool) else True
+        record = info.get("record")
+        if isinstance(record, dict):
+            try:
+                self.record = BirisInitRecord.from_dict(record)
+            except (ValueError, TypeError, BirisError):
+                self.record = None
+        status = codec.decode_status(payload)
+        with self._news:
+            if self._latest is None:  # no publication has come meanwhile
+                self._changes.see(status.signature())
+                self._latest = dataclasses.replace(status, change=self._changes.change)
+
+    def _attachment(self, attachment: bytes | None) -> dict[str, Any]:
+        """A status reply's attachment (JSON: the sensor's clock, and what :meth:`_learn`
+        asked), the clock noted; {} when there is none or it does not read."""
+        if attachment is None:
+            return {}
+        try:
+            info = json.loads(attachment)
+        except ValueError:
+            return {}
+        if not isinstance(info, dict):
+            return {}
+        clock = info.get("clock")
+        if isinstance(clock, (int, float)) and not isinstance(clock, bool):
+            self._saw(float(clock))
+        return info
+
+    def _saw(self, t: float) -> None:
+        """A hardware time the service's sensor has reached (a status, an item's stamp)."""
+        with self._news:
+            if t > self._clock_s:
+                self._clock_s = t
+
+    def _on_status_sample(self, sample: zenoh.Sample) -> None:
+        """A status publication (Zenoh's thread): the newest status, numbered if it says
+        something new, and the waiters woken."""
+        try:
+            status = codec.decode_status(sample.payload.to_bytes())
+        except codec.WireError:
+            return
+        with self._news:
+            changed = self._changes.see(status.signature())
+            self._latest = dataclasses.replace(status, change=self._changes.change)
+            if changed:
+                self._news.notify_all()
+
+    def _wake(self) -> None:
+        """Every status wait looks again (the service went, we closed, a connection closed)."""
+        with self._news:
+            self._news.notify_all()
 
     def _on_service_token(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
@@ -164,6 +257,7 @@ class RemoteSensor:
             waiters = list(self._waiters)
         for waiter in waiters:
             waiter.wake()
+        self._wake()
 
     @property
     def gone(self) -> bool:
@@ -283,10 +377,60 @@ class RemoteSensor:
             self._connections.append(conn)
         return conn
 
-    def status(self) -> ServerStatus:
-        """The service's server's ``status()``."""
-        payload, _, _ = self._query("status", {})
-        return wire.decode_status(payload)
+    def status(
+        self, *, newer_than: int | None = None, timeout: RealLike | None = None
+    ) -> ServerStatus:
+        """The service's sensor's status; with ``newer_than``, the push.
+
+        Now: one query. ``newer_than`` (a status's ``change``): waits, up to ``timeout``, for a
+        status publication that says something new since -- the service publishes the status
+        when it changes (and unchanged every ``status_period`` seconds, which wakes nobody).
+        ``change`` is numbered here, by this object, for the publications it has received: a
+        status asked for now carries the number of the newest one. So a wait right after such a
+        status may be woken once by the publication of that same state, still on its way when
+        the status was asked for (a wake to be read as "look again", as a condition's is).
+
+        Raises:
+            ConnectionClosed: the service has gone, or this object is closed.
+            RequestError: a ``newer_than`` that is not a whole number, or a bad timeout.
+            TimeoutError: no newer status within ``timeout``.
+        """
+        return self._status(newer_than, timeout, None)
+
+    def _status(
+        self, newer_than: object, timeout: object, conn: RemoteConnection[Any] | None
+    ) -> ServerStatus:
+        """:meth:`status`; asked on ``conn``, the wait also ends when ``conn`` closes."""
+        seconds = checked_timeout(timeout)
+        after = check_change(newer_than)
+        if after is None:
+            payload, _, attachment = self._query("status", {})
+            self._attachment(attachment)
+            status = codec.decode_status(payload)
+            with self._news:
+                return dataclasses.replace(status, change=self._changes.change)
+        deadline = None if seconds is None else time.monotonic() + seconds
+        with self._news:
+            while True:
+                if self._closed:
+                    raise ConnectionClosed(f"the connection to service {self.name!r} is closed")
+                if self._gone.is_set():
+                    raise ConnectionClosed(f"service {self.name!r} has gone")
+                if conn is not None and conn.closed:
+                    raise ConnectionClosed(f"connection {conn.ident} is closed")
+                latest = self._latest
+                if latest is not None and self._changes.change > after:
+                    return latest
+                left = None if deadline is None else deadline - time.monotonic()
+                if seconds == POLL or (left is not None and left <= 0):
+                    raise TimeoutError(f"the status of {self.name!r} has not changed since {after}")
+                self._news.wait(left)
+
+    def clock(self) -> float:
+        """The newest hardware time the service's sensor has been seen at (in a status reply
+        or a datum's stamp); 0.0 before any."""
+        with self._news:
+            return self._clock_s
 
     def subscribe(
         self,
@@ -304,14 +448,14 @@ class RemoteSensor:
         decode: Callable[[bytes], Any]
         keys = self.keys
         if what == "point":
-            key, decode = keys.point, wire.decode_point
+            key, decode = keys.point, codec.decode_point
         elif what == "scan":
             key = keys.scans if direction is None else keys.scan(Direction(direction).name.lower())
-            decode = wire.decode_scan
+            decode = codec.decode_scan
         elif what == "status":
-            key, decode = keys.status, wire.decode_status
+            key, decode = keys.status, codec.decode_status
         elif what == "fault":
-            key, decode = keys.fault, wire.decode_fault
+            key, decode = keys.fault, codec.decode_fault
         else:
             raise RequestError(f"subscribe: nothing called {what!r}")
         # the codec's first use costs ~0.1 s of interpreter time: paid here, on the caller's
@@ -323,7 +467,7 @@ class RemoteSensor:
             subscription._count(str(sample.key_expr), sample.attachment)
             try:
                 value = decode(sample.payload.to_bytes())
-            except wire.WireError:
+            except codec.WireError:
                 subscription.dropped += 1
                 return
             callback(value)
@@ -346,6 +490,11 @@ class RemoteSensor:
             waiters = list(self._waiters)
         for waiter in waiters:
             waiter.wake()
+        self._wake()
+        if self._status_sub is not None:
+            with contextlib.suppress(Exception):
+                self._status_sub.undeclare()
+            self._status_sub = None
         self._session.close()  # type: ignore[no-untyped-call]
 
     def __enter__(self) -> RemoteSensor:
@@ -388,7 +537,7 @@ class _Waiter:
             return self._reply
 
 
-class RemoteConnection(Generic[D]):
+class RemoteConnection(ConnectionBase[D]):
     """A connection through the service: the methods, results and errors of a local one."""
 
     def __init__(
@@ -400,44 +549,35 @@ class RemoteConnection(Generic[D]):
         depth: int,
         token: str,
     ) -> None:
+        super().__init__(ident, kind, policy, depth)
         self._sensor = sensor
-        self.ident = ident
-        """The server's number for this connection (as in ``status().connections``)."""
         self._token = token
         """What names it to the service: only its holder may use or close it."""
-        self.kind = kind
-        self.policy = policy
-        self.depth = depth
-        self.dropped = 0
-        """As a local connection's: what this DATA connection missed, as of its last
-        READY_FOR_DATA (counted by the server, in its bounded queue for this connection)."""
-        self._closed = False
 
-    def __repr__(self) -> str:
-        state = "closed" if self._closed else "open"
-        policy = f" {self.policy.name}" if self.kind is ConnectionKind.DATA else ""
-        return (
-            f"<RemoteConnection {self._sensor.name}:{self.ident} {self.kind.name}{policy} {state}>"
-        )
+    def _where(self) -> str:
+        return f"{self._sensor.name}:"
 
     def _call(self, op: str, body: dict[str, Any] | None = None, wait_s: float = 0.0) -> Any:
-        if self._closed:
-            raise ConnectionClosed(f"connection {self.ident} is closed")
+        self._check_open()
         return self._sensor._json(op, {"conn": self._token, **(body or {})}, wait_s)
 
     def _data(self, op: str, body: dict[str, Any], wait_s: float = 0.0) -> Any:
-        if self._closed:
-            raise ConnectionClosed(f"connection {self.ident} is closed")
+        self._check_open()
         payload, encoding, attachment = self._sensor._query(
             op, {"conn": self._token, **body}, wait_s
         )
         if attachment is not None:
             with contextlib.suppress(ValueError, KeyError, TypeError):
                 self.dropped = int(json.loads(attachment)["dropped"])
-        if encoding.endswith(wire.SCAN):
-            return wire.decode_scan(payload)
-        if encoding.endswith(wire.POINT):
-            return wire.decode_point(payload)
+        if encoding.endswith(codec.SCAN):
+            scan = codec.decode_scan(payload)
+            if scan.n_acq:
+                self._sensor._saw(float(scan.t[-1]))
+            return scan
+        if encoding.endswith(codec.POINT):
+            point = codec.decode_point(payload)
+            self._sensor._saw(float(point.t))
+            return point
         if json.loads(payload) is None:
             return None
         raise RequestError(f"{op}: unexpected reply of type {encoding}")
@@ -544,32 +684,30 @@ class RemoteConnection(Generic[D]):
         """
         self._call("reset", wait_s=RESET_WAIT_S)
 
-    # -- lifecycle -------------------------------------------------------------------------------
-    @property
-    def closed(self) -> bool:
-        return self._closed
+    def status(
+        self, *, newer_than: int | None = None, timeout: RealLike | None = None
+    ) -> ServerStatus:
+        """The service's sensor's status (:meth:`RemoteSensor.status`); a wait for a newer one
+        also ends, with ConnectionClosed, when this connection is closed."""
+        self._check_open()
+        return self._sensor._status(newer_than, timeout, self)
 
-    def close(self) -> None:
-        """CLOSE_REQUEST; calling it again does nothing."""
-        if self._closed:
-            return
+    # -- lifecycle -------------------------------------------------------------------------------
+    def _close(self) -> None:
+        # closed here first: a status wait on this connection ends with ConnectionClosed, not
+        # with the publication of the change the close itself makes
+        self._closed = True
+        self._sensor._wake()
         try:
-            self._call("close")
+            self._sensor._json("close", {"conn": self._token})
         except (ConnectionClosed, TimeoutError):
             pass
-        finally:
-            self._closed = True
 
-    def __enter__(self) -> RemoteConnection[D]:
-        return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
+if TYPE_CHECKING:
+
+    def _is_a_sensor(remote: RemoteSensor) -> Sensor:
+        return remote  # mypy holds RemoteSensor to biris_hw.sensor.Sensor
 
 
 def connect(

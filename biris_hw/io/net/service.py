@@ -1,8 +1,9 @@
 """``serve``: one BirisServer made available on Zenoh, for several readers and its controllers.
 
 The service is a client of the server like any other (DESIGN.md section 2, "outside world"): it
-holds local :class:`~biris_hw.client.Connection` objects on behalf of remote clients and three
-of its own that feed the publications, and never reaches into the server. So whatever the
+holds local :class:`~biris_hw.client.Connection` objects on behalf of remote clients, takes its
+publications from the sensor's feed (:mod:`biris_hw.io.feed`), and never reaches into the
+server. So whatever the
 server guarantees a local client -- refused requests change nothing, a slow DATA connection
 loses the oldest buffers and counts them -- holds for a remote one by construction.
 
@@ -21,12 +22,18 @@ Threads and why:
   checking that no token of that client is left: anyone may withdraw a token of the same key),
   forgets idle clients, and, with ``stop_when_controllers_leave``, stops the head when the last
   controller has gone.
-* Two feed threads read the service's own DATA connections (every acquisition, every buffer)
-  and publish with ``CongestionControl.DROP``: a subscriber that cannot keep up loses samples
-  (each carries a publication counter, so it can count them), it never slows the feed, and the
-  feed's own queue in the server is bounded and counted like any DATA connection's.
-* A status thread publishes the status when it changes and every ``status_period`` seconds,
-  and a fault when the server enters one.
+* The publications come from the process's one feed of the sensor (:mod:`biris_hw.io.feed`),
+  whose reader reads every acquisition and every buffer once and encodes each once, for the
+  service and for a recorder or a live view of the same sensor in the process alike. The
+  service is a ``prompt`` sink: the reader hands each acquisition over as soon as it is read,
+  since a publication *is* a delivery to clients. Its own thread publishes with
+  ``CongestionControl.DROP``: a subscriber that cannot keep up loses samples (each carries a
+  publication counter, so it can count them), it never slows the feed; what the service's
+  queue in the feed, or the feed's in the server, had no room for is counted
+  (:attr:`Service.dropped_points`).
+* The same sink publishes the status when it changes and, unchanged, every ``status_period``
+  seconds, and a fault when the sensor enters one: the feed's status thread waits for the
+  sensor to push a change (``status(newer_than=...)``), asking nothing while nothing changes.
 """
 
 from __future__ import annotations
@@ -39,7 +46,6 @@ import logging
 import queue
 import secrets
 import struct
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -48,16 +54,15 @@ from typing import Any
 
 import zenoh
 
-from biris_hw.client import Connection, Sensor, checked_timeout
-from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
+from biris_hw.client import checked_timeout
+from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Scan
 from biris_hw.errors import (
     AccessDenied,
     BirisError,
     ConnectionClosed,
-    HardwareFault,
     RequestError,
 )
-from biris_hw.io import wire
+from biris_hw.io import codec, feed
 from biris_hw.io.net.keys import (
     BLOCKING_OPS,
     CONTROL_OPS,
@@ -74,7 +79,7 @@ from biris_hw.io.net.keys import (
 from biris_hw.io.net.warm import warm_all
 from biris_hw.io.net.zconfig import make_config
 from biris_hw.records import MotorParams
-from biris_hw.status import ServerState, ServerStatus
+from biris_hw.sensor import Connection, Sensor
 
 __all__ = ["Sensor", "Service", "serve"]
 
@@ -131,7 +136,15 @@ RELEASE_CHECK_S = 1.0
 """How long the janitor asks Zenoh whether a client's token is still declared somewhere."""
 
 FEED_DEPTH = 1024
-"""Queue of the service's own every-acquisition feed in the server (34 s at 30 Hz)."""
+"""Acquisitions that may wait for the service's publications in the feed (34 s at 30 Hz)."""
+
+SCAN_DEPTH = 8
+"""Scans that may wait for the service's publications in the feed."""
+
+_PUBLISHED = frozenset(
+    {codec.RAW_POINT_TOPIC, codec.RAW_SCAN_TOPIC, codec.RAW_STATUS_TOPIC, codec.RAW_FAULT_TOPIC}
+)
+"""What the service takes from the feed: the lossless payloads, as it publishes them."""
 
 
 @dataclass
@@ -218,22 +231,6 @@ class _Pool:
         self._executor.shutdown(wait=True, cancel_futures=True)
 
 
-def _is_playback(sensor: object) -> bool:
-    """Whether ``sensor`` is a recording that refuses motion and configuration itself.
-
-    Asked of the sensor, never of the caller: a sensor says so with a ``playback`` attribute
-    (True), and a :class:`~biris_hw.io.record.ReplayServer` is one. That class is looked up
-    among the modules already loaded, not imported (biris_hw.io.net and biris_hw.io.record are
-    siblings): an object of that class exists only if the module has been loaded.
-    """
-    flag = getattr(sensor, "playback", None)
-    if isinstance(flag, bool):
-        return flag
-    replay = sys.modules.get("biris_hw.io.record.replay")
-    kind = getattr(replay, "ReplayServer", None)
-    return isinstance(kind, type) and isinstance(sensor, kind)
-
-
 class Service:
     """A running service; made and closed by :func:`serve` (use that)."""
 
@@ -249,21 +246,21 @@ class Service:
         multicast: bool = True,
         options: Mapping[str, Any] | None = None,
         status_period: float = 1.0,
-        status_poll: float = 0.05,
         playback: bool | None = None,
         stop_when_controllers_leave: bool = False,
     ) -> None:
         self.server = server
-        recording = _is_playback(server)
+        recording = server.playback
         if playback and not recording:
             raise RequestError(
                 f"playback=True, but {type(server).__name__} is not a recording (it can move the "
                 "head): its control operations stay for controllers only"
             )
-        if recording and getattr(server, "speed", 1.0) is None:
+        if not server.paced:
             raise RequestError(
-                "a recording served with speed=None plays as fast as its slowest reader, so one "
-                "stalled remote reader would stall every client: give it a speed"
+                f"{type(server).__name__} waits for its slowest reader (a recording played with "
+                "speed=None), so one stalled remote reader would stall every client: give it a "
+                "speed"
             )
         self.playback = recording if playback is None else bool(playback)
         """The sensor is a recording that refuses motion and configuration itself (a
@@ -281,7 +278,6 @@ class Service:
         self.controllers = _credentials(controllers, "controllers") or {}
         self.readers = _credentials(readers, "readers")
         self.status_period = float(status_period)
-        self.status_poll = float(status_poll)
         self.published: dict[str, int] = {
             "point": 0,
             "scan/cw": 0,
@@ -307,9 +303,9 @@ class Service:
         """Client ids whose token went, for the janitor (None: stop)."""
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._last_fault: HardwareFault | None = None
         self._threads: list[threading.Thread] = []
-        self._feeds: list[Connection[Any]] = []
+        self._sink: feed.Sink | None = None
+        """The service's sink of the sensor's feed (None if the sensor could not be read)."""
         # before anything is served: the codec's first use costs ~0.1 s of interpreter time, which
         # on the feed thread would have stalled the server's threads at the first acquisition
         warm_all()
@@ -345,15 +341,23 @@ class Service:
         self._clients_sub = session.liveliness().declare_subscriber(
             keys.client_tokens, self._on_client_token, history=True
         )
-        for target, what in (
-            (self._feed_points, "points"),
-            (self._feed_scans, "scans"),
-            (self._watch_status, "status"),
-            (self._janitor, "janitor"),
-        ):
-            thread = threading.Thread(target=target, name=f"biris-net-{what}", daemon=True)
-            thread.start()
-            self._threads.append(thread)
+        janitor = threading.Thread(target=self._janitor, name="biris-net-janitor", daemon=True)
+        janitor.start()
+        self._threads.append(janitor)
+        try:
+            self._sink = feed.attach(
+                self.server,
+                self._publish_batch,
+                name="service",
+                topics=_PUBLISHED,
+                status_period_s=self.status_period,
+                status_changes=True,
+                prompt=True,
+                point_depth=FEED_DEPTH,
+                scan_depth=SCAN_DEPTH,
+            )
+        except BirisError as exc:  # a sensor already closed: the service answers all the same
+            log.warning("the service publishes nothing: the sensor cannot be read (%s)", exc)
         self._token = session.liveliness().declare_token(keys.service_token)
         log.info("BIRIS service %r up", self.name)
 
@@ -377,9 +381,8 @@ class Service:
             self._conns.clear()
         for client in clients:
             self._close_all(client)
-        for feed in list(self._feeds):
-            with contextlib.suppress(BirisError):
-                feed.close()
+        if self._sink is not None:
+            self._sink.detach()
         for thread in self._threads:
             thread.join()
         self._pool.shutdown()
@@ -396,104 +399,35 @@ class Service:
             attachment=struct.pack("<Q", self.published[kind]),
         )
 
-    def _feed(self, policy: DeliveryPolicy, depth: int, publish: Callable[[Any], None]) -> None:
-        try:
-            feed = self.server.open(ConnectionKind.DATA, policy=policy, depth=depth)
-        except BirisError as exc:
-            log.warning("service feed %s not opened: %s", policy.value, exc)
-            return
-        self._feeds.append(feed)
-        try:
-            while not self._stop.is_set():
-                try:
-                    item = feed.ready_for_data(timeout=0.25)
-                except TimeoutError:
-                    continue
-                except HardwareFault as exc:
-                    self._last_fault = exc
-                    self._stop.wait(0.05)  # the fault stays until a reset: look again shortly
-                    continue
-                except ConnectionClosed:
-                    return  # the server or the service is closing
-                except RequestError:
-                    if self._stop.is_set():
-                        return  # the service is closing
-                    # the server is initialising (a reset): this connection's data come back
-                    # when it is done, so look again shortly rather than end the feed
-                    self._stop.wait(0.05)
-                    continue
-                except Exception:  # a sensor that is not a BirisServer may fail otherwise
-                    log.exception("service feed %s failed", policy.value)
-                    self._stop.wait(0.1)
-                    continue
-                try:
-                    publish(item)
-                except Exception:  # a publication that fails must not stop the feed
-                    log.exception("publishing %s failed", policy.value)
-        finally:  # whatever ended the loop, the server's queue for this feed goes with it
-            with contextlib.suppress(BirisError):
-                feed.close()
+    @property
+    def dropped_points(self) -> int:
+        """Acquisitions the service could not publish: its queue in the feed, or the feed's in
+        the sensor, had no room for them."""
+        return 0 if self._sink is None else self._sink.dropped_points
 
-    def _feed_points(self) -> None:
-        def publish(point: Point) -> None:
-            self._publish(self._pub_point, "point", wire.encode_point(point), wire.POINT)
+    @property
+    def dropped_scans(self) -> int:
+        return 0 if self._sink is None else self._sink.dropped_scans
 
-        self._feed(DeliveryPolicy.EVERY_ACQUISITION, FEED_DEPTH, publish)
-
-    def _feed_scans(self) -> None:
-        def publish(scan: Scan) -> None:
-            kind = f"scan/{scan.direction.name.lower()}"
-            self._publish(self._pub_scan[scan.direction], kind, wire.encode_scan(scan), wire.SCAN)
-
-        self._feed(DeliveryPolicy.EVERY_BUFFER, 8, publish)
-
-    @staticmethod
-    def _signature(status: ServerStatus) -> tuple[Any, ...]:
-        """What makes a status worth publishing at once (not the ever-changing counters)."""
-        return (
-            status.state_name,
-            status.azimuth,
-            status.elevation,
-            status.calibration,
-            status.continuous,
-            status.acquisition,
-            status.ring,
-            status.acquisition_pending,
-            len(status.connections),
-        )
-
-    def _watch_status(self) -> None:
-        last: tuple[Any, ...] | None = None
-        sent = -float("inf")
-        in_fault = False
-        while not self._stop.wait(0 if last is None else self.status_poll):
+    def _publish_batch(self, batch: feed.Batch) -> None:
+        """Publish what the feed encoded for the service (its sink's thread): each payload on
+        its key, a scan on its direction's. A publication that fails is said and skipped: the
+        next one is tried all the same."""
+        for message in batch.messages:
             try:
-                status = self.server.status()
-            except ConnectionClosed:
-                return
-            except BirisError as exc:
-                log.warning("status not read: %s", exc)
-                continue
-            except Exception:  # a bug, or a sensor failing its own way: said, and tried again
-                log.exception("status not read")
-                continue
-            try:
-                signature = self._signature(status)
-                now = time.monotonic()
-                if signature != last or now - sent >= self.status_period:
-                    payload = wire.encode_status(status)
-                    self._publish(self._pub_status, "status", payload, wire.STATUS)
-                    last, sent = signature, now
-                faulted = status.state is ServerState.FAULT
-                if faulted and not in_fault:
-                    fault = self._last_fault
-                    if fault is None or fault.kind != status.fault:
-                        kind = status.fault or "internal"
-                        fault = HardwareFault(kind, "the server is in a fault")
-                    self._publish(self._pub_fault, "fault", wire.encode_fault(fault), wire.FAULT)
-                in_fault = faulted
-            except Exception:  # the status thread must outlive any one bad status
-                log.exception("status not published")
+                if message.topic == codec.RAW_POINT_TOPIC:
+                    self._publish(self._pub_point, "point", message.data, message.msgtype)
+                elif message.topic == codec.RAW_SCAN_TOPIC:
+                    assert isinstance(message.item, Scan)
+                    direction = message.item.direction
+                    kind = f"scan/{direction.name.lower()}"
+                    self._publish(self._pub_scan[direction], kind, message.data, message.msgtype)
+                elif message.topic == codec.RAW_STATUS_TOPIC:
+                    self._publish(self._pub_status, "status", message.data, message.msgtype)
+                elif message.topic == codec.RAW_FAULT_TOPIC:
+                    self._publish(self._pub_fault, "fault", message.data, message.msgtype)
+            except Exception:
+                log.exception("publishing %s failed", message.topic)
 
     # -- clients ---------------------------------------------------------------------------------
     def _on_client_token(self, sample: zenoh.Sample) -> None:
@@ -752,7 +686,7 @@ class Service:
         conn: Connection[Any] | None,
     ) -> tuple[bytes, zenoh.Encoding, bytes | None]:
         if op == "status":
-            return wire.encode_status(self.server.status()), _cdr(wire.STATUS), None
+            return self._status_reply(request)
         if op == "open":
             return self._open(request, client)
         assert conn is not None  # every other operation names its connection (admitted so)
@@ -767,18 +701,18 @@ class Service:
             point = conn.request_point()
             if point is None:
                 return _json(None)
-            return wire.encode_point(point), _cdr(wire.POINT), None
+            return codec.encode_point(point), _cdr(codec.POINT), None
         if op == "request_scan_data":
             scan = conn.request_scan_data(_field(request, "direction", int))
             if scan is None:
                 return _json(None)
-            return wire.encode_scan(scan), _cdr(wire.SCAN), None
+            return codec.encode_scan(scan), _cdr(codec.SCAN), None
         if op == "ready_for_data":
             item = conn.ready_for_data(timeout=_wait(request))
             attachment = json.dumps({"dropped": conn.dropped}).encode()
             if isinstance(item, Scan):
-                return wire.encode_scan(item), _cdr(wire.SCAN), attachment
-            return wire.encode_point(item), _cdr(wire.POINT), attachment
+                return codec.encode_scan(item), _cdr(codec.SCAN), attachment
+            return codec.encode_point(item), _cdr(codec.POINT), attachment
         if op == "wait_idle":
             conn.wait_idle(timeout=_wait(request))
             return _json(None)
@@ -804,6 +738,24 @@ class Service:
         action: Callable[[], None] = getattr(conn, op)
         action()
         return _json(None)
+
+    def _status_reply(
+        self, request: Mapping[str, Any]
+    ) -> tuple[bytes, zenoh.Encoding, bytes | None]:
+        """``status``: the sensor's status, and in the attachment (JSON) its clock; with
+        ``"info": true`` also what a client learns once when it connects (a recording? paced?
+        the init record), which :class:`~biris_hw.io.net.RemoteSensor` exposes as its own."""
+        server = self.server
+        status = server.status()
+        info: dict[str, Any] = {"clock": server.clock()}
+        if request.get("info") is True:
+            record = server.record
+            info.update(
+                playback=self.playback,
+                paced=server.paced,
+                record=None if record is None else record.to_dict(),
+            )
+        return codec.encode_status(status), _cdr(codec.STATUS), json.dumps(info).encode()
 
     def _open(
         self, request: Mapping[str, Any], client: _Client
@@ -921,7 +873,9 @@ def serve(
     """Serve ``server`` on Zenoh as ``name`` until the block ends (DESIGN.md 3b).
 
     Args:
-        server: a :class:`~biris_hw.BirisServer` (or anything with its open/status/close).
+        server: any :class:`biris_hw.sensor.Sensor`: a :class:`~biris_hw.BirisServer`, a
+            :class:`~biris_hw.io.record.ReplayServer` played at a speed, another service's
+            :class:`~biris_hw.io.net.RemoteSensor`.
         name: the service's name, one key chunk: clients ``connect(name)``.
         listen: Zenoh endpoints to listen on (``tcp/0.0.0.0:7447``, ``tls/host:7448``); none
             means Zenoh's default (a random TCP port, found by multicast scouting).
@@ -934,13 +888,14 @@ def serve(
             endpoint; default True. Off in tests and on networks that forbid it.
         options: (keyword) further Zenoh settings, ``{"key/path": value}`` (TLS files, user and
             password authentication, access control: see docs/wire-format.md, "Security").
-        status_period: (keyword) seconds between status publications when nothing changes.
+        status_period: (keyword) seconds between status publications when nothing changes (a
+            change is published as the sensor pushes it).
         playback: (keyword) whether ``server`` is a recording that refuses motion and
             configuration itself (then control requests reach it whatever the credentials, and
-            are answered with its refusal, a RequestError). Default: decided from the sensor (a
-            :class:`~biris_hw.io.record.ReplayServer`, or any sensor with ``playback = True``);
-            True for a sensor that can move raises RequestError. A recording served with
-            ``speed=None`` is refused: one stalled reader would stall every client.
+            are answered with its refusal, a RequestError). Default: the sensor's own
+            ``playback``; True for a sensor that can move raises RequestError. A sensor that is
+            not ``paced`` (a recording played with ``speed=None``) is refused: one stalled
+            reader would stall every client.
         stop_when_controllers_leave: (keyword) dead-man: when the last client that was granted
             a control operation has gone (its liveliness token withdrawn), issue ``stop_scan``,
             so that a continuous scan does not go on for ever. Default False.

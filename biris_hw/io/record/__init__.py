@@ -5,7 +5,7 @@
 and Lichtblick open as they are, and lossless ``biris_msgs`` channels that
 :class:`biris_hw.io.record.ReplayServer` turns back into equal :class:`~biris_hw.Scan` and
 :class:`~biris_hw.Point` objects. :func:`write_scans` writes a list of scans (``biris scan --save
-x.mcap``). Topics and frames: :mod:`biris_hw.io.ros2`; the file's failure modes:
+x.mcap``). Topics and frames: :mod:`biris_hw.io.codec`; the file's failure modes:
 :mod:`biris_hw.io.record.mcapfile`.
 """
 

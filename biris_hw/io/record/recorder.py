@@ -1,24 +1,26 @@
 """Recording a sensor to MCAP: the standard ROS 2 channels, the lossless channels, metadata.
 
-A :class:`Recorder` reads a sensor through the client API (:class:`~biris_hw.io.ros2.SensorFeed`:
-one DATA connection for every acquisition, one for every completed scan, the status at a
-period, collected in batches by one thread that also encodes and writes them, so the
-recorder adds almost nothing to the moment an acquisition reaches the other clients) and
-writes, per acquisition, its profile cloud, the pan/tilt transforms and the lossless
-point; per completed scan, its cloud and the lossless scan; per status poll, a DiagnosticArray
-(the server's status and the recorder's own drops) and the lossless status. Metadata records say
-what was recorded and how: ``biris`` at the start (software version, init record, frame,
-whatever the caller adds: target description, scene), ``biris.recording`` at the end (counts
-and drops).
+A :class:`Recorder` is a sink of the sensor's feed (:mod:`biris_hw.io.feed`: one reader per
+sensor and process, which collects in batches out of step with the acquisitions and encodes each
+message once, whoever else serves or shows the same sensor in the process) and writes, in the
+sink's own thread, per acquisition its profile cloud, the pan/tilt transforms and the lossless
+point; per completed scan, its cloud and the lossless scan; per status reading, a
+DiagnosticArray (the server's status and the recorder's own drops) and the lossless status.
+So the recorder adds almost nothing to the moment an acquisition reaches the other clients, and
+a file being slow to write holds up neither the sensor's other clients nor the feed's other
+sinks. Metadata records say what was recorded and how: ``biris`` at the start (software
+version, init record, frame, whatever the caller adds: target description, scene),
+``biris.recording`` at the end (counts and drops).
 
-Nothing is dropped silently: what the recorder was too slow for is counted by the server on its
-connections and written in the file (every ``biris: recorder`` diagnostic and the end record)
-and in :class:`RecordSummary`. The file is valid however the run ends (see
-:mod:`biris_hw.io.record.mcapfile`).
+Nothing is dropped silently: what the recorder was too slow for is counted (by the sensor on
+the feed's connections, and by the recorder's queue in the feed) and written in the file (every
+``biris: recorder`` diagnostic and the end record) and in :class:`RecordSummary`. The file is
+valid however the run ends (see :mod:`biris_hw.io.record.mcapfile`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import threading
@@ -28,16 +30,13 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from types import TracebackType
-from typing import Any
-
-import numpy as np
 
 from biris_hw._version import __version__
-from biris_hw.data import Point, Scan
+from biris_hw.data import Scan
 from biris_hw.geometry import Frame, Mount
-from biris_hw.io import ros2, wire
+from biris_hw.io import codec, feed
 from biris_hw.io.record.mcapfile import CHUNK_SIZE, McapFile, RecordError
-from biris_hw.status import ServerStatus
+from biris_hw.sensor import Sensor
 
 __all__ = [
     "RAW_POINT_TOPIC",
@@ -48,55 +47,40 @@ __all__ = [
     "write_scans",
 ]
 
-RAW_SCAN_TOPIC = ros2.RAW_SCAN_TOPIC
-RAW_POINT_TOPIC = ros2.RAW_POINT_TOPIC
-RAW_STATUS_TOPIC = ros2.RAW_STATUS_TOPIC
+RAW_SCAN_TOPIC = codec.RAW_SCAN_TOPIC
+RAW_POINT_TOPIC = codec.RAW_POINT_TOPIC
+RAW_STATUS_TOPIC = codec.RAW_STATUS_TOPIC
 
 FLUSH_S = 2.0
 """Real seconds between chunk flushes, so a crash (not Ctrl-C: that closes properly) loses at
 most this much; at full rate a chunk fills sooner and is written anyway."""
 
-
-def _raw(topic: str, msgtype: str, data: bytes, log_time_ns: int) -> ros2.Encoded:
-    return ros2.Encoded(topic, msgtype, data, log_time_ns)
-
-
-def _definition(msgtype: str) -> str:
-    if msgtype.startswith("biris_msgs/"):
-        return wire.full_definition(msgtype)
-    return ros2.schema_text(msgtype)
+_WRITTEN = (codec.POINT_CLOUD2, codec.TF_MESSAGE, codec.DIAGNOSTIC_ARRAY, codec.SCAN, codec.POINT)
+"""Every type a recording holds (besides the status, warmed with them)."""
 
 
-def _write(file: McapFile, message: ros2.Encoded, log_time_ns: int | None = None) -> None:
-    t = message.log_time_ns if log_time_ns is None else log_time_ns
+def _write(file: McapFile, message: codec.Encoded) -> None:
     if not file.write(
-        message.topic, message.msgtype, _definition(message.msgtype), message.data, t
+        message.topic,
+        message.msgtype,
+        codec.schema_text(message.msgtype),
+        message.data,
+        message.log_time_ns,
     ):
         assert file.error is not None
         raise file.error
 
 
 def _warm() -> None:
-    """Build the type stores, the schema texts and rosbags' generated encoders now.
+    """Build the typestore, the schema texts and rosbags' generated encoders now.
 
     Together they take a few tenths of a second of interpreter time on first use; done in the
     feed's first batch, that landed just as the caller began its first scan and delayed the
     server seeing BIRIS start it (a short scan then lost its acquisitions). Cached for the
     process, so this costs nothing the second time.
     """
-    for msgtype in {*ros2.TOPICS.values(), wire.SCAN, wire.POINT, wire.STATUS}:
-        _definition(msgtype)
-    ros2.diagnostics(None, 0.0, error="warming up")
-    ros2.static_transforms(None)
-    profile = np.zeros(1, dtype=np.int16)
-    wire.encode_point(Point(0, 0, profile, profile, 0.0, 0, 0))
-
-
-def _scan_time(scan: Scan) -> int:
-    """When the scan was complete (its hand-over), for its messages' log time."""
-    if scan.t_delivered is not None:
-        return ros2.stamp_ns(scan.t_delivered)
-    return ros2.stamp_ns(float(scan.t[-1]) if scan.n_acq else 0.0)
+    for msgtype in (*_WRITTEN, codec.STATUS):
+        codec.warm(msgtype)
 
 
 def _metadata_strings(values: Mapping[str, object]) -> dict[str, str]:
@@ -151,14 +135,15 @@ class RecordSummary:
 class Recorder:
     """Record everything a sensor produces, while the ``with`` block runs, into an MCAP file.
 
-    ``source`` is a :class:`~biris_hw.BirisServer`, a network client's sensor, or anything with
-    ``open`` and ``status`` (:class:`~biris_hw.io.ros2.SensorSource`). ``frame`` is the frame of the
-    scan clouds (``"vehicle"`` or ``"sensor"``, as ``Scan.points``); ``profiles=False`` leaves
-    the per-acquisition profile clouds out (a smaller file; the lossless points stay);
-    ``metadata`` adds string (or JSON-able) entries to the ``biris`` metadata record: the target
-    description, the scene. ``batch_s`` is how often what the sensor queued is collected and
-    written (:class:`~biris_hw.io.ros2.SensorFeed`). The recorder does not command the sensor: it
-    records whatever is done meanwhile.
+    ``source`` is any :class:`biris_hw.sensor.Sensor`: a :class:`~biris_hw.BirisServer`, a
+    network client's sensor, a replay. ``frame`` is the frame of the scan clouds (``"vehicle"``
+    or ``"sensor"``, as ``Scan.points``); ``profiles=False`` leaves the per-acquisition profile
+    clouds out (a smaller file; the lossless points stay); ``metadata`` adds string (or
+    JSON-able) entries to the ``biris`` metadata record: the target description, the scene.
+    ``batch_s`` is how often what the sensor queued is collected (at most: the feed collects as
+    often as its most demanding sink asks); ``point_depth`` and ``scan_depth`` how much may wait
+    for the recorder in the feed before it is dropped and counted (:mod:`biris_hw.io.feed`).
+    The recorder does not command the sensor: it records whatever is done meanwhile.
 
     Raises:
         RecordError: the file cannot be written (before anything is read from the sensor); on
@@ -168,35 +153,45 @@ class Recorder:
 
     def __init__(
         self,
-        source: ros2.SensorSource,
+        source: Sensor,
         path: str | os.PathLike[str],
         *,
         frame: Frame = "vehicle",
         profiles: bool = True,
         metadata: Mapping[str, object] | None = None,
         status_period_s: float = 1.0,
-        batch_s: float = ros2.BATCH_S,
-        point_depth: int = 4096,
-        scan_depth: int = 256,
+        batch_s: float = feed.BATCH_S,
+        point_depth: int = feed.POINT_DEPTH,
+        scan_depth: int = feed.SCAN_DEPTH,
         chunk_size: int = CHUNK_SIZE,
     ) -> None:
-        ros2.cloud_frame_id(frame)  # ValueError for a frame that is neither
+        codec.cloud_frame_id(frame)  # ValueError for a frame that is neither
         self.source = source
         self.frame: Frame = frame
         self.profiles = profiles
         self._file = McapFile(path, chunk_size=chunk_size)
         self.path = self._file.path
         self._extra = dict(metadata or {})
-        self._feed = ros2.SensorFeed(
-            source,
-            on_points=self._points,
-            on_scans=self._scans,
-            on_status=self._status,
-            status_period_s=status_period_s,
-            batch_s=batch_s,
-            point_depth=point_depth,
-            scan_depth=scan_depth,
-        )
+        topics = {
+            codec.TF_TOPIC,
+            codec.RAW_POINT_TOPIC,
+            codec.POINTS_TOPIC,
+            codec.RAW_SCAN_TOPIC,
+            codec.RAW_STATUS_TOPIC,
+        }
+        if profiles:
+            topics.add(codec.PROFILE_TOPIC)
+        self._options = {
+            "name": "recorder",
+            "topics": topics,
+            "frame": frame,
+            "status_period_s": status_period_s,
+            "batch_s": batch_s,
+            "point_depth": point_depth,
+            "scan_depth": scan_depth,
+        }
+        self._sink: feed.Sink | None = None
+        self._failed = threading.Event()
         self._now = 0.0
         self._static_written = False
         self._last_flush = time.monotonic()
@@ -212,15 +207,15 @@ class Recorder:
     # -- the run ---------------------------------------------------------------------------------
     def start(self) -> Recorder:
         """Write the start metadata and begin reading (``with`` does this)."""
-        record = getattr(self.source, "record", None)
+        record = self.source.record
         header: dict[str, object] = {
             "software": f"biris-hw {__version__}",
             "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "frame": self.frame,
-            "cloud_frame_id": ros2.cloud_frame_id(self.frame),
+            "cloud_frame_id": codec.cloud_frame_id(self.frame),
             "raw_topics": [RAW_SCAN_TOPIC, RAW_POINT_TOPIC, RAW_STATUS_TOPIC],
         }
-        if record is not None and hasattr(record, "to_dict"):
+        if record is not None:
             header["init_record"] = record.to_dict()
         header.update(self._extra)
         _warm()
@@ -228,7 +223,7 @@ class Recorder:
             raise self._file.error or RecordError(f"cannot write {self.path}")
         self._started = time.monotonic()
         try:
-            self._feed.start()
+            self._sink = feed.attach(self.source, self._batch, **self._options)
         except BaseException:
             self._file.close()
             raise
@@ -236,20 +231,31 @@ class Recorder:
 
     @property
     def failed(self) -> threading.Event:
-        """Set when recording stopped on its own (a write failure): :attr:`error` says why."""
-        return self._feed.failed
+        """Set when recording stopped on its own (a write failure, a damaged source):
+        :attr:`error` says why."""
+        return self._sink.failed if self._sink is not None else self._failed
 
     @property
     def error(self) -> BaseException | None:
         """Why recording stopped early, or None."""
-        return self._file.error or self._feed.error
+        return self._file.error or (self._sink.error if self._sink is not None else None)
+
+    @property
+    def dropped_points(self) -> int:
+        """Acquisitions the recording misses so far (the sensor's drops and the feed's)."""
+        return self._sink.dropped_points if self._sink is not None else 0
+
+    @property
+    def dropped_scans(self) -> int:
+        return self._sink.dropped_scans if self._sink is not None else 0
 
     def close(self) -> RecordSummary:
         """Stop reading (what is queued is written first), write the end metadata and the
         summary, close the file; returns the summary. Idempotent."""
         if self._summary is not None:
             return self._summary
-        self._feed.stop()
+        if self._sink is not None:
+            self._sink.detach()
         self._stopped = time.monotonic()
         self._file.metadata("biris.recording", _metadata_strings(self._counts()))
         self._file.close()
@@ -261,8 +267,8 @@ class Recorder:
             points=self.points,
             scans=self.scans,
             statuses=self.statuses,
-            dropped_points=self._feed.dropped_points,
-            dropped_scans=self._feed.dropped_scans,
+            dropped_points=self.dropped_points,
+            dropped_scans=self.dropped_scans,
             lost_messages=self._file.lost,
             bytes=self.path.stat().st_size if self.path.exists() else 0,
             seconds=self._stopped - self._started if self._started else 0.0,
@@ -290,54 +296,51 @@ class Recorder:
         if exc is None and error is not None:
             raise error
 
-    # -- what the feed hands over (its one thread, in batches) -------------------------------
+    # -- what the feed hands over (the recorder's own thread, in batches) ----------------------
     def _counts(self) -> dict[str, object]:
         return {
             "points": self.points,
             "scans": self.scans,
             "statuses": self.statuses,
-            "dropped_points": self._feed.dropped_points,
-            "dropped_scans": self._feed.dropped_scans,
+            "dropped_points": self.dropped_points,
+            "dropped_scans": self.dropped_scans,
             "lost_messages": self._file.lost,
         }
 
     def _static(self, mount: Mount | None, t: float) -> None:
         if not self._static_written:
             self._static_written = True
-            _write(self._file, ros2.static_transforms(mount, t))
+            _write(self._file, codec.static_transforms(mount, t))
 
-    def _points(self, points: list[Point]) -> None:
-        self._now = max(self._now, points[-1].t)
-        self._static(points[0].mount, points[0].t)
-        clouds = ros2.profile_clouds(points) if self.profiles else None
-        for i, point in enumerate(points):
-            if clouds is not None:
-                _write(self._file, clouds[i])
-            tf = ros2.transforms(point)
-            _write(self._file, tf)
-            raw = wire.encode_point(point)
-            _write(self._file, _raw(RAW_POINT_TOPIC, wire.POINT, raw, tf.log_time_ns))
-        self.points += len(points)
-
-    def _scans(self, scans: list[Scan]) -> None:
-        for scan in scans:
-            t = _scan_time(scan)
-            self._now = max(self._now, t / 1e9)
-            self._static(scan.mount, t / 1e9)
-            _write(self._file, ros2.scan_cloud(scan, self.frame), t)
-            _write(self._file, _raw(RAW_SCAN_TOPIC, wire.SCAN, wire.encode_scan(scan), t))
+    def _batch(self, batch: feed.Batch) -> None:
+        """Write one batch: the data's messages as the feed encoded them, then the status."""
+        if batch.points:
+            self._now = max(self._now, batch.points[-1].t)
+            self._static(batch.points[0].mount, batch.points[0].t)
+        for scan in batch.scans:
+            self._now = max(self._now, codec.scan_time(scan))
+            self._static(scan.mount, codec.scan_time(scan))
+        status_messages = []
+        for message in batch.messages:
+            if message.topic == codec.RAW_STATUS_TOPIC:
+                status_messages.append(message)  # after its diagnostics, as it was read
+            else:
+                _write(self._file, message)
+        self.points += len(batch.points)
+        for scan in batch.scans:
             self.scans += 1
             if scan.partial:
                 self.partial_scans.append(_partial_name(scan))
-
-    def _status(self, status: Mapping[str, Any] | None, error: str | None) -> None:
-        t = ros2.sensor_time(self.source, self._now)
-        extra = {"recorder": self._counts()}
-        _write(self._file, ros2.diagnostics(status, t, extra=extra, error=error))
-        if isinstance(status, ServerStatus):
-            data = wire.encode_status(status, t)
-            _write(self._file, _raw(RAW_STATUS_TOPIC, wire.STATUS, data, ros2.stamp_ns(t)))
-        self.statuses += 1
+        reading = batch.status
+        if reading is not None:
+            extra = {"recorder": self._counts()}
+            status = reading.status
+            _write(
+                self._file, codec.diagnostics(status, reading.t, extra=extra, error=reading.error)
+            )
+            for message in status_messages:
+                _write(self._file, message)
+            self.statuses += 1
         if time.monotonic() - self._last_flush > FLUSH_S:
             self._last_flush = time.monotonic()
             if not self._file.flush():
@@ -371,12 +374,13 @@ def write_scans(
         file.metadata("biris", _metadata_strings(header))
         first = True
         for scan in scans:
-            t = _scan_time(scan)
+            t = codec.scan_time(scan)  # every message of the scan logged when it was complete
+            ns = codec.stamp_ns(t)
             if first:
-                _write(file, ros2.static_transforms(scan.mount, t / 1e9))
+                _write(file, codec.static_transforms(scan.mount, t))
                 first = False
-            _write(file, ros2.scan_cloud(scan, frame), t)
-            _write(file, _raw(RAW_SCAN_TOPIC, wire.SCAN, wire.encode_scan(scan), t))
+            _write(file, dataclasses.replace(codec.scan_cloud(scan, frame), log_time_ns=ns))
+            _write(file, codec.Encoded(RAW_SCAN_TOPIC, codec.SCAN, codec.encode_scan(scan), ns))
     finally:
         file.close()
     if file.error is not None:

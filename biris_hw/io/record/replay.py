@@ -12,7 +12,7 @@ Code written against :class:`~biris_hw.BirisServer` runs unchanged on a recorded
                 break
 
 The player reads ``/biris/raw/scan``, ``/biris/raw/point`` and ``/biris/raw/status`` (written by
-:mod:`biris_hw.io.record` with :mod:`biris_hw.io.wire`) in log-time order and hands each item
+:mod:`biris_hw.io.record` with :mod:`biris_hw.io.codec`) in log-time order and hands each item
 over as the server did: to every DATA connection by its delivery policy (LATEST keeps the newest,
 EVERY_BUFFER and EVERY_ACQUISITION queue up to their depth, the oldest dropped and counted), and
 as the answer to REQUEST_POINT / REQUEST_SCAN_DATA. ``speed`` scales the recorded timing (2.0 is
@@ -42,23 +42,32 @@ from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
+from biris_hw.client import POLL
 from biris_hw.client import checked_timeout as _seconds
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
-from biris_hw.io import wire
-from biris_hw.io.ros2 import RAW_POINT_TOPIC, RAW_SCAN_TOPIC, RAW_STATUS_TOPIC
+from biris_hw.io import codec
+from biris_hw.io.codec import RAW_POINT_TOPIC, RAW_SCAN_TOPIC, RAW_STATUS_TOPIC
 from biris_hw.protocol import check_policy
 from biris_hw.records import BirisInitRecord
-from biris_hw.status import ConnectionStatus, ServerState, ServerStatus
+from biris_hw.sensor import ConnectionBase, D
+
+if TYPE_CHECKING:
+    from biris_hw.sensor import Sensor
+from biris_hw.status import (
+    ConnectionStatus,
+    ServerState,
+    ServerStatus,
+    StatusChanges,
+    check_change,
+)
 
 __all__ = ["EndOfRecording", "ReplayConnection", "ReplayError", "ReplayRefused", "ReplayServer"]
-
-D = TypeVar("D", Scan, Point)
 
 
 class ReplayError(BirisError, OSError):
@@ -76,7 +85,7 @@ class EndOfRecording(ConnectionClosed):
     """The recording has been played to its end and nothing more waits for this connection."""
 
 
-class ReplayConnection(Generic[D]):
+class ReplayConnection(ConnectionBase[D]):
     """A connection to a :class:`ReplayServer`, with the methods of
     :class:`~biris_hw.client.Connection`."""
 
@@ -88,22 +97,10 @@ class ReplayConnection(Generic[D]):
         policy: DeliveryPolicy,
         depth: int,
     ) -> None:
+        super().__init__(ident, kind, policy, depth)
         self._replay = replay
-        self.ident = ident
-        self.kind = kind
-        self.policy = policy
-        self.depth = depth
-        self.dropped = 0
         self.delivered = 0
         self._queue: deque[Scan | Point] = deque()
-        self._closed = False
-
-    def __repr__(self) -> str:
-        return f"<ReplayConnection {self.ident} {self.kind.name} {self.policy.name}>"
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
 
     @property
     def _lossless(self) -> bool:
@@ -124,6 +121,12 @@ class ReplayConnection(Generic[D]):
         if self._closed:
             raise ConnectionClosed(f"replay connection {self.ident} is closed")
         self._replay._check_open()
+
+    def status(self, *, newer_than: int | None = None, timeout: object = None) -> ServerStatus:
+        """The replay's status (:meth:`ReplayServer.status`); a wait for a newer one also ends,
+        with ConnectionClosed, when this connection is closed."""
+        self._check()
+        return self._replay._wait_status(newer_than, timeout, self)
 
     # -- data --------------------------------------------------------------------------------
     def request_point(self) -> Point | None:
@@ -237,23 +240,13 @@ class ReplayConnection(Generic[D]):
         self._refuse("reset")
 
     # -- lifecycle ---------------------------------------------------------------------------
-    def close(self) -> None:
-        """Close; calling it again does nothing."""
-        with self._replay._cond:
+    def _close(self) -> None:
+        replay = self._replay
+        with replay._cond:
             self._closed = True
             self._queue.clear()
-            self._replay._cond.notify_all()
-
-    def __enter__(self) -> ReplayConnection[D]:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
+            replay._changed()  # one connection fewer
+            replay._cond.notify_all()
 
 
 class ReplayServer:
@@ -295,6 +288,23 @@ class ReplayServer:
         self._closed = False
         self.error: BaseException | None = None
         self._thread: threading.Thread | None = None
+        self._changes = StatusChanges()
+        """Numbers the changes of the replay's status (:meth:`status`'s ``newer_than``)."""
+        self._clock_s = 0.0
+        """The newest hardware time played (the log time of the latest message)."""
+
+    playback = True
+    """A recording: motion and configuration are refused here (:class:`ReplayRefused`)."""
+
+    @property
+    def paced(self) -> bool:
+        """Played at a speed, not as fast as the slowest queueing reader (``speed=None``)."""
+        return self.speed is not None
+
+    def clock(self) -> float:
+        """The newest hardware time played so far (0.0 before the first message)."""
+        with self._cond:
+            return self._clock_s
 
     def _inspect(self) -> list[str]:
         """Read the summary and metadata; the raw topics present."""
@@ -331,6 +341,7 @@ class ReplayServer:
             if self._started.is_set():
                 return self
             self._started.set()
+            self._changed()  # playing: SCANNING
             self._thread = threading.Thread(target=self._play, name="biris-replay", daemon=True)
             self._thread.start()
         return self
@@ -355,23 +366,26 @@ class ReplayServer:
                     due = begun + (log_time - first) / 1e9 / self.speed
                     if self._stop.wait(max(0.0, due - time.monotonic())):
                         return
-                self._hand_over(topic, data)
+                self._hand_over(topic, data, log_time / 1e9)
         except BaseException as exc:  # a damaged file: said to every reader, not lost
             self.error = exc
         finally:
             with self._cond:
                 self._done.set()
+                self._changed()  # played: IDLE
                 self._cond.notify_all()
 
-    def _hand_over(self, topic: str, data: bytes) -> None:
+    def _hand_over(self, topic: str, data: bytes, t: float) -> None:
         item: Scan | Point
         if topic == RAW_STATUS_TOPIC:
-            status = wire.decode_status(data)
+            status = codec.decode_status(data)
             with self._cond:
                 self._status = status
                 self.played["statuses"] += 1
+                self._clock_s = max(self._clock_s, t)
+                self._changed()
             return
-        item = wire.decode_scan(data) if topic == RAW_SCAN_TOPIC else wire.decode_point(data)
+        item = codec.decode_scan(data) if topic == RAW_SCAN_TOPIC else codec.decode_point(data)
         with self._cond:
             if self.speed is None:  # as fast as the queueing readers go: wait for room
                 self._cond.wait_for(lambda: self._stop.is_set() or self._room(item))
@@ -381,9 +395,12 @@ class ReplayServer:
             else:
                 self._point = item
                 self.played["points"] += 1
+            self._clock_s = max(self._clock_s, t)
             for conn in self._conns:
                 if conn._wants(item):
                     conn._offer(item)
+            if self._status is None:  # a status made up from the data: it follows them
+                self._changed()
             self._cond.notify_all()
 
     def _room(self, item: Scan | Point) -> bool:
@@ -412,13 +429,40 @@ class ReplayServer:
         if self._closed:
             raise ConnectionClosed(f"the replay of {self.path} is closed")
 
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: Literal[DeliveryPolicy.EVERY_ACQUISITION],
+        depth: int | None = ...,
+    ) -> ReplayConnection[Point]: ...
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: Literal[DeliveryPolicy.LATEST, DeliveryPolicy.EVERY_BUFFER] = ...,
+        depth: int | None = ...,
+    ) -> ReplayConnection[Scan]: ...
+
+    @overload
+    def open(
+        self,
+        kind: ConnectionKind = ...,
+        *,
+        policy: DeliveryPolicy,
+        depth: int | None = ...,
+    ) -> ReplayConnection[Scan] | ReplayConnection[Point]: ...
+
     def open(
         self,
         kind: ConnectionKind = ConnectionKind.NORMAL,
         *,
         policy: DeliveryPolicy = DeliveryPolicy.LATEST,
         depth: int | None = None,
-    ) -> Any:
+    ) -> ReplayConnection[Scan] | ReplayConnection[Point]:
         """OPEN_REQUEST, as :meth:`BirisServer.open <biris_hw.BirisServer.open>`.
 
         Raises:
@@ -437,35 +481,63 @@ class ReplayServer:
             conn: ReplayConnection[Any] = ReplayConnection(self, self._next, kind, chosen, used)
             self._next += 1
             self._conns = [c for c in self._conns if not c.closed] + [conn]
+            self._changed()  # one connection more
         if kind is ConnectionKind.DATA and self._autostart:
             self.start()
         return conn
 
-    def status(self) -> ServerStatus:
+    def status(self, *, newer_than: int | None = None, timeout: object = None) -> ServerStatus:
         """The latest recorded status, with the replay's own state and connections: SCANNING
         while playing, IDLE before and after.
 
+        ``newer_than`` (a status's ``change``) waits, up to ``timeout``, until the status has
+        changed since: a recorded status that says something new, playing starting or ending,
+        a connection opened or closed.
+
         Raises:
             ConnectionClosed: the replay is closed.
+            RequestError: a ``newer_than`` that is not a whole number, or a bad timeout.
+            TimeoutError: no newer status within ``timeout``.
         """
+        return self._wait_status(newer_than, timeout, None)
+
+    def _wait_status(
+        self, newer_than: object, timeout: object, conn: ReplayConnection[Any] | None
+    ) -> ServerStatus:
+        """:meth:`status`; asked on ``conn``, the wait also ends when ``conn`` closes."""
+        seconds = _seconds(timeout)
+        after = check_change(newer_than)
+        deadline = None if seconds is None else time.monotonic() + seconds
         with self._cond:
-            self._check_open()
-            playing = self._started.is_set() and not self._done.is_set()
-            conns = {
-                c.ident: ConnectionStatus(
-                    kind=c.kind.name,
-                    policy=c.policy.name,
-                    depth=c.depth,
-                    queued=len(c._queue),
-                    delivered=c.delivered,
-                    dropped=c.dropped,
-                    latency={},
-                )
-                for c in self._conns
-                if not c.closed
-            }
-            base = self._status
-            point = self._point
+            while True:
+                self._check_open()
+                if conn is not None and conn.closed:
+                    raise ConnectionClosed(f"replay connection {conn.ident} is closed")
+                if after is None or self._changes.change > after:
+                    return self._status_locked()
+                left = None if deadline is None else deadline - time.monotonic()
+                if seconds == POLL or (left is not None and left <= 0):
+                    raise TimeoutError(f"the replay's status has not changed since {after}")
+                self._cond.wait(left)
+
+    def _status_locked(self) -> ServerStatus:
+        """The status now (the caller holds ``_cond``)."""
+        playing = self._started.is_set() and not self._done.is_set()
+        conns = {
+            c.ident: ConnectionStatus(
+                kind=c.kind.name,
+                policy=c.policy.name,
+                depth=c.depth,
+                queued=len(c._queue),
+                delivered=c.delivered,
+                dropped=c.dropped,
+                latency={},
+            )
+            for c in self._conns
+            if not c.closed
+        }
+        base = self._status
+        point = self._point
         state = ServerState.SCANNING if playing else ServerState.IDLE
         if base is None:
             base = ServerStatus(
@@ -480,7 +552,15 @@ class ReplayServer:
                 counters={"scans": self.played["scans"]},
                 connections={},
             )
-        return dataclasses.replace(base, state=state, fault=None, connections=conns)
+        return dataclasses.replace(
+            base, state=state, fault=None, connections=conns, change=self._changes.change
+        )
+
+    def _changed(self) -> None:
+        """Something the status says may have changed (the caller holds ``_cond``): numbered
+        if it did, and the waiters woken."""
+        if self._changes.see(self._status_locked().signature()):
+            self._cond.notify_all()
 
     def close(self) -> None:
         """Stop playing, close every connection (their waiters get ConnectionClosed)."""
@@ -503,3 +583,9 @@ class ReplayServer:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+if TYPE_CHECKING:
+
+    def _is_a_sensor(replay: ReplayServer) -> Sensor:
+        return replay  # mypy holds ReplayServer to biris_hw.sensor.Sensor

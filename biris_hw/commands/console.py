@@ -1,0 +1,209 @@
+"""What a ``biris`` command tells the person running it on stderr while it works.
+
+Three kinds of line, each one line, each starting with the command's name (:func:`prog_of`):
+what the server is doing while the person waits (homing, booting BIRIS: the progress log,
+:func:`progress_to_stderr`, shown only when a terminal watches), what the driver warns about
+(a short scan, acquisitions lost: :func:`log_to_stderr`, always), and an angle the server
+clamped (:func:`note_clamped`). Failures have their own module
+(:mod:`biris_hw.commands.failures`).
+
+The dispatcher (:mod:`biris_hw.cli`) wraps every command in these, ``biris --help`` included, so
+this module imports nothing of the server, the hardware or the outside world.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import sys
+from collections.abc import Iterator
+from typing import TextIO
+
+from biris_hw.errors import HardwareFault
+
+__all__ = [
+    "PROGRESS_LOGGER",
+    "is_terminal",
+    "log_to_stderr",
+    "note_clamped",
+    "prog_of",
+    "progress_to_stderr",
+    "stderr_is_terminal",
+    "wants_progress",
+]
+
+PROGRESS_LOGGER = "biris_hw.progress"
+"""The logger on which the server says, in a short sentence per INFO record, what it is doing
+while a caller waits (homing the pan, booting BIRIS...): what a person sees during the seconds
+a server takes to start."""
+
+
+def prog_of(args: argparse.Namespace) -> str:
+    """``biris scan`` for a scan's arguments (the dispatcher records the command's name)."""
+    name = getattr(args, "command", None)
+    return f"biris {name}" if name else "biris"
+
+
+def is_terminal(stream: TextIO) -> bool:
+    """True when a person is watching ``stream`` (live displays), False for pipes and files."""
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+def stderr_is_terminal() -> bool:
+    """A person watches stderr (progress lines are for them, never for a log or a pipe)."""
+    return is_terminal(sys.stderr)
+
+
+def wants_progress(args: argparse.Namespace) -> bool:
+    """Progress lines for this run: stderr is a terminal, and neither --quiet nor --debug (whose
+    log shows the same records, and more) was given."""
+    if getattr(args, "quiet", False) or getattr(args, "debug", False):
+        return False
+    return stderr_is_terminal()
+
+
+def note_clamped(
+    prog: str, flag: str, asked_deg: float, used_counts: int, err: TextIO | None = None
+) -> bool:
+    """Say that ``flag``'s angle was clamped by _Scan_limit (+-360 degrees) to ``used_counts``,
+    the destination the server reports it used; True if it was. Silent otherwise: a person who
+    asked for 400 degrees must learn that the head went to 360, not find out from the data."""
+    from biris_hw.angles import counts_to_deg, deg_to_counts
+
+    if deg_to_counts(asked_deg) == used_counts:
+        return False
+    print(
+        f"{prog}: {flag} {asked_deg:g}\N{DEGREE SIGN} is beyond the head's travel: clamped to "
+        f"{counts_to_deg(used_counts):+.0f}\N{DEGREE SIGN}",
+        file=err or sys.stderr,
+        flush=True,
+    )
+    return True
+
+
+class _ProgressLines(logging.Handler):
+    """``biris scan: homing the pan...``: one line on stderr per progress record.
+
+    stderr is looked up at each record, not kept: a live display (rich) that takes stderr over
+    while it runs then prints the line above itself instead of being scribbled over.
+    """
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(logging.INFO)
+        self._prog = prog
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = record.getMessage().strip()
+            if not text:
+                return
+            if text[-1] not in ".!?:":
+                text += "..."
+            stream = sys.stderr
+            stream.write(f"{self._prog}: {text}\n")
+            stream.flush()
+        except Exception:
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def progress_to_stderr(prog: str, enabled: bool) -> Iterator[None]:
+    """While the block runs, the server's progress records (:data:`PROGRESS_LOGGER`) are shown
+    on stderr as ``prog: sentence...``, if ``enabled``; otherwise nothing changes.
+
+    The server starts by homing both axes and booting BIRIS, seconds in which a command that
+    says nothing looks hung; these lines say what it is doing instead.
+    """
+    if not enabled:
+        yield
+        return
+    logger = logging.getLogger(PROGRESS_LOGGER)
+    handler = _ProgressLines(prog)
+    level = logger.level
+    logger.addHandler(handler)
+    if logger.getEffectiveLevel() > logging.INFO:
+        logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+def _carries_fault(record: logging.LogRecord) -> bool:
+    """The record announces a :class:`HardwareFault` (one of its arguments, or its exception)."""
+    args = record.args if isinstance(record.args, tuple) else ()
+    exc = record.exc_info[1] if record.exc_info else None
+    return isinstance(exc, HardwareFault) or any(isinstance(a, HardwareFault) for a in args)
+
+
+class _WarningLines(logging.Handler):
+    """``biris: warning: 2 acquisitions lost``: one line on stderr per warning or error record.
+
+    What the server warns about (a scan that came out short, acquisitions lost, a task that
+    failed) is what a person running a command must not miss, so it is shown without --debug,
+    but plainly: one line, no logger name or time, a multi-line message folded onto it, an
+    exception's traceback reduced to its type and text (--debug shows it whole). stderr is looked
+    up at each record, not kept, as for the progress lines: a live display that has taken stderr
+    over prints the line above itself instead of being scribbled over.
+
+    A record that announces a hardware fault (a :class:`HardwareFault` among its arguments) is
+    left out: the server hands that fault to every caller, so the command reports it in its own
+    words -- its one error line, ``watch``'s state, the demo's fault count -- and a second line
+    saying the same would break the one-line error contract.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if _carries_fault(record):
+            return
+        try:
+            text = " ".join(record.getMessage().split())
+            if record.exc_info and record.exc_info[1] is not None:
+                exc = record.exc_info[1]
+                text += f" ({type(exc).__name__}: {' '.join(str(exc).split())})"
+            kind = "warning" if record.levelno < logging.ERROR else "error"
+            stream = sys.stderr
+            stream.write(f"biris: {kind}: {text}\n")
+            stream.flush()
+        except Exception:
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def log_to_stderr(debug: bool) -> Iterator[None]:
+    """The driver's warnings and errors on stderr, a plain line each (``biris: warning: ...``);
+    with --debug its whole log instead, every record with its time and logger.
+
+    The simulator's log (``sim``) is shown with --debug only: it is about the simulation, not
+    the sensor. Without some handler Python's last resort would print warnings in its own form
+    (and the simulator's too); here every record goes through one of ours or none.
+    """
+    loggers = [logging.getLogger(name) for name in ("biris_hw", "sim")]
+    handlers: list[logging.Handler]
+    if debug:
+        shared = logging.StreamHandler(sys.stderr)
+        shared.setFormatter(logging.Formatter("%(relativeCreated)8.0f ms %(name)s: %(message)s"))
+        handlers = [shared, shared]
+    else:
+        handlers = [_WarningLines(), logging.NullHandler()]
+    saved: list[tuple[logging.Logger, int]] = []
+    for logger, handler in zip(loggers, handlers, strict=True):
+        saved.append((logger, logger.level))
+        logger.addHandler(handler)
+        if debug:
+            logger.setLevel(logging.DEBUG)
+        elif logger.name == "biris_hw" and logger.getEffectiveLevel() > logging.WARNING:
+            logger.setLevel(logging.WARNING)  # a quieter root must not hide the warnings
+    try:
+        yield
+    finally:
+        for (logger, level), handler in zip(saved, handlers, strict=True):
+            logger.removeHandler(handler)
+            logger.setLevel(level)
