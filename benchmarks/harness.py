@@ -55,6 +55,7 @@ SECTIONS: tuple[str, ...] = (
     "transport_can",
     "net",
     "record",
+    "idle",
     "cli_startup_ms",
 )
 """The report's sections, in report order; each is present in report.json whether it ran or not."""
