@@ -245,6 +245,23 @@ def net(ctx: BenchContext) -> list[Figure]:
     return figures
 
 
+class _NoScans:
+    """The stand-in's scan connection: nothing ever comes."""
+
+    dropped = 0
+
+    def __init__(self) -> None:
+        self._closed = threading.Event()
+
+    def ready_for_data(self, timeout: float | None = None) -> Point:
+        if self._closed.wait(timeout if timeout is not None else 3600.0):
+            raise ConnectionClosed("closed")
+        raise TimeoutError
+
+    def close(self) -> None:
+        self._closed.set()
+
+
 class _Firehose:
     """A stand-in sensor whose every-acquisition feed hands out ``rate`` Points per second."""
 
@@ -257,6 +274,8 @@ class _Firehose:
         self.lock = threading.Lock()
 
     def open(self, kind: ConnectionKind = ConnectionKind.NORMAL, **options: Any) -> Any:
+        if kind is ConnectionKind.DATA and options.get("policy") is DeliveryPolicy.EVERY_BUFFER:
+            return _NoScans()  # the service's feed reads scans too: none come
         if options.get("policy") is not DeliveryPolicy.EVERY_ACQUISITION:
             raise ConnectionClosed("only the point feed")
         return self
@@ -264,6 +283,7 @@ class _Firehose:
     playback = False
     paced = True
     record = None
+    dropped = 0  # as a DATA connection: the stand-in hands out every point it makes
 
     def clock(self) -> float:
         return float(self.acq)
@@ -281,6 +301,10 @@ class _Firehose:
                 threading.Event().wait(min(timeout or 0.01, 0.01))  # as a real feed would wait
                 raise TimeoutError
             now = time.perf_counter()
+            if timeout is not None and self.next_t - now > timeout:
+                # not due within the wait asked for (a reader's poll): as a real feed says
+                threading.Event().wait(timeout)
+                raise TimeoutError
             if now < self.next_t:
                 time.sleep(self.next_t - now)  # pacing the offered rate, not synchronising
             self.next_t = max(self.next_t, now - 0.01) + 1.0 / rate

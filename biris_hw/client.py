@@ -112,6 +112,8 @@ class Connection(ConnectionBase[D]):
         """The administrator's epoch (:class:`biris_hw.protocol.Bulletin`), when the server gave
         it: lets a poll that cannot have a different answer be answered here."""
         self._empty_at: int | None = None
+        """The epoch at which this connection's last timed READY_FOR_DATA ran out."""
+        self._polled_empty_at: int | None = None
         """The epoch at which the administrator last answered this connection's poll with
         "nothing waits"."""
 
@@ -179,14 +181,17 @@ class Connection(ConnectionBase[D]):
         assert isinstance(item, (Scan, Point))
         return cast(D, item)  # the server sends what the policy says
 
-    def _unchanged(self) -> int | None:
+    def _unchanged(self, *, waited: bool = False) -> int | None:
         """The administrator's epoch now, if it is the one at which this connection was last
-        told that nothing waits for it (so nothing can have come since); else None."""
+        told that nothing waits for it (so nothing can have come since); else None. With
+        ``waited``, only a timed wait that ran out counts (:meth:`_wait`)."""
         bulletin = self._bulletin
         if bulletin is None or self._inbox.closed:
             return None
         epoch = bulletin.epoch
-        return epoch if epoch == self._empty_at else None
+        if epoch == self._empty_at or (not waited and epoch == self._polled_empty_at):
+            return epoch
+        return None
 
     def _moved_from(self, epoch: int) -> Callable[[], bool]:
         """Whether the administrator's epoch has moved from ``epoch`` (or the server stopped)."""
@@ -209,7 +214,7 @@ class Connection(ConnectionBase[D]):
         try:
             return self._call(m.ReadyForData(self.ident, poll=True))
         except TimeoutError:
-            self._empty_at = epoch
+            self._polled_empty_at = epoch
             raise
 
     def _wait(self, seconds: float | None) -> object:
@@ -217,11 +222,14 @@ class Connection(ConnectionBase[D]):
         come, as the report has it -- unless the last wait ran out at the epoch that still
         holds. Then nothing can have come since, and the wait is spent here, for the epoch to
         move, before the administrator is asked again: a reader that waits on an idle sensor in
-        short slices (a feed) posts nothing while nothing happens."""
+        short slices (a feed) posts nothing while nothing happens. A poll that found nothing does
+        not count: the wait after it is parked in the administrator, which replies the moment
+        the data come (a reader that polls, then waits, between acquisitions -- the service's
+        feed -- would otherwise pay a round trip more per acquisition)."""
         bulletin = self._bulletin
         while True:
             self._check_open()
-            unchanged = self._unchanged()
+            unchanged = self._unchanged(waited=True)
             if unchanged is not None:
                 assert bulletin is not None
                 try:

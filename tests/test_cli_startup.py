@@ -9,8 +9,6 @@ import json
 import subprocess
 import sys
 
-import pytest
-
 from biris_hw.cli import COMMANDS
 
 _PROBE = """
@@ -91,13 +89,38 @@ def test_version_loads_nothing_heavy() -> None:
     assert _among(modules, NEVER_FOR_HELP) == []
 
 
-@pytest.mark.parametrize("name", [c.name for c in COMMANDS if c.name != "sim"])
-def test_a_commands_help_loads_no_server(name: str) -> None:
+_EVERY_HELP = """
+import contextlib, io, json, sys
+from biris_hw.cli import main
+seen = {}
+for name in sys.argv[1:]:
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        code = main([name, "--help"])
+    seen[name] = {"code": code, "out": out.getvalue()[:80], "modules": sorted(sys.modules)}
+print(json.dumps(seen))
+"""
+"""Runs ``biris NAME --help`` for each NAME in one fresh interpreter, one after the other, and
+says what each printed and what was loaded once it had run: a module a command's help loaded
+first appears after that command (one interpreter for all: the suite's time, not the check's)."""
+
+
+def test_a_commands_help_loads_no_server() -> None:
     """``biris sim`` is the simulator: its help may load it."""
-    code, out, modules = _biris(name, "--help")
-    assert code == 0
-    assert out.startswith(f"usage: biris {name}")
-    assert _among(modules, NEVER_FOR_A_COMMAND) == []
+    names = [c.name for c in COMMANDS if c.name != "sim"]
+    done = subprocess.run(
+        [sys.executable, "-c", _EVERY_HELP, *names],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    seen = json.loads(done.stdout)
+    assert list(seen) == names
+    for name in names:
+        assert seen[name]["code"] == 0, name
+        assert seen[name]["out"].startswith(f"usage: biris {name}"), seen[name]["out"]
+        assert _among(seen[name]["modules"], NEVER_FOR_A_COMMAND) == [], name
 
 
 def test_opening_a_sensor_costs_nothing_until_one_is_opened() -> None:

@@ -583,3 +583,40 @@ def test_served_recorded_and_viewed_each_acquisition_is_encoded_once(
     assert viewed[codec.POINTS_TOPIC] == summary.scans
     truth.close()
     scans.close()
+
+
+def test_a_status_that_cannot_be_read_is_asked_again_after_a_pause_not_in_a_spin() -> None:
+    """A sensor whose status fails (a closed one, a stand-in with data only) is asked again
+    every STATUS_POLL_S: a status thread that retried at once held the interpreter lock from
+    the reader and the sinks (a served stand-in published 200 points a second where it
+    published 8000)."""
+
+    class NoStatus(_Sensor):
+        asked = 0
+        polls = 0
+
+        def open(self, kind: ConnectionKind = ConnectionKind.NORMAL, **options: Any) -> _Conn:
+            if kind is ConnectionKind.NORMAL:
+                raise ConnectionClosed("data only")
+            conn = super().open(kind, **options)
+            original = conn.ready_for_data
+
+            def counted(timeout: float | None = None) -> Any:
+                NoStatus.polls += 1
+                return original(timeout)
+
+            conn.ready_for_data = counted  # type: ignore[method-assign]
+            return conn
+
+        def _status(self, newer_than: int | None, timeout: float | None, conn: Any) -> Any:
+            NoStatus.asked += 1
+            raise ConnectionClosed("no status here")
+
+    sensor = NoStatus()
+    sink = feed.attach(sensor, _Collector(), status_period_s=0.01, status_changes=True)
+    try:
+        until(lambda: NoStatus.polls >= 20, what="twenty asks for data")
+    finally:
+        sink.detach()
+    # the reader asks twice a batch (points, scans): about one status ask per data ask pair
+    assert NoStatus.asked <= NoStatus.polls + 5, (NoStatus.asked, NoStatus.polls)

@@ -30,10 +30,13 @@ reaches every other client, and whatever it then does (the encoding, a file) hol
 interpreter lock just when those clients should run; in batches the encoding runs once per
 batch, vectorised, mostly between acquisitions. A ``prompt`` sink (the network service, whose
 publications *are* deliveries to clients) makes the reader wait in ``ready_for_data`` on the
-acquisitions instead, so that each goes out as soon as it is read; scans then go with the next
-acquisition, or within ``batch_s``. A fault met on the data pauses the asks for
-:data:`FAULT_POLL_S` (each would only hear the fault again); while a reset initialises the
-sensor, reading goes on at the batch rate, on the same connections.
+acquisitions instead, so that each goes out as soon as it is read, and is handed its batches in
+the reader's thread (no queue, no thread of its own: its ``on_batch`` must not block), before
+anything else is asked of the sensor; scans are asked for at most once a ``batch_s`` while
+acquisitions flow (each ask is a round trip), so a scan goes out within one or two
+``batch_s``. A fault met on the data pauses the asks for :data:`FAULT_POLL_S` (each would only
+hear the fault again); while a reset initialises the sensor, reading goes on at the batch rate,
+on the same connections.
 
 **Status.** A second thread reads the status for sinks that want it periodically
 (``status_period_s``) or on every change (``status_changes``). When the sensor pushes (its
@@ -224,6 +227,9 @@ class Sink:
         self._on_batch = on_batch
         self._wants = wants
         self._cond = threading.Condition()
+        self._inline = threading.Lock()
+        """A prompt sink is handed its batches in the thread that made them (the reader, or
+        the status thread): one at a time."""
         self._queue: collections.deque[Batch] = collections.deque()
         self._pending = [0, 0, 0]  # points, scans, statuses waiting in the queue
         self._sealed = False  # the final batch is queued: nothing more
@@ -281,13 +287,19 @@ class Sink:
 
     # -- the queue ---------------------------------------------------------------------------
     def _start(self) -> None:
+        if self.prompt:  # handed over inline (_offer): no queue, no thread
+            return
         self._thread = threading.Thread(
             target=self._run, name=f"biris-sink-{self.name}", daemon=True
         )
         self._thread.start()
 
     def _offer(self, batch: Batch) -> None:
-        """Queue ``batch``, less what does not fit (counted); never blocks on the sink."""
+        """Queue ``batch``, less what does not fit (counted); never blocks on the sink -- but
+        a prompt sink's: that one is handed the batch at once, in this thread."""
+        if self.prompt:
+            self._hand_now(batch)
+            return
         with self._cond:
             if self._sealed:
                 return
@@ -325,6 +337,29 @@ class Sink:
             self._sealed = batch.final
             self._queue.append(batch)
             self._cond.notify_all()  # the sink's thread, and a detach waiting for the seal
+
+    def _hand_now(self, batch: Batch) -> None:
+        """A prompt sink's batch, handed over in the thread that made it: a publication is a
+        delivery to the service's clients, and a hop through a queue and a thread of its own
+        cost every remote reader a thread wake-up per acquisition. Such a sink's ``on_batch``
+        must not block (the service's publications drop what a subscriber cannot take)."""
+        with self._inline:
+            with self._cond:
+                if self._sealed:
+                    return
+            if self.error is None:
+                try:
+                    self._on_batch(batch)
+                    self.points += len(batch.points)
+                    self.scans += len(batch.scans)
+                    self.messages += len(batch.messages)
+                except BaseException as exc:
+                    log.exception("sink %s failed", self.name)
+                    self._fail(exc)
+            if batch.final:
+                with self._cond:
+                    self._sealed = True
+                    self._cond.notify_all()  # a detach waiting for the seal
 
     def _run(self) -> None:
         while True:
@@ -472,7 +507,8 @@ class SharedFeed:
             status_period_s: a status at least this often (None: none but on changes).
             status_changes: a status whenever it changes too (its signature).
             batch_s: how often the reader collects, at most (the smallest of all sinks').
-            prompt: each acquisition as soon as it is read (see the module).
+            prompt: each acquisition as soon as it is read, handed over in the reader's thread
+                (``on_batch`` must not block; see the module).
             sweep_period_s: at most one ``/biris/sweep`` message this often.
             point_depth: acquisitions that may wait in its queue; beyond, dropped and counted.
             scan_depth: likewise for scans.
@@ -624,6 +660,7 @@ class SharedFeed:
 
     def _loop(self, points_conn: Any, scans_conn: Any) -> None:
         ended = [False, False]
+        scans_polled = -math.inf
         while not self._stop.is_set():
             self._wake.clear()
             with self._lock:
@@ -641,7 +678,15 @@ class SharedFeed:
                         wait = min(BATCH_S, *(s.batch_s for s in sinks))
                     points, ended[0], waited = self._drain(points_conn, wait, faults)
                     self._server_dropped[0] = int(points_conn.dropped)
+                    if wait > 0 and points and not faults:
+                        # prompt: the acquisition goes out now, before anything else is asked
+                        # (a poll for more, the scans: round trips a remote reader would wait)
+                        self._hand_out(sinks, points, (), (), ())
+                        points = []
+                        if begun - scans_polled < wait:
+                            continue  # the scans at most every batch: a poll is a round trip
                 if not ended[1] and not faults:
+                    scans_polled = begun
                     scans, ended[1], _ = self._drain(scans_conn, 0.0, faults)
                     self._server_dropped[1] = int(scans_conn.dropped)
             if points or scans or faults or closing or self._sweep:
@@ -682,6 +727,8 @@ class SharedFeed:
         while len(got) < DRAIN_MAX:
             try:
                 got.append(conn.ready_for_data(timeout=timeout))
+                if wait > 0:  # a prompt wait: what came goes out at once, the rest next time
+                    return got, False, True
             except TimeoutError:
                 return got, False, wait > 0
             except ConnectionClosed:
@@ -957,8 +1004,9 @@ class SharedFeed:
                     if not sinks:
                         continue
                     reading = self._read_status(conn)
-                if reading is None:
-                    continue
+                if reading is None:  # not to be read now (closing, or no answer): a pause,
+                    self._status_wake.wait(STATUS_POLL_S)  # never a spin that starves the
+                    continue  # reader of the interpreter lock
                 if reading.status is not None:
                     last = reading.status
                 with self._status_lock:
