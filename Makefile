@@ -9,7 +9,9 @@ LINT_DIRS := biris_hw regs sim benchmarks tests $(wildcard tools)
 PYTEST := env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest
 # pytest-xdist workers: one per core and one more. The scaled-real-time tests spend part of their
 # time waiting on the wall clock; the extra worker computes meanwhile (2 cores: 59 s quiet with 3
-# workers against 66 s with 2; beside three CPU-bound processes 109 s against 150 s)
+# workers against 66 s with 2; beside three CPU-bound processes 109 s against 150 s). A test
+# file's tests go to one worker (--dist loadfile), so a module's shared fixture (a served sensor,
+# the demo run) is built once, not once per worker that gets one of its tests
 WORKERS ?= $(shell $(PYTHON) -c 'import os; n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(); print((n or 1) + 1)')
 
 .PHONY: test test-slow test-under-load demo lint bench clean
@@ -21,14 +23,14 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 test: $(STAMP)
-	$(PYTEST) -m "not slow" -q -n $(WORKERS)
+	$(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile
 
 test-slow: $(STAMP)
 	$(PYTEST) -m slow -q
 
 # The fast tier with three CPU-bound processes beside it (sim.hostload), as on a shared machine.
 test-under-load: $(STAMP)
-	$(PY) tools/under_load.py --processes 3 -- $(PYTEST) -m "not slow" -q -n $(WORKERS)
+	$(PY) tools/under_load.py --processes 3 -- $(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile
 
 demo: $(STAMP)
 	$(VENV)/bin/biris demo

@@ -24,7 +24,7 @@ from biris_hw.errors import ConnectionClosed, HardwareFault
 from biris_hw.io import codec, feed
 from biris_hw.status import ServerState
 from sim import SimulatedBiris
-from tests.conftest import idle_status, until
+from tests.conftest import idle_status, join, spawn, until
 from tests.test_record_support import points_of, read_decoded, synthetic_scans
 
 WAIT = 10.0
@@ -535,6 +535,16 @@ def test_served_recorded_and_viewed_each_acquisition_is_encoded_once(
         subscription = remote.subscribe("point", on_point)
         client = _view_client(view.port)
         assert next(t for t, _ in client if t == "/diagnostics")  # its subscriptions are in
+        shown: list[str] = []
+        showing = threading.Condition()
+
+        def watch() -> None:  # what the viewer receives, until the view closes
+            for topic, _ in client:
+                with showing:
+                    shown.append(topic)
+                    showing.notify_all()
+
+        watcher = spawn(watch)
         until(lambda: service._pub_point.matching_status.matching, what="the subscriber seen")
         with server.open() as conn:
             conn.continuous_scan(-20.0, 20.0)
@@ -547,13 +557,24 @@ def test_served_recorded_and_viewed_each_acquisition_is_encoded_once(
                 points.append(truth.ready_for_data(timeout=0))
             except TimeoutError:
                 break
+        while True:  # the sweep the stop ended, if it completed
+            try:
+                swept.append(scans.ready_for_data(timeout=0))
+            except TimeoutError:
+                break
         n = len(points)
         assert n >= sum(s.n_acq for s in swept) > 0
         until(lambda: len(received) >= n, wake=arrived, what="every point on the network")
+        until(  # before the view closes: what a viewer has not received by then is not shown
+            lambda: shown.count(codec.POINTS_TOPIC) >= len(swept),
+            wake=showing,
+            what="every scan's cloud in the viewer",
+        )
         subscription.close()
     summary = recorder.summary
     assert summary is not None
-    viewed = collections.Counter(topic for topic, _ in client)  # what was sent until it closed
+    assert join(watcher)
+    viewed = collections.Counter(shown)  # what was sent until it closed
     # the sensor was read once: one pair of connections for three sinks
     readers = [c for c in server.status().connections.values() if c.kind == "DATA"]
     assert len(readers) == 2  # the test's own two; the feed's closed with its last sink
