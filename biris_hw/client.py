@@ -142,15 +142,7 @@ class Connection(ConnectionBase[D]):
             HardwareFault: the server is in a fault state (until a reset).
             RequestError: no such direction, or the server is initialising.
         """
-        try:
-            if isinstance(direction, bool):  # True is 1 to Python, but it names no direction
-                raise ValueError(direction)
-            d = Direction(direction)
-        except (ValueError, TypeError):
-            raise RequestError(
-                f"direction: no direction {direction!r}; use Direction.CW or CCW"
-            ) from None
-        result = self._call(m.RequestScanData(self.ident, d))
+        result = self._call(m.RequestScanData(self.ident, self._direction(direction)))
         assert result is None or isinstance(result, Scan)
         return result
 

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, overload
 
 from biris_hw.angles import RealLike
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
-from biris_hw.errors import ConnectionClosed
+from biris_hw.errors import ConnectionClosed, RequestError
 from biris_hw.records import BirisInitRecord, MotorParams
 from biris_hw.status import ServerStatus
 
@@ -255,6 +255,22 @@ class ConnectionBase(Generic[D]):
         """Raise ConnectionClosed once this connection is closed."""
         if self._closed:
             raise ConnectionClosed(f"connection {self.ident} is closed")
+
+    @staticmethod
+    def _direction(direction: object) -> Direction:
+        """REQUEST_SCAN_DATA's direction, checked alike on every kind of connection.
+
+        Raises:
+            RequestError: no such direction (True is 1 to Python, but it names none).
+        """
+        try:
+            if isinstance(direction, bool):
+                raise ValueError(direction)
+            return Direction(direction)  # type: ignore[arg-type]  # any value: refused below
+        except (ValueError, TypeError):
+            raise RequestError(
+                f"direction: no direction {direction!r}; use Direction.CW or CCW"
+            ) from None
 
     def _close(self) -> None:
         """Tell the sensor (CLOSE_REQUEST); the base has no sensor to tell."""

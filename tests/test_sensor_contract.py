@@ -211,6 +211,23 @@ def test_open_and_close_are_idempotent_and_context_managers(subject: Subject) ->
         sensor.status()
 
 
+def _control_calls(conn: Connection[Any]) -> list[Callable[[], object]]:
+    """Every motion and configuration message, with valid arguments."""
+    return [
+        lambda: conn.single_scan(10.0),
+        lambda: conn.continuous_scan(-10.0, 10.0),
+        lambda: conn.set_elevation(5.0),
+        conn.stop_scan,
+        conn.start_continuous,
+        conn.stop_continuous,
+        conn.home,
+        lambda: conn.set_motor_params(MotorParams()),
+        conn.timeout_enable,
+        conn.timeout_disable,
+        conn.reset,
+    ]
+
+
 def test_a_closed_connection_refuses_every_call(subject: Subject) -> None:
     conn = subject.sensor.open()
     data = subject.sensor.open(ConnectionKind.DATA)
@@ -224,17 +241,7 @@ def test_a_closed_connection_refuses_every_call(subject: Subject) -> None:
         lambda: conn.wait_idle(timeout=0),
         conn.status,
         lambda: conn.status(newer_than=0, timeout=0),
-        lambda: conn.single_scan(10.0),
-        lambda: conn.continuous_scan(-10.0, 10.0),
-        lambda: conn.set_elevation(0.0),
-        conn.stop_scan,
-        conn.start_continuous,
-        conn.stop_continuous,
-        conn.home,
-        lambda: conn.set_motor_params(MotorParams()),
-        conn.timeout_enable,
-        conn.timeout_disable,
-        conn.reset,
+        *_control_calls(conn),
     ]
     for call in calls:
         with pytest.raises(ConnectionClosed):
@@ -408,20 +415,7 @@ def test_a_recording_refuses_motion_itself_and_a_live_sensor_moves(subject: Subj
         return
     assert subject.kind == "replay"
     before = sensor.status()
-    refused: list[Callable[[], object]] = [
-        lambda: conn.single_scan(10.0),
-        lambda: conn.continuous_scan(-10.0, 10.0),
-        lambda: conn.set_elevation(5.0),
-        conn.stop_scan,
-        conn.start_continuous,
-        conn.stop_continuous,
-        conn.home,
-        lambda: conn.set_motor_params(MotorParams()),
-        conn.timeout_enable,
-        conn.timeout_disable,
-        conn.reset,
-    ]
-    for call in refused:
+    for call in _control_calls(conn):
         with pytest.raises(ReplayRefused):
             call()
     assert sensor.status().signature() == before.signature()

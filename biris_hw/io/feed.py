@@ -347,19 +347,25 @@ class Sink:
             with self._cond:
                 if self._sealed:
                     return
-            if self.error is None:
-                try:
-                    self._on_batch(batch)
-                    self.points += len(batch.points)
-                    self.scans += len(batch.scans)
-                    self.messages += len(batch.messages)
-                except BaseException as exc:
-                    log.exception("sink %s failed", self.name)
-                    self._fail(exc)
+            self._deliver(batch)
             if batch.final:
                 with self._cond:
                     self._sealed = True
                     self._cond.notify_all()  # a detach waiting for the seal
+
+    def _deliver(self, batch: Batch) -> None:
+        """Hand ``batch`` to ``on_batch`` and count it; a sink that raises fails alone, and is
+        handed nothing more."""
+        if self.error is not None:
+            return
+        try:
+            self._on_batch(batch)
+            self.points += len(batch.points)
+            self.scans += len(batch.scans)
+            self.messages += len(batch.messages)
+        except BaseException as exc:
+            log.exception("sink %s failed", self.name)
+            self._fail(exc)
 
     def _run(self) -> None:
         while True:
@@ -369,15 +375,7 @@ class Sink:
                 self._pending[0] -= len(batch.points)
                 self._pending[1] -= len(batch.scans)
                 self._pending[2] -= batch.status is not None
-            if self.error is None:
-                try:
-                    self._on_batch(batch)
-                    self.points += len(batch.points)
-                    self.scans += len(batch.scans)
-                    self.messages += len(batch.messages)
-                except BaseException as exc:
-                    log.exception("sink %s failed", self.name)
-                    self._fail(exc)
+            self._deliver(batch)
             if batch.final:
                 return
 

@@ -589,14 +589,7 @@ class RemoteConnection(ConnectionBase[D]):
 
     def request_scan_data(self, direction: Direction | int) -> Scan | None:
         """REQUEST_SCAN_DATA (see :meth:`biris_hw.client.Connection.request_scan_data`)."""
-        try:
-            if isinstance(direction, bool):
-                raise ValueError(direction)
-            d = Direction(direction)
-        except (ValueError, TypeError):
-            raise RequestError(
-                f"direction: no direction {direction!r}; use Direction.CW or CCW"
-            ) from None
+        d = self._direction(direction)
         return cast("Scan | None", self._data("request_scan_data", {"direction": int(d)}))
 
     def ready_for_data(self, timeout: RealLike | None = None) -> D:

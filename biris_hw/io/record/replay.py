@@ -141,14 +141,7 @@ class ReplayConnection(ConnectionBase[D]):
         Raises:
             RequestError: no such direction.
         """
-        try:
-            if isinstance(direction, bool):
-                raise ValueError(direction)
-            d = Direction(direction)
-        except (ValueError, TypeError):
-            raise RequestError(
-                f"direction: no direction {direction!r}; use Direction.CW or CCW"
-            ) from None
+        d = self._direction(direction)
         with self._replay._cond:
             self._check()
             return self._replay._scans[d]
