@@ -36,8 +36,8 @@ demo: $(STAMP)
 	$(VENV)/bin/biris demo
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check $(LINT_DIRS)
-	$(VENV)/bin/ruff format --check $(LINT_DIRS)
+	$(VENV)/bin/ruff check --no-cache $(LINT_DIRS)
+	$(VENV)/bin/ruff format --no-cache --check $(LINT_DIRS)
 	$(VENV)/bin/mypy
 	$(VENV)/bin/lint-imports --no-cache
 

@@ -38,10 +38,9 @@ def test_the_names_of_design_3b_still_import() -> None:
     for old in ("biris_hw.net", "biris_hw.record", "biris_hw.replay"):
         sys.modules.pop(old, None)
     with pytest.warns(DeprecationWarning):
-        from biris_hw.replay import ReplayServer
-
         from biris_hw.net import connect, serve
         from biris_hw.record import Recorder
+        from biris_hw.replay import ReplayServer
     from biris_hw.io.net import connect as now_connect
     from biris_hw.io.record import Recorder as NowRecorder
     from biris_hw.io.record import ReplayServer as NowReplay
