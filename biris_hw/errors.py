@@ -12,6 +12,7 @@ __all__ = [
     "BirisError",
     "BusError",
     "ConnectionClosed",
+    "ConnectionLost",
     "FaultKind",
     "HardwareFault",
     "LineClosed",
@@ -74,6 +75,17 @@ class RequestError(BirisError, ValueError):
 
 class ConnectionClosed(BirisError):
     """The connection was closed, or the server that owned it has stopped."""
+
+
+class ConnectionLost(BirisError, ConnectionError):
+    """The network between a remote client and its service is down (a partition, a router that
+    restarts, a service that stopped answering in time); nothing is known of what the request did.
+
+    Not a :class:`ConnectionClosed`: the connection may come back by itself, and a long-running
+    consumer (the feed, ``biris watch``, ``biris record``) rides it out for a bounded time,
+    counting what it missed. Not a :class:`RequestError` either: the service did not refuse
+    anything. A built-in ``ConnectionError`` too, so ``except OSError`` catches it.
+    """
 
 
 class AccessDenied(BirisError):
