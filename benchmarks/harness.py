@@ -57,6 +57,7 @@ SECTIONS: tuple[str, ...] = (
     "record",
     "idle",
     "cli_startup_ms",
+    "moving",
 )
 """The report's sections, in report order; each is present in report.json whether it ran or not."""
 

@@ -32,6 +32,7 @@ from typing import Any
 
 from benchmarks.common import running_server
 from benchmarks.harness import BenchContext, Figure, Target, benchmark
+from benchmarks.soak_service import service_with_resets
 from biris_hw import BirisInitRecord, ConnectionKind, DeliveryPolicy
 from biris_hw.client import Connection
 from biris_hw.errors import BirisError
@@ -333,7 +334,8 @@ def _left_behind(key: str, unit: str, counts: tuple[int, int, int], method: str)
 
 @benchmark("soak")
 def soak(ctx: BenchContext) -> list[Figure]:
-    """Continuous scanning at x50: accounts, memory, threads, descriptors, faults."""
+    """Continuous scanning at x50: accounts, memory, threads, descriptors, faults; then the
+    service through resets and router restarts (:mod:`benchmarks.soak_service`)."""
     seconds = float(ctx.pick(full=60, quick=5))
     figures: list[Figure] = []
     for mode, record, text in (
@@ -346,4 +348,4 @@ def soak(ctx: BenchContext) -> list[Figure]:
     ):
         ctx.log(f"bench: soak.{mode} ({seconds:g} s)")
         figures += _figures(mode, text, _soak(record, seconds, ctx.log))
-    return figures
+    return figures + service_with_resets(ctx)

@@ -10,8 +10,16 @@ While a command runs, what the server says it is doing (homing, booting BIRIS, w
 command to finish) is shown on stderr when a person watches it
 (:func:`~biris_hw.commands.console.progress_to_stderr`), and what the driver warns about (a scan
 that came out short, acquisitions lost) always is, one ``biris: warning: ...`` line each
-(:func:`~biris_hw.commands.console.log_to_stderr`; ``--debug`` shows the whole log instead);
-Ctrl-C is exit status 130, after the command has kept what it could.
+(:func:`~biris_hw.commands.console.log_to_stderr`; ``--debug`` shows the whole log instead). A
+service (:attr:`Command.service`: ``biris serve``) logs instead, from INFO up, one line per event
+in the journal's form.
+
+Ctrl-C is exit status 130, after the command has kept what it could. SIGTERM -- what systemd,
+``docker stop``, ``timeout`` and launch files send -- takes the same path
+(:class:`_TermAsInterrupt`: the signal raises :class:`~biris_hw.commands.failures.Terminated`, a
+KeyboardInterrupt, in the main thread), so every
+long-running command closes its files and prints its summary as after Ctrl-C, and the status is
+then 143 (128 + 15).
 """
 
 from __future__ import annotations
@@ -19,13 +27,22 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
-from typing import NamedTuple, NoReturn, Protocol, cast
+from types import FrameType, TracebackType
+from typing import Any, NamedTuple, NoReturn, Protocol, cast
 
 from biris_hw import __version__
 from biris_hw.commands.console import log_to_stderr, progress_to_stderr, wants_progress
-from biris_hw.commands.failures import EXIT_INTERRUPTED, EXIT_USAGE, report_error
+from biris_hw.commands.failures import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    EXIT_USAGE,
+    Terminated,
+    report_error,
+)
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
@@ -39,6 +56,9 @@ class Command(NamedTuple):
     module: str
     summary: str
     description: str
+    service: bool = False
+    """A long-running service read from a log rather than watched: it logs from INFO up, one
+    line per event (:func:`~biris_hw.commands.console.log_to_stderr`'s ``service``)."""
 
 
 COMMANDS: tuple[Command, ...] = (
@@ -89,7 +109,16 @@ COMMANDS: tuple[Command, ...] = (
         "run the sensor as a network service (Zenoh) for other programs",
         "Start the server on --sim, --target or --attach and serve it on Zenoh as --name on the "
         "--listen endpoints until Ctrl-C or SIGTERM; other programs use it with --connect NAME, "
-        "and those with controller credentials (--credentials FILE) may command it.",
+        "and those with controller credentials (--credentials FILE) may command it. It logs to "
+        "stderr (the journal under systemd); --auto-reset N resets the sensor after a fault.",
+        service=True,
+    ),
+    Command(
+        "reset",
+        "biris_hw.commands.reset",
+        "reset a served sensor after a fault (a controller's request)",
+        "Ask the service --connect NAME to reset its sensor (re-run its initialisation: the way "
+        "back from a fault), as one of its controllers; exit 0 once the sensor is back.",
     ),
     Command(
         "record",
@@ -171,7 +200,8 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
         prog="biris",
         description="Driver, server and simulator for the NRC BIRIS laser range camera.",
         epilog="biris COMMAND --help shows a command's flags. Exit status: 0 done, 1 hardware "
-        "fault, 2 usage or configuration error, 130 interrupted.",
+        "fault, 2 usage or configuration error, 130 interrupted (Ctrl-C), 143 terminated "
+        "(SIGTERM).",
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks and the log")
     parser.add_argument("--version", action="version", version=f"biris-hw {__version__}")
@@ -187,6 +217,51 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
                 add_debug_argument(child)
             child.set_defaults(run=module.run)
     return parser
+
+
+class _TermAsInterrupt:
+    """While the block runs, SIGTERM is Ctrl-C: the first one raises
+    :class:`~biris_hw.commands.failures.Terminated` (a KeyboardInterrupt) in the main thread, so
+    the command ends by the path it has for Ctrl-C (a recording closed complete, a sweep
+    stopped, a summary printed) and :attr:`received` says it was SIGTERM.
+
+    Later SIGTERMs are ignored while that path runs: a supervisor may send the signal again,
+    and an interrupt in the middle of a recorder's or a service's close would leave a file
+    without its summary, or threads up (SIGKILL remains for a command that hangs). Outside the
+    main thread (a test, an embedding program) nothing is installed: signals reach the main
+    thread only. The previous handler is back when the block ends.
+    """
+
+    def __init__(self) -> None:
+        self.received = False
+        self._previous: Any = None
+        self._installed = False
+
+    def _on_term(self, signum: int, frame: FrameType | None) -> None:
+        if self.received:
+            return
+        self.received = True
+        raise Terminated
+
+    def __enter__(self) -> _TermAsInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGTERM, self._on_term)
+            self._installed = True
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._installed:
+            signal.signal(signal.SIGTERM, self._previous)
+            self._installed = False
+
+    def status(self, code: int) -> int:
+        """The command's exit status, 143 for an interruption SIGTERM caused."""
+        return EXIT_TERMINATED if self.received and code == EXIT_INTERRUPTED else code
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -214,11 +289,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("biris: say which command to run (biris --help lists them)", file=sys.stderr)
         return EXIT_USAGE
     debug = bool(getattr(args, "debug", False))
-    with log_to_stderr(debug), progress_to_stderr(prog, wants_progress(args)):
+    service = any(c.service for c in COMMANDS if c.name == chosen)
+    progress = wants_progress(args) and not service  # a service's log says it already
+    with (
+        log_to_stderr(debug, service=service),
+        progress_to_stderr(prog, progress),
+        _TermAsInterrupt() as term,
+    ):
         try:
-            return int(run(args))
+            return term.status(int(run(args)))
         except KeyboardInterrupt:
-            return EXIT_INTERRUPTED
+            return term.status(EXIT_INTERRUPTED)
         except Exception as exc:
             return report_error(prog, exc, debug=debug)
 

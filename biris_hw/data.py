@@ -10,15 +10,25 @@ from __future__ import annotations
 import enum
 import operator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, NamedTuple, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from biris_hw.geometry import Frame, Mount, point_points, scan_points
+from biris_hw.geometry import Frame, Mount, point_points, project_profiles, scan_points
 from regs.hctl1000 import COUNTS_PER_REV
 
-__all__ = ["ACQUISITION_MODES", "ConnectionKind", "DeliveryPolicy", "Direction", "Point", "Scan"]
+__all__ = [
+    "ACQUISITION_MODES",
+    "ConnectionKind",
+    "DeliveryPolicy",
+    "Direction",
+    "Point",
+    "PoseLookup",
+    "PoseSample",
+    "Scan",
+    "VehiclePoses",
+]
 
 _DEG_PER_COUNT = 360.0 / COUNTS_PER_REV
 
@@ -223,13 +233,36 @@ class Scan:
         """``azimuth`` in degrees (a new array on each call)."""
         return np.multiply(self.azimuth, _DEG_PER_COUNT, dtype=np.float64)
 
-    def points(self, frame: Frame = "vehicle") -> NDArray[np.float64]:
+    def points(
+        self, frame: Frame | Literal["odom"] = "vehicle", poses: PoseLookup | None = None
+    ) -> NDArray[np.float64]:
         """Every return of the scan as an ``(m, 3)`` array in metres; no-return samples left out.
 
         ``frame`` is ``"vehicle"`` (the mount applied) or ``"sensor"`` (centred on the pan
-        axis at the optical centre's height); see :mod:`biris_hw.geometry`.
+        axis at the optical centre's height); see :mod:`biris_hw.geometry`. ``"odom"`` places
+        each acquisition with the vehicle's pose at its own time ``t[k]``, which ``poses`` (a
+        :class:`PoseLookup`: a :class:`biris_hw.io.pose.PoseBuffer`) gives: the scan stays
+        sharp while the vehicle drives (docs/moving.md). A ValueError if ``poses`` is missing,
+        or has no pose for some acquisition: such an acquisition is never placed by a guess,
+        and :func:`biris_hw.io.deskew.deskewed` keeps the others and says which.
         """
-        return scan_points(self, frame)
+        if frame != "odom":
+            if poses is not None:
+                raise ValueError(f"poses= places points in 'odom', not in {frame!r}")
+            return scan_points(self, frame)
+        if poses is None:
+            raise ValueError("frame='odom' needs poses= (the vehicle's pose at each acquisition)")
+        placed = poses.poses_at(self.t)
+        if not placed.valid.all():
+            missing = np.flatnonzero(~placed.valid)
+            raise ValueError(
+                f"{missing.size} of {self.n_acq} acquisitions have no vehicle pose within the "
+                f"lookup's bounds (the first: acquisition {int(missing[0])}, "
+                f"t={self.t[missing[0]]:.6f} s); biris_hw.io.deskew.deskewed() places the "
+                "others and marks these"
+            )
+        grid = project_profiles(self.range_mm, self.azimuth, self.elevation, "vehicle", self.mount)
+        return np.ascontiguousarray(placed.to_odom(grid)[self.range_mm > 0])
 
     @property
     def ages(self) -> NDArray[np.float64] | None:
@@ -341,6 +374,72 @@ class Point:
     def points(self, frame: Frame = "vehicle") -> NDArray[np.float64]:
         """The profile's returns as an ``(m, 3)`` array in metres (see :meth:`Scan.points`)."""
         return point_points(self, frame)
+
+
+class PoseSample(NamedTuple):
+    """One pose of the vehicle in ``odom``, as its base reports it: planar, with its twist.
+
+    What every pose source gives (the simulator's odometry, a ROS 2 base's
+    ``nav_msgs/msg/Odometry`` or ``geometry_msgs/msg/TransformStamped`` on Zenoh, a recording's
+    ``/tf``) and what :class:`biris_hw.io.pose.PoseBuffer` holds. A wheeled base drives in the
+    plane and does not slip sideways, so (x, y, yaw) and a forward speed and yaw rate say all.
+    """
+
+    t: float
+    """Stamp, seconds: on the hardware clock once in a buffer (the source's own clock before
+    the buffer's ``clock_offset_s`` is added)."""
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    """Counter-clockwise from ``odom``'s x axis, in [-pi, pi)."""
+    v_mps: float
+    """Forward speed in the vehicle frame; NaN when the source does not say (a transform)."""
+    omega_rad_s: float
+    """Yaw rate, counter-clockwise positive; NaN when the source does not say."""
+    seq: int
+    """Sample number: the source's own where it has one (consecutive: a gap shows samples
+    missed), else the order of arrival."""
+
+
+class VehiclePoses(NamedTuple):
+    """The vehicle's pose at each of a list of hardware times (a :class:`PoseLookup`'s answer).
+
+    ``valid[k]`` is False where no pose was known within the lookup's bounds: there x, y and yaw
+    are NaN, so a point placed with them is NaN too, never a guess that looks right.
+    """
+
+    t: NDArray[np.float64]
+    """The hardware times asked for."""
+    x_m: NDArray[np.float64]
+    y_m: NDArray[np.float64]
+    yaw_rad: NDArray[np.float64]
+    """In [-pi, pi)."""
+    valid: NDArray[np.bool_]
+
+    def to_odom(self, points: ArrayLike) -> NDArray[np.float64]:
+        """``points`` in the vehicle frame, one row of points per time (``(n, samples, 3)``, or
+        ``(n, 3)`` with one point per time), moved into ``odom`` by the pose of their own time:
+        rotated by the yaw about z, shifted by (x, y). The vehicle drives in the plane, so z is
+        kept. One array operation for the lot; rows without a valid pose come out NaN."""
+        p = np.asarray(points, dtype=np.float64)
+        n = self.t.shape[0]
+        if p.ndim not in (2, 3) or p.shape[0] != n or p.shape[-1] != 3:
+            raise ValueError(f"points must be ({n}, 3) or ({n}, samples, 3), not {p.shape}")
+        shape = (n,) + (1,) * (p.ndim - 2)
+        c = np.cos(self.yaw_rad).reshape(shape)
+        s = np.sin(self.yaw_rad).reshape(shape)
+        out = np.empty_like(p)
+        out[..., 0] = self.x_m.reshape(shape) + c * p[..., 0] - s * p[..., 1]
+        out[..., 1] = self.y_m.reshape(shape) + s * p[..., 0] + c * p[..., 1]
+        out[..., 2] = np.where(self.valid.reshape(shape), p[..., 2], np.nan)
+        return out
+
+
+class PoseLookup(Protocol):
+    """What places acquisitions in ``odom``: the vehicle's pose at any hardware times
+    (:class:`biris_hw.io.pose.PoseBuffer` is one)."""
+
+    def poses_at(self, times: ArrayLike) -> VehiclePoses: ...
 
 
 def _check_mount(mount: object) -> None:

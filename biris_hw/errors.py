@@ -8,6 +8,7 @@ caller can catch either our names or Python's.
 from __future__ import annotations
 
 __all__ = [
+    "RIDE_OUT_S",
     "AccessDenied",
     "BirisError",
     "BusError",
@@ -15,6 +16,7 @@ __all__ = [
     "ConnectionLost",
     "FaultKind",
     "HardwareFault",
+    "Initialising",
     "LineClosed",
     "RequestError",
     "SetupError",
@@ -73,6 +75,13 @@ class RequestError(BirisError, ValueError):
     """A client request was malformed or impossible; the server changed nothing."""
 
 
+class Initialising(RequestError):
+    """The server is initialising (starting, or a reset under way): the request was refused and
+    nothing changed. Transient: the sensor's data come back on the same connections once the
+    initialisation ends, so a long-running reader waits it out (the feed, the recorder and the
+    live view do); a request asked again after ``wait_idle`` or the reset's return is served."""
+
+
 class ConnectionClosed(BirisError):
     """The connection was closed, or the server that owned it has stopped."""
 
@@ -86,6 +95,12 @@ class ConnectionLost(BirisError, ConnectionError):
     counting what it missed. Not a :class:`RequestError` either: the service did not refuse
     anything. A built-in ``ConnectionError`` too, so ``except OSError`` catches it.
     """
+
+
+RIDE_OUT_S = 30.0
+"""How long (real seconds) the long-running consumers wait out a :class:`ConnectionLost` before
+they fail naming the span they missed: the feed's sinks (the recorder, the live view), ``biris
+watch --connect`` and ``biris record --connect``. One bound, so they all say the same."""
 
 
 class AccessDenied(BirisError):

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 from biris_hw.axes.base import AxisSet
 from biris_hw.bus.base import BusWindow
 from biris_hw.devices import Devices
+from biris_hw.errors import BusError, HardwareFault
 from biris_hw.irq.base import InterruptLine
 from biris_hw.pan_reference import PanReference
 from biris_hw.timebase import TimeBase, timebase_of
@@ -106,6 +107,36 @@ class BirisHardware:
                 f"0x{self.biris_base:X}..0x{self.biris_base + self.biris.size - 1:X}"
             )
         return offset
+
+    def relink(self) -> None:
+        """Reopen every link to the target that was lost and can come back, keeping the same
+        window, line and axis objects (the server and its drivers hold them); a server's reset
+        calls it before it initialises (:mod:`biris_hw.server.initialiser`).
+
+        Each window re-links what it reaches the bus through (:meth:`BusWindow.relink
+        <biris_hw.bus.base.BusWindow.relink>`: a VM-USB found again by its serial number, its
+        interrupt lines re-armed with it), then the axis set its drives (a CiA 402 drive whose
+        heartbeat was lost: :meth:`~biris_hw.axes.cia402.Cia402Axes.relink`). Whatever is alive
+        is left alone, so a reset after any other fault costs nothing here. A bundle reached
+        some other way overrides it (:class:`biris_hw.simlink.RemoteHardware` reconnects to a
+        simulator process that was restarted).
+
+        Raises:
+            HardwareFault: kind ``bus``, naming what is still missing and that its link must be
+                restored (or, where that cannot help, that a new driver process is needed).
+        """
+        try:
+            seen: list[BusWindow] = []
+            for window in (self.biris, self.motion, self.coupler):
+                if window is not None and not any(window is w for w in seen):
+                    seen.append(window)
+                    window.relink()
+            if self.axes is not None:
+                self.axes.relink()
+        except HardwareFault:
+            raise
+        except BusError as exc:
+            raise HardwareFault("bus", f"the target's link is still lost: {exc}") from exc
 
     def close(self) -> None:
         """Close the lines first (waking notifiers), then the windows, then the axis set and

@@ -48,6 +48,7 @@ if TYPE_CHECKING:
 
     from biris_hw.hardware import BirisHardware
     from biris_hw.io.net import RemoteSensor
+    from biris_hw.io.pose import PoseBuffer
     from biris_hw.io.record import ReplayServer
     from biris_hw.records import BirisInitRecord
     from biris_hw.sensor import Sensor
@@ -55,7 +56,7 @@ if TYPE_CHECKING:
 
     StrPath = str | os.PathLike[str]
 
-__all__ = ["SetupError", "SimulatorRig", "load_init_record", "open_sensor"]
+__all__ = ["SetupError", "SimulatorRig", "load_init_record", "open_poses", "open_sensor"]
 
 
 class SimulatorRig(Protocol):
@@ -265,6 +266,32 @@ def load_init_record(
     return record
 
 
+@contextlib.contextmanager
+def open_poses(*, sim: Any, **options: Any) -> Iterator[PoseBuffer]:
+    """``with open_poses(sim=rig) as poses:`` the simulated vehicle's odometry
+    (``rig.odometry``), pumped on the rig's time base into a
+    :class:`~biris_hw.io.pose.PoseBuffer` while the block runs (docs/moving.md).
+
+    ``options`` are the buffer's (``capacity``, ``max_gap_s``, ``max_extrapolation_s``;
+    ``clock_offset_s`` is 0: the odometry is stamped on the hardware clock). A real base's poses
+    come from :func:`biris_hw.io.pose.subscribe_poses` or a recording's
+    (:func:`biris_hw.io.pose.read_poses`).
+
+    Raises:
+        TypeError: ``sim=`` is not a simulator with odometry (``odometry`` and ``timebase``).
+    """
+    odometry = getattr(sim, "odometry", None)
+    timebase = getattr(sim, "timebase", None)
+    if odometry is None or timebase is None:
+        raise TypeError(
+            f"sim= takes a simulator with odometry (sim.SimulatedBiris), not {_kind_of(sim)}"
+        )
+    from biris_hw.io.pose import follow
+
+    with follow(odometry, timebase, **options) as buffer:
+        yield buffer
+
+
 # -- checking, before anything opens -----------------------------------------------------------
 
 
@@ -469,7 +496,7 @@ def _remote(name: str, options: Mapping[str, Any]) -> Iterator[RemoteSensor]:
         zenoh.update(tls_options(root_ca=options["tls_ca"]))
     zenoh.update(options.get("zenoh_options") or {})
     extra: dict[str, Any] = {}
-    for key in ("multicast", "timeout"):
+    for key in ("multicast", "timeout", "reconnect"):
         if key in options:
             extra[key] = options[key]
     try:

@@ -16,6 +16,17 @@ socket. That is part of the process's exit, so it is no timer and no polling per
 ``tests/test_lost_target.py``. A simulator that hangs without dying keeps its socket open. A
 register access then fails after the link's ``timeout`` (a bus fault too), and a hung BIRIS
 stops answering commands (the BIRIS timeout).
+
+**A simulator that is started again is found again by a reset.** The server's reset re-links its
+hardware bundle first (:meth:`RemoteHardware.relink`): when the simulator has gone, it connects
+to the socket again and, if a simulator of the same target answers (the handshake's layout and
+time scale equal the first one's), carries on with it through the same objects -- the link gets
+the new socket, each line the new eventfd, the BIRIS window the new segment. The new process
+starts a new plant whose head wakes within half a revolution of zero (it forgets the pan
+journal), so the pan reference is dropped and homing searches afresh. A simulator that is still
+gone, or one of another target (other samples, another time scale), leaves the reset failing
+with a ``bus`` fault that says so; for the second, only a new driver process (a new
+:func:`attach`) can use it.
 """
 
 from __future__ import annotations
@@ -23,11 +34,13 @@ from __future__ import annotations
 import array
 import contextlib
 import errno
+import logging
 import os
 import select
 import socket
+import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 from biris_hw.bus.base import BusWindow
 from biris_hw.bus.registry import open_window
@@ -41,7 +54,7 @@ from biris_hw.bus.remote import (
     SliceWindow,
     default_socket_path,
 )
-from biris_hw.errors import BusError
+from biris_hw.errors import BusError, HardwareFault
 from biris_hw.hardware import BirisHardware
 from biris_hw.irq.eventfd import EventFdLine
 from biris_hw.pan_reference import default_journal_path
@@ -51,17 +64,112 @@ from regs.tech80 import MOTION_WINDOW_SIZE
 
 __all__ = ["LinkedLine", "RemoteHardware", "SimulatorClock", "attach", "default_socket_path"]
 
+log = logging.getLogger(__name__)
+
 
 @dataclass
 class RemoteHardware(BirisHardware):
     """A bundle whose boards are reached over ``link``; :meth:`close` also closes the link.
 
     The link is closed last, after the lines and windows, so the simulator sees the driver go
-    only once it has let go of everything.
+    only once it has let go of everything. :meth:`relink` reconnects to a simulator that was
+    started again under the same name (module notes).
     """
 
     link: RemoteLink | None = field(default=None, repr=False, compare=False)
     handshake: Handshake | None = field(default=None, repr=False, compare=False)
+    name: str = ""
+    """The shared-memory name the simulator serves (``biris sim --shm NAME``)."""
+    socket_path: str = ""
+    """Where the simulator listens."""
+    link_timeout: float = 10.0
+    """What :func:`attach` was given: bounds a reconnection as it bounded the first."""
+    relinks: int = field(default=0, init=False, compare=False)
+    """How many times :meth:`relink` reconnected to a restarted simulator."""
+
+    def relink(self) -> None:
+        """Reconnect to the simulator if it has gone and is back (see the module notes); at
+        once while the link is alive.
+
+        Raises:
+            HardwareFault: ``bus``: the simulator is still gone (start it again with ``biris
+                sim --shm NAME``, then reset), or it came back as another target (then only a
+                new driver process can use it).
+        """
+        link, hello = self.link, self.handshake
+        if link is None or hello is None or not self._lost(link):
+            super().relink()
+            return
+        try:
+            self._reconnect(link, hello)
+        except BusError as exc:
+            raise HardwareFault("bus", str(exc)) from exc
+        super().relink()
+
+    def _lost(self, link: RemoteLink) -> bool:
+        """The link broke, or a line saw the simulator hang up (nothing was read since)."""
+        if link.broken is not None:
+            return True
+        return any(isinstance(line, LinkedLine) and line.hung_up() for line in self._lines())
+
+    def _lines(self) -> tuple[object, object]:
+        return (self.level2, self.level3)
+
+    def _reconnect(self, link: RemoteLink, old: Handshake) -> None:
+        """Connect again, check that it is the same target, and hand every object its new
+        descriptor; on any failure nothing is changed (the bundle stays lost)."""
+        name, path = self.name, self.socket_path
+        what = f"simulator {name!r}"
+        lost = link.broken or "connection lost (the simulator went away)"
+        link.drop_connection()  # a simulator still running (hung) sees this driver go
+        try:
+            sock = _connect(path, name, self.link_timeout)
+        except BusError as exc:
+            raise BusError(
+                f"{what} is still gone ({lost}): {exc}; once it runs again, reset",
+                exc.errno or errno.ENOENT,
+            ) from None
+        fds: list[int] = []
+        with contextlib.ExitStack() as undo:
+            undo.callback(sock.close)
+            raw, fds = _receive(sock, path, self.link_timeout)
+            undo.callback(_close_fds, fds)
+            hello = Handshake.decode(raw)
+            _check(hello, name, path, len(fds))
+            changed = _target_changes(old, hello)
+            if changed:
+                raise BusError(
+                    f"{what} came back as another target ({changed}): this driver cannot carry "
+                    f"on with it; start a new driver process (or attach to it anew)",
+                    errno.EPROTO,
+                )
+            biris = _open_biris(hello)
+            undo.callback(biris.close)
+            lines = [self.level2, self.level3]
+            if not all(isinstance(line, LinkedLine) for line in lines) or not isinstance(
+                self.biris, SliceWindow
+            ):
+                raise BusError(f"{what}: this bundle's lines or BIRIS window cannot be re-linked")
+            undo.pop_all()
+        # committed: from here every object is handed its new descriptor
+        for line, fd in zip(lines, fds, strict=True):
+            assert isinstance(line, LinkedLine)
+            line.relink(fd, sock)
+        old_socket = link.reconnect(sock)
+        old_socket.close()
+        assert isinstance(self.biris, SliceWindow) and isinstance(biris, SliceWindow)
+        old_segment = self.biris.replace_parent(biris.parent)
+        with contextlib.suppress(BusError):
+            old_segment.close()  # the dead simulator's segment, unlinked by its end
+        self.handshake = hello
+        self.relinks += 1
+        if hello.pid != old.pid:
+            # a new process starts a new plant and forgets the pan journal (sim.process)
+            self.pan_reference.lose(
+                f"{what} was started again (pid {old.pid} -> {hello.pid}): its head woke "
+                "within half a revolution of zero, so homing searches afresh"
+            )
+        log.warning("%s: reconnected (pid %d); the reset initialises it", what, hello.pid)
 
     def close(self) -> None:
         try:
@@ -95,6 +203,8 @@ class LinkedLine(EventFdLine):
 
     def __init__(self, fd: int, peer: socket.socket, label: str = "simulator") -> None:
         self._label = label
+        self._swap = threading.Lock()
+        """Held while the descriptors are looked at or swapped (:meth:`relink`)."""
         self._peer_fd = -1
         self._epoll: select.epoll | None = None
         try:
@@ -116,19 +226,56 @@ class LinkedLine(EventFdLine):
         return self._epoll.fileno()
 
     def _consume(self) -> int:
-        count = super()._consume()
-        if count:
-            return count
-        if self._hung_up():
-            raise BusError(
-                f"{self._label}: connection lost (the simulator went away)", errno.ECONNRESET
-            )
-        return 0
+        with self._swap:
+            count = super()._consume()
+            if count:
+                return count
+            if self._hung_up():
+                raise BusError(
+                    f"{self._label}: connection lost (the simulator went away)", errno.ECONNRESET
+                )
+            return 0
 
     def _hung_up(self) -> bool:
         """Whether the socket has been hung up; a look, never a wait."""
         assert self._epoll is not None
         return any(fd == self._peer_fd and events & _HANG_UP for fd, events in self._epoll.poll(0))
+
+    def hung_up(self) -> bool:
+        """Whether the simulator at the other end has gone (its socket hung up); a look."""
+        with self._swap:
+            if self.closed or self._epoll is None:
+                return False
+            try:
+                return self._hung_up()
+            except (OSError, ValueError):  # released meanwhile (closed)
+                return False
+
+    def relink(self, fd: int, peer: socket.socket) -> None:
+        """Carry on with a restarted simulator: ``fd`` its new eventfd (adopted, as by the
+        constructor) and ``peer`` the new socket to it. The descriptor that threads poll
+        (:meth:`fileno`, the epoll set) stays the same, so a waiter blocked across the swap
+        simply sees the new simulator's interrupts and hang-up from then on."""
+        with self._swap:
+            try:
+                peer_fd = os.dup(peer.fileno())
+            except BaseException:
+                os.close(fd)
+                raise
+            with self._lock:
+                if self._closed or self._epoll is None:
+                    os.close(fd)
+                    os.close(peer_fd)
+                    raise BusError(f"{self._label}: the line is closed")
+                epoll = self._epoll
+                old_fd, old_peer = self._fd, self._peer_fd
+                epoll.unregister(old_fd)
+                epoll.unregister(old_peer)
+                epoll.register(fd, select.EPOLLIN)
+                epoll.register(peer_fd, select.EPOLLRDHUP)
+                self._fd, self._peer_fd = fd, peer_fd
+            os.close(old_fd)
+            os.close(old_peer)
 
     def _release_line(self) -> None:
         try:
@@ -177,7 +324,7 @@ def attach(name: str, *, socket_path: str | None = None, timeout: float = 10.0) 
         _check(hello, name, path, len(fds))
         undo.pop_all()
     try:
-        return _assemble(hello, sock, fds, timeout)
+        return _assemble(hello, sock, fds, timeout, name=name, path=path)
     except BaseException:
         sock.close()
         raise
@@ -272,8 +419,32 @@ def _monotonic_kind() -> str:
     return time.get_clock_info("monotonic").implementation
 
 
+_SAME_EACH_START = ("shm", "lines", "clock", "protocol")
+"""Handshake fields :func:`_check` holds to this driver already."""
+_NEW_EACH_START = ("pid", "t0")
+"""Handshake fields a restarted simulator changes without being another target."""
+
+
+def _target_changes(old: Handshake, new: Handshake) -> str:
+    """What makes ``new`` another target than ``old`` (layout, samples, time scale), as words;
+    empty when it is the same target restarted."""
+    skip = _SAME_EACH_START + _NEW_EACH_START
+    diffs = [
+        f"{f.name} {getattr(new, f.name)!r}, was {getattr(old, f.name)!r}"
+        for f in fields(Handshake)
+        if f.name not in skip and getattr(new, f.name) != getattr(old, f.name)
+    ]
+    return "; ".join(diffs)
+
+
 def _assemble(
-    hello: Handshake, sock: socket.socket, fds: list[int], timeout: float
+    hello: Handshake,
+    sock: socket.socket,
+    fds: list[int],
+    timeout: float,
+    *,
+    name: str = "",
+    path: str = "",
 ) -> RemoteHardware:
     """Adopt the descriptors, open the windows; on any failure release what was taken."""
     with contextlib.ExitStack() as undo:
@@ -306,6 +477,9 @@ def _assemble(
             # the simulator process outlives its drivers: a restarted driver must know which
             # revolution the head is in (the simulator forgets this file when it starts)
             pan_journal=default_journal_path(f"sim-{hello.shm}"),
+            name=name or hello.shm,
+            socket_path=path or default_socket_path(hello.shm),
+            link_timeout=timeout,
         )
         undo.pop_all()
     return hw

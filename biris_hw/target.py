@@ -104,6 +104,7 @@ _AXES_RULED = ("pan_node", "tilt_node", "homing_method")
 """Keys whose rule is the driver's own (:mod:`biris_hw.axes.cia402`: ``check_node_id``,
 ``check_homing_method``), applied here so that the message names the key."""
 _AXES_SECONDS = {
+    "boot_timeout": "boot_timeout_s",
     "heartbeat_period": "heartbeat_period_s",
     "heartbeat_timeout": "heartbeat_timeout_s",
     "sdo_timeout": "sdo_timeout_s",

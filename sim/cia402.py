@@ -12,6 +12,9 @@ What is modelled:
 * NMT (canopen's NmtSlave): pre-operational after boot-up, heartbeat producer 0x1017, PDOs only
   while OPERATIONAL, TPDO1 sent once on entering it. Heartbeat consumer 0x1016 sub 1: a master
   heard once and then silent for longer than the consumer time faults the drive (EMCY 0x8130).
+  Reset communication (0x82) puts the communication objects (0x1000-0x1FFF) back to their
+  power-on values, reset node (0x81) everything, as a power-up does; both end with the boot-up
+  message and pre-operational.
 * PDOs honour whatever mapping the master wrote (CiA 301 rules: the mapping changes only while
   the PDO is invalid and its count is 0; only mappable objects; 64 bits at most). An RPDO's
   values are all stored before its controlword acts, so a frame's target is the one its
@@ -20,7 +23,9 @@ What is modelled:
   OPERATION ENABLED; quick stop; fault and fault reset on bit 7's rising edge). Enabling holds
   the head where it stands (a compliant drive).
 * Profile position: single set-point, absolute (bit 6 relative too); acknowledge (bit 12) on
-  the new-set-point edge until bit 4 falls; a trapezoid from 0x6081/0x6083/0x6084 sampled at
+  the new-set-point edge, dropped at the first cycle (sample) after bit 4 falls, and a rising
+  edge while bit 12 is still set is not taken (CiA 402's handshake: the host waits for bit 12
+  to fall before it sets bit 4 again); a trapezoid from 0x6081/0x6083/0x6084 sampled at
   the loop's sample period; target reached (bit 10) once the profile has ended and the head is
   within 0x6067 for 0x6068 ms. A new set-point during a move re-plans from where the profile
   is (and is audited). Halt (bit 8) is not modelled.
@@ -32,15 +37,20 @@ What is modelled:
 * Homing method 35/37 (mode 6, bit 4's edge): the position actual becomes the home offset
   0x607C; homing attained (bit 12) and target reached (bit 10).
 * Touch probe 1 on the zero impulse (0x60B8/0x60B9/0x60BA): the plant's index latch.
-* The fault panel: :meth:`stall`, :meth:`lose_power` (no heartbeat, no answers, no torque),
-  :meth:`emcy`.
+* Power-on: the 0x2000 record holds the drive's own values (:data:`POWER_UP_PARAMS`, not
+  BIRIS's), the position actual starts at 0 where the head stands.
+* The fault panel: :meth:`stall`, :meth:`lose_power` (no heartbeat, no answers, no torque) and
+  :meth:`restore_power` (a power-on as above, the boot-up message included),
+  :meth:`disconnect` and :meth:`reconnect` (the CAN cable: nothing heard or sent meanwhile, the
+  drive keeps its state and faults as a heartbeat consumer), :meth:`emcy`.
 
 The drive's own audit (:attr:`SimulatedDrive.violations`, and the shared
 :class:`~sim.audit.Audit` where a rule has a counterpart there): a set-point beyond +-0x1000
 (MOTOR_BEYOND_LIMIT), a set-point while not OPERATION ENABLED, entering OPERATION ENABLED with
 a target more than :data:`JUMP_COUNTS` from the position actual (POSITION_MODE_WHILE_MOVING:
 a drive that takes its target on enabling would jump), a new set-point while the previous move
-runs or is unacknowledged, a set-point before the motor parameters and profile were written
+runs, a new set-point edge while bit 12 still acknowledges the previous one (ignored, as a
+drive does), a set-point before the motor parameters and profile were written
 (MOTION_WHILE_UNINITIALISED), an RPDO while not OPERATIONAL.
 """
 
@@ -74,7 +84,7 @@ from regs.hctl1000 import F_CLK_HZ, MOTION_LIMIT_COUNTS, SAMPLE_TIMER_MIN
 from sim.audit import Audit, Rule, Violation
 from sim.motor import MotorPlant
 
-__all__ = ["JUMP_COUNTS", "DriveRule", "SimulatedDrive", "build_dictionary"]
+__all__ = ["JUMP_COUNTS", "POWER_UP_PARAMS", "DriveRule", "SimulatedDrive", "build_dictionary"]
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +131,7 @@ class DriveRule(str, enum.Enum):
     SET_POINT_NOT_ENABLED = "SET_POINT_NOT_ENABLED"
     ENABLE_WITH_JUMP = "ENABLE_WITH_JUMP"
     SET_POINT_WHILE_MOVING = "SET_POINT_WHILE_MOVING"
+    SET_POINT_WHILE_ACKNOWLEDGED = "SET_POINT_WHILE_ACKNOWLEDGED"
     MOVE_UNCONFIGURED = "MOVE_UNCONFIGURED"
     RPDO_NOT_OPERATIONAL = "RPDO_NOT_OPERATIONAL"
 
@@ -170,12 +181,16 @@ def _mapping(name: str, index: int) -> od.ODRecord:
     return record
 
 
-_APPENDIX_B = MotorParams()
+POWER_UP_PARAMS = MotorParams(sample=0x40, zero=0xE5, pole=0x00, gain=0x40, max_vel=1, max_accel=1)
+"""The 0x2000 record a drive holds at power-on: its firmware's own values, not BIRIS's (the
+HCTL-1000 model's power-up filter, :data:`sim.hctl1000.POWER_UP`). The driver writes Appendix B's
+into RAM only, so a drive that lost power shows other parameters, as the board does: that is how
+the pan reference tells a power-cycled drive (its count restarted) from one that kept its count."""
 
 
-def build_dictionary(node_id: int, params: MotorParams = _APPENDIX_B) -> od.ObjectDictionary:
+def build_dictionary(node_id: int, params: MotorParams = POWER_UP_PARAMS) -> od.ObjectDictionary:
     """The simulated drive's object dictionary: what :mod:`biris_hw.axes.cia402` needs, with
-    a drive's power-up values (PDOs invalid, no heartbeat, Appendix B's parameters)."""
+    a drive's power-up values (PDOs invalid, no heartbeat, ``params`` in the motor record)."""
     new_dictionary: Any = od.ObjectDictionary
     d: od.ObjectDictionary = new_dictionary()
     d.node_id = node_id
@@ -292,7 +307,7 @@ class SimulatedDrive:
         clock: Callable[[], float],
         audit: Audit | None = None,
         *,
-        params: MotorParams = _APPENDIX_B,
+        params: MotorParams = POWER_UP_PARAMS,
         step_real_s: float = STEP_REAL_S,
         name: str = "",
         head_limit: float | None = None,
@@ -323,27 +338,8 @@ class SimulatedDrive:
         self.network = network
         # -- the drive's state (under _lock) --
         self._powered = True
-        self._state = DriveState.SWITCH_ON_DISABLED
-        self._cw = 0
-        self._mode = 0
-        self._offset = -plant.encoder_counts  # the position actual counts from power-up: 0
-        self._demand = 0.0
-        self._profile: _Profile | None = None
-        self._move_target = 0
-        self._ack = False
-        self._reached = False
-        self._window_s = 0.0
-        self._following_s = 0.0
-        self._following_error = False
-        self._homing_attained = False
-        self._homing_error = False
-        self._x_prev = 0
-        self._mc_prev = 0
-        self._error_register = 0
-        self._tp_function = 0
-        self._tp_stored = False
-        self._tp_value = 0
-        self._configured: set[tuple[int, int]] = set()
+        self._cut = False
+        """The CAN cable is pulled (:meth:`disconnect`): nothing heard, nothing sent."""
         self._t = clock()
         self._history: collections.deque[tuple[float, int]] = collections.deque(maxlen=HISTORY)
         """(clock time, position actual) after each sample, for :meth:`position_at`."""
@@ -358,26 +354,101 @@ class SimulatedDrive:
         there, CiA 301); cleared when the consumer is set anew (backdoor for tests)."""
         self._rpdo_cob: int | None = None
         self._tpdo_cob: int | None = None
+        self._error_register = 0
+        self._profile: _Profile | None = None
+        self._configured: set[tuple[int, int]] = set()
+        """Objects the master has written since power-on (the MOVE_UNCONFIGURED audit)."""
+        self._reset_application()
         # -- the node --
         self.od = build_dictionary(node_id, params)
         self.node = network.create_node(node_id, self.od)
         self._values: dict[tuple[int, int], int] = {}
-        for index in self.od:
-            obj = self.od[index]
-            members = [obj] if isinstance(obj, od.ODVariable) else list(obj.values())
-            for var in members:
-                self._values[(var.index, var.subindex)] = int(var.default or 0)
+        self._load_defaults(communication_only=False)
         local: Any = self.node  # canopen's callbacks are untyped
         local.add_read_callback(self._on_read)
         local.add_write_callback(self._on_write)
         self._subscribed: list[tuple[int, Callable[[int, bytearray, float], None]]] = []
         self._subscribe(0, self._on_nmt)
-        # boot-up, then pre-operational (heartbeat from 0x1017 when the master sets it)
-        self.node.nmt.send_command(0x81)
-        self.node.nmt.send_command(0x80)
+        self._boot()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"cia402-{node_id}", daemon=True)
         self._thread.start()
+
+    # -- power-on and NMT resets -------------------------------------------------------------------
+    def _load_defaults(self, *, communication_only: bool) -> None:
+        """The object dictionary's power-on values: all of them, or only the communication
+        profile's (0x1000-0x1FFF), which is what NMT reset communication restores."""
+        for index in self.od:
+            if communication_only and not 0x1000 <= index < 0x2000:
+                continue
+            obj = self.od[index]
+            members = [obj] if isinstance(obj, od.ODVariable) else list(obj.values())
+            for var in members:
+                self._values[(var.index, var.subindex)] = int(var.default or 0)
+        if communication_only:
+            self._configured = {k for k in self._configured if not 0x1000 <= k[0] < 0x2000}
+
+    def _reset_application(self) -> None:
+        """The drive's own state at power-on (and NMT reset node): SWITCH ON DISABLED, no mode,
+        no move, no fault, the touch probe off, and the position actual restarting at 0 where
+        the head stands (an incremental encoder's count does not survive)."""
+        self._state = DriveState.SWITCH_ON_DISABLED
+        self._cw = 0
+        self._mode = 0
+        self._offset = -self.plant.encoder_counts
+        self._demand = 0.0
+        self._profile = None
+        self._move_target = 0
+        self._ack = False
+        self._ack_falling = False
+        """Bit 4 has fallen: bit 12 falls at the next cycle (sample), not at once."""
+        self._reached = False
+        self._window_s = 0.0
+        self._following_s = 0.0
+        self._following_error = False
+        self._homing_attained = False
+        self._homing_error = False
+        self._x_prev = 0
+        self._mc_prev = 0
+        self._error_register = 0
+        self._tp_function = 0
+        self._tp_stored = False
+        self._tp_value = 0
+        self._configured = set()
+        self._history.clear()
+
+    def _reset_communication(self) -> None:
+        """NMT reset communication's part (and power-on's): the heartbeat stops, the PDOs and
+        the heartbeat consumer are off, the communication objects take their power-on values."""
+        self._silence()
+        if self._rpdo_cob is not None:
+            self._unsubscribe(self._rpdo_cob, self._on_rpdo)
+            self._rpdo_cob = None
+        self._tpdo_cob = None
+        if self._consumer is not None:
+            self._unsubscribe(0x700 + self._consumer[0], self._on_master_heartbeat)
+        self._consumer = None
+        self._master_seen = None
+        self._master_lost = False
+        self._load_defaults(communication_only=True)
+        self._sent_status = None
+
+    def _boot(self) -> None:
+        """Boot-up message, then pre-operational (heartbeat from 0x1017 when the master sets
+        it: 0 at power-on)."""
+        self.node.nmt.send_command(0x81)
+        self.node.nmt.send_command(0x80)
+
+    def _serve_sdo(self, serving: bool) -> None:
+        """Answer SDO requests, or not (no power, no cable): the master then times out."""
+        rx = 0x600 + self.node_id
+        try:
+            if serving:
+                self.network.subscribe(rx, self.node.sdo.on_request)
+            else:
+                self.network.unsubscribe(rx, self.node.sdo.on_request)
+        except (KeyError, ValueError):
+            pass
 
     # -- fault panel ------------------------------------------------------------------------------
     def stall(self, stalled: bool = True) -> None:
@@ -398,14 +469,70 @@ class SimulatedDrive:
         """The drive goes dark: no heartbeat, no answers, no torque (the head coasts)."""
         with self._lock:
             self._advance()
+            if not self._powered:
+                return
             self._powered = False
             self._profile = None
             self._state = DriveState.NOT_READY_TO_SWITCH_ON
             self._silence()
-            try:
-                self.network.unsubscribe(0x600 + self.node_id, self.node.sdo.on_request)
-            except (KeyError, ValueError):
-                pass
+            if not self._cut:
+                self._serve_sdo(False)
+
+    def restore_power(self) -> None:
+        """Power comes back (after :meth:`lose_power`): the drive boots as it did at first --
+        every object at its power-on value (PDOs off, no heartbeat, its own motor record), SWITCH
+        ON DISABLED, the position actual restarting at 0 where the head coasted to -- sends its
+        boot-up message and waits in pre-operational for a master to set it up again."""
+        with self._lock:
+            self._advance()  # the coast so far, unpowered
+            if self._powered:
+                return
+            self._powered = True
+            self._reset_communication()
+            self._load_defaults(communication_only=False)
+            self._reset_application()
+            if not self._cut:
+                self._serve_sdo(True)
+                self._boot()
+
+    def disconnect(self) -> None:
+        """The drive's CAN cable is pulled: it keeps its power, its state and its loop, but
+        hears nothing and sends nothing (no heartbeat, PDO, EMCY or SDO answer). As a heartbeat
+        consumer it then misses the master and faults (EMCY 0x8130, which nobody hears)."""
+        with self._lock:
+            self._advance()
+            if self._cut:
+                return
+            self._cut = True
+            self._silence()
+            self._unsubscribe_nmt(True)
+            if self._powered:
+                self._serve_sdo(False)
+
+    def reconnect(self) -> None:
+        """The cable is back (after :meth:`disconnect`): the drive hears the bus again and its
+        heartbeat producer resumes; whatever happened meanwhile (a fault) is as it left it."""
+        with self._lock:
+            self._advance()
+            if not self._cut:
+                return
+            self._cut = False
+            self._unsubscribe_nmt(False)
+            if self._powered:
+                self._serve_sdo(True)
+                period = self._values[(0x1017, 0)]
+                if period and self.node.nmt.state != "INITIALISING":
+                    self.node.nmt.start_heartbeat(period)
+
+    def _unsubscribe_nmt(self, cut: bool) -> None:
+        """canopen's own NMT slave stops (or starts again) hearing NMT commands."""
+        try:
+            if cut:
+                self.network.unsubscribe(0, self.node.nmt.on_command)
+            else:
+                self.network.subscribe(0, self.node.nmt.on_command)
+        except (KeyError, ValueError):
+            pass
 
     def emcy(self, code: int, fault: bool = True) -> None:
         """Send EMCY ``code``; with ``fault``, the drive faults with it (as a drive whose EMCY
@@ -541,6 +668,8 @@ class SimulatedDrive:
         a head that friction holds."""
         if self._profile is not None or self._mc_prev != 0 or self._x_prev != 0:
             return False
+        if self._ack_falling:
+            return False
         if self._enabled() and (round(self._demand) != self._actual() or not self._reached):
             return False
         return self.plant.holds_at_rest(0)
@@ -552,6 +681,8 @@ class SimulatedDrive:
         )
 
     def _sample(self, period: float) -> None:
+        if self._ack_falling:  # one cycle after bit 4 fell (CiA 402's handshake)
+            self._ack = self._ack_falling = False
         actual = self._actual()
         if self._enabled():
             profile = self._profile
@@ -649,6 +780,8 @@ class SimulatedDrive:
         self._transmit(cob)
 
     def _transmit(self, cob: int) -> None:
+        if self._cut:
+            return
         frame = b""
         for sub in range(1, self._values[(0x1A00, 0)] + 1):
             entry = self._values[(0x1A00, sub)]
@@ -743,6 +876,7 @@ class SimulatedDrive:
             if value != self._mode:
                 self._mode = value
                 self._ack = False
+                self._ack_falling = False
                 self._homing_attained = self._homing_error = False
         elif index == 0x60B8:
             self._touch_probe_function(value, old)
@@ -791,20 +925,39 @@ class SimulatedDrive:
     # -- bus events (the network's receive thread) ------------------------------------------------
     def _on_master_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self._lock:
+            if self._cut:
+                return
             self._master_seen = time.monotonic()
             self._master_lost = False
         self.master_heard.set()
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """NMT commands for this node, after canopen's own slave has taken the state: entering
+        OPERATIONAL sends the event PDO once; reset node (0x81) restarts the application and
+        communication as a power-up does, reset communication (0x82) the communication
+        objects only (the CiA 402 state, the count and the motor record stay); both end with
+        the boot-up message and pre-operational, as CiA 301 has it."""
         with self._lock:
-            if len(data) >= 2 and data[1] in (0, self.node_id) and data[0] == 0x01:
+            if len(data) < 2 or data[1] not in (0, self.node_id):
+                return
+            if self._cut or not self._powered:
+                return
+            command = data[0]
+            if command == 0x01:
                 self._sent_status = None  # entering OPERATIONAL: the event PDO goes out once
                 self._advance()
                 self._publish()
+            elif command in (0x81, 0x82):
+                self._advance()
+                self._reset_communication()
+                if command == 0x81:
+                    self._load_defaults(communication_only=False)
+                    self._reset_application()
+                self._boot()
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self._lock:
-            if not self._powered:
+            if not self._powered or self._cut:
                 return
             if self.node.nmt.state != "OPERATIONAL":
                 self._violation(DriveRule.RPDO_NOT_OPERATIONAL, f"RPDO {bytes(data).hex()}")
@@ -854,10 +1007,18 @@ class SimulatedDrive:
         if self._state is DriveState.OPERATION_ENABLED:
             rising = cw & Cw.NEW_SET_POINT and not prev & Cw.NEW_SET_POINT
             if self._mode == 1:
-                if rising:
+                if rising and self._ack:
+                    # the previous handshake is not over (bit 12 still set): a drive with a
+                    # single set-point takes no new one, and the edge is gone when bit 12 falls
+                    self._violation(
+                        DriveRule.SET_POINT_WHILE_ACKNOWLEDGED,
+                        f"set-point to {self._values[(0x607A, 0)]} ignored: bit 12 still "
+                        "acknowledges the previous one",
+                    )
+                elif rising:
                     self._set_point(cw)
-                elif not cw & Cw.NEW_SET_POINT:
-                    self._ack = False
+                elif not cw & Cw.NEW_SET_POINT and self._ack:
+                    self._ack_falling = True  # bit 12 falls at the next cycle
             elif self._mode == 6 and rising:
                 self._home()
         elif cw & Cw.NEW_SET_POINT and not prev & Cw.NEW_SET_POINT and self._mode == 1:
@@ -910,16 +1071,19 @@ class SimulatedDrive:
             self._profile = None
             self._x_prev = self._mc_prev = 0
             self._ack = False
+            self._ack_falling = False
             self._reached = True
             self._window_s = 0.0
             self._following_s = 0.0
             self._homing_attained = self._homing_error = False
         elif new is DriveState.QUICK_STOP_ACTIVE:
             self._ack = False
+            self._ack_falling = False
             self._stop_ramp(self._values[(0x6085, 0)])
         elif new is not DriveState.OPERATION_ENABLED:
             self._profile = None
             self._ack = False
+            self._ack_falling = False
             self._reached = False
 
     def _stop_ramp(self, decel: int) -> None:
@@ -939,7 +1103,7 @@ class SimulatedDrive:
             target += self._move_target
         if abs(target) > MOTION_LIMIT_COUNTS:
             self._violation(DriveRule.TARGET_BEYOND_LIMIT, f"set-point to {target}")
-        if self._profile is not None or self._ack:
+        if self._profile is not None:
             self._violation(
                 DriveRule.SET_POINT_WHILE_MOVING,
                 f"set-point to {target} while moving to {self._move_target}",
@@ -980,6 +1144,7 @@ class SimulatedDrive:
         self._state = DriveState.FAULT
         self._profile = None
         self._ack = False
+        self._ack_falling = False
         self._reached = False
         self._x_prev = self._mc_prev = 0
         self._error_register |= 0x01
@@ -988,7 +1153,7 @@ class SimulatedDrive:
 
     def _send_emcy(self, code: int) -> None:
         self.emcy_sent.append(code)
-        if not self._powered:
+        if not self._powered or self._cut:
             return
         try:
             self.node.emcy.send(code, self._error_register)

@@ -22,6 +22,13 @@ calibration table loaded for head elevation ``lut`` folds that elevation into ea
 so used at the actual tilt ``t`` it reads row r (angle e_r to the axis) as
 ``z cos(t + e_r) / cos(lut + e_r) + lut_offset_m_per_rad (t - lut)``: a scale that differs from
 row to row (a flat wall comes out bent) plus an offset. With the table matched, both vanish.
+
+On a moving vehicle (docs/simulator.md, "A moving vehicle") the head rides on it: the pan axis
+stands at ``mount_xy_m`` in the vehicle frame (the init record's ``mount_offset_m``, x and y; the
+simulator's head sits at the vehicle's origin), and the vehicle is at (x, y, yaw) in the scene.
+The vehicle only moves in the plane and the pan axis is vertical, so its yaw simply adds to the
+azimuth and the rays' origin moves with it: the fan stays one heading seen from above and the
+ray caster's fast path, and an acquisition costs the same whether the vehicle moves or not.
 """
 
 from __future__ import annotations
@@ -64,8 +71,14 @@ class OpticsParams:
     """Horizontal distance from the pan axis to the optical centre, along the azimuth."""
     lut_offset_m_per_rad: float = 0.1
     """Offset a mismatched calibration table adds, per radian of mismatch."""
+    mount_xy_m: tuple[float, float] = (0.0, 0.0)
+    """Where the pan axis stands in the vehicle frame (x forward, y left), metres."""
 
     def __post_init__(self) -> None:
+        mount = tuple(float(v) for v in self.mount_xy_m)
+        if len(mount) != 2 or not all(math.isfinite(v) for v in mount):
+            raise ValueError(f"mount_xy_m must be two finite numbers, not {self.mount_xy_m!r}")
+        object.__setattr__(self, "mount_xy_m", mount)
         if not 0.0 < self.fan_deg < 180.0:
             raise ValueError(f"fan_deg must be in (0, 180), not {self.fan_deg}")
         if not 0.0 < self.min_range_m < self.max_range_m <= I16_MAX / 1000.0:
@@ -144,12 +157,26 @@ class BirisOptics:
         return self._elevations
 
     def rays(
-        self, azimuth_rad: float, tilt_rad: float = 0.0, head_height_m: float | None = None
+        self,
+        azimuth_rad: float,
+        tilt_rad: float = 0.0,
+        head_height_m: float | None = None,
+        vehicle_pose: tuple[float, float, float] | None = None,
     ) -> tuple[FloatArray, FloatArray]:
-        """Origin (3,) and unit directions (N, 3) of the rows' rays in the world frame."""
+        """Origin (3,) and unit directions (N, 3) of the rows' rays in the world frame.
+
+        ``vehicle_pose`` is the vehicle's (x_m, y_m, yaw_rad) in the world; None: at the
+        origin facing +x, where the vehicle frame is the world frame."""
         p = self._params
         h = p.head_height_m if head_height_m is None else head_height_m
         ca, sa = math.cos(azimuth_rad), math.sin(azimuth_rad)
+        mx, my = p.mount_xy_m
+        ox, oy = mx + p.pan_offset_m * ca, my + p.pan_offset_m * sa  # in the vehicle frame
+        if vehicle_pose is not None:
+            vx, vy, vyaw = vehicle_pose
+            cy, sy = math.cos(vyaw), math.sin(vyaw)
+            ox, oy = vx + cy * ox - sy * oy, vy + sy * ox + cy * oy
+            ca, sa = math.cos(azimuth_rad + vyaw), math.sin(azimuth_rad + vyaw)
         if self._tilt[0] != tilt_rad:  # the tilt axis rarely moves: keep its trigonometry
             up = tilt_rad + self._elevations
             self._tilt = (tilt_rad, np.cos(up), np.sin(up))
@@ -158,7 +185,7 @@ class BirisOptics:
         directions[:, 0] = level * ca
         directions[:, 1] = level * sa
         directions[:, 2] = rise
-        origin = np.array([p.pan_offset_m * ca, p.pan_offset_m * sa, h])
+        origin = np.array([ox, oy, h])
         return origin, directions
 
     def acquire(
@@ -168,11 +195,13 @@ class BirisOptics:
         tilt_rad: float = 0.0,
         head_height_m: float | None = None,
         lut_tilt_rad: float | None = None,
+        vehicle_pose: tuple[float, float, float] | None = None,
     ) -> Acquisition:
         """Expose one profile at this pose. ``lut_tilt_rad`` is the elevation the loaded
-        calibration table was made for (None: made for this tilt); see the module notes."""
+        calibration table was made for (None: made for this tilt); ``vehicle_pose`` is where the
+        vehicle stands (see :meth:`rays`); see the module notes."""
         p = self._params
-        origin, directions = self.rays(azimuth_rad, tilt_rad, head_height_m)
+        origin, directions = self.rays(azimuth_rad, tilt_rad, head_height_m, vehicle_pose)
         slant, albedo = scene.cast(origin, directions)
         depth = slant * self._cos_rows
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -34,10 +34,12 @@ from sim.clock import SimClock
 from sim.faults import FaultPanel
 from sim.irqgate import InterruptGate
 from sim.motor import MotorPlant
+from sim.odometry import DEFAULT_ODOMETRY, Odometry, OdometryParams
 from sim.optics import BirisOptics
 from sim.scene import Scene
 from sim.supervisor import BirisSupervisor
 from sim.tech80 import Model7600
+from sim.trajectory import Pose, Trajectory
 
 if TYPE_CHECKING:
     import canopen
@@ -199,6 +201,11 @@ class SimulatedBiris:
     modelled cost of an OUT and IN pair in hardware seconds (default: the device's, two
     high-speed microframes).
 
+    ``trajectory=`` (a :class:`~sim.trajectory.Trajectory`) drives the vehicle through the
+    scene: the optics see from the head's true place at each exposure, :meth:`true_pose` is the
+    truth and :attr:`odometry` what the base reports, with the drift and noise of ``odometry=``
+    (an :class:`~sim.odometry.OdometryParams`). Without one the vehicle stands at the origin.
+
     ``crate=True`` adds the VME crate's own monitor: a simulated Wiener crate on a python-can
     ``virtual`` channel of the rig's own (:attr:`crate`, its fault panel; crate id
     :data:`CRATE_ID`), and the driver's :class:`~biris_hw.crate.CrateMonitor` as
@@ -225,6 +232,8 @@ class SimulatedBiris:
         crate_poll_s: float = 0.05,
         clock: str = "scaled",
         stall_timeout: float | None = 60.0,
+        trajectory: Trajectory | None = None,
+        odometry: OdometryParams = DEFAULT_ODOMETRY,
     ) -> None:
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, not {clock!r}")
@@ -256,12 +265,19 @@ class SimulatedBiris:
         """The simulated VM-USB (``transport="vmusb"``): its counters and audit of the USB side."""
         self.usb_backend: VmUsbBackend | None = None
         """The pyusb backend the driver finds the VM-USB through (``transport="vmusb"``)."""
+        self.unplugged_usb_devices: list[SimulatedVmUsb] = []
+        """VM-USBs that :meth:`replug_usb` replaced (unplugged, kept for their counters and
+        audits; closed with the rig)."""
         self.crate: SimulatedCrate | None = None
         """The VME crate's simulated Wiener monitor on CAN (``crate=True``): its state and
         fault panel (``fail_fan``, ``overheat``, ``power_off``, ``go_silent``)."""
         self.crate_channel: str | None = None
         """The python-can ``virtual`` channel the crate answers on (``crate=True``)."""
         self.scene = scene if scene is not None else Scene.room()
+        self.trajectory = trajectory
+        """The vehicle's path through the scene (docs/simulator.md, "A moving vehicle"); None:
+        it stands at the origin facing +x."""
+        self._exposure_t = 0.0
         self._initial_elevation = float(initial_elevation_counts)
         self.samples = samples
         self.seed = seed
@@ -281,6 +297,15 @@ class SimulatedBiris:
         drives it (:class:`~biris_hw.timebase.VirtualTime`, rule 4)."""
         self.clock = SimClock(time_scale, timebase=self.timebase)
         self.audit = Audit(self.clock.now)
+        self.odometry = Odometry(
+            trajectory if trajectory is not None else Trajectory.standing(),
+            odometry,
+            seed=seed,
+            clock=self.clock.now,
+            timebase=self.timebase,
+        )
+        """The vehicle's odometry as its base publishes it (50 Hz, hardware-clock stamps, the
+        drift and noise of ``odometry``): ``rig.odometry.since(t)``, ``.wait(t)``, ``.latest()``."""
         seeds = np.random.SeedSequence(seed).spawn(5)
         rngs = [np.random.default_rng(s) for s in seeds]
         self._closed = False
@@ -353,7 +378,7 @@ class SimulatedBiris:
             self.clock,
             self.level2_gate,
             self._acquire,
-            self._encoder_azimuth,
+            self._exposure_azimuth,
             audit=self.audit,
             rng=rngs[4],
             tilting=self._tilting,
@@ -560,6 +585,48 @@ class SimulatedBiris:
             lag=self.lag_s,
         )
 
+    def unplug_usb(self) -> None:
+        """The VM-USB's USB cable is pulled (``transport="vmusb"``): the device vanishes, every
+        transfer fails, the driver's bridge is lost. The crate behind it keeps running."""
+        self._usb_device().unplug()
+
+    def replug_usb(self) -> SimulatedVmUsb:
+        """The cable is plugged back in (after :meth:`unplug_usb`): the VM-USB enumerates anew
+        on the same backend, with the same serial number, in power-on state (no stack, no ISV
+        entry, data taking off), before the same crate, whose boards kept their state.
+        :attr:`usb_device` becomes the new device (returned); the old one goes to
+        :attr:`unplugged_usb_devices`. A VME interrupt the crate raises before the driver has
+        armed the new device is dropped and audited there (``VMUSB_IRQ_UNSERVICED``), as any
+        unarmed interrupt is."""
+        from sim.vmusb import SimulatedVmUsb
+
+        old = self._usb_device()
+        if old.present:
+            raise RuntimeError("the VM-USB is plugged in: unplug_usb() first")
+        assert self.usb_backend is not None
+        new = SimulatedVmUsb(
+            serial=old.serial,
+            clock=self.clock.now,
+            time_scale=self.clock.time_scale,
+            transfer_latency_s=old.transfer_latency_s,
+        )
+        far = {
+            "biris": self._driver_window,
+            "motion": self._motion_window,
+            "coupler": self._coupler_window,
+        }
+        for name, (base, _, bits) in VME_MAP.items():
+            new.map(name, far[name], base, bits)
+        self.unplugged_usb_devices.append(old)
+        self.usb_device = new
+        self.usb_backend.add(new)
+        return new
+
+    def _usb_device(self) -> SimulatedVmUsb:
+        if self.usb_device is None:
+            raise RuntimeError('no VM-USB: the rig was made without transport="vmusb"')
+        return self.usb_device
+
     def _driver_windows(self) -> list[BusWindow]:
         """The windows only the driver reads through (those of :attr:`hardware`; the VM-USB's
         when the transport is ``vmusb``): what the fault panel's slow reads slow. The
@@ -637,10 +704,27 @@ class SimulatedBiris:
                 el_off = el_plant.true_azimuth_counts - self.board.elevation.actual_position
         true_az = azimuth_rad + az_off * _TWO_PI_PER_COUNT
         true_tilt = tilt_rad + el_off * _TWO_PI_PER_COUNT
-        frame = self.optics.acquire(self.scene, true_az, true_tilt, lut_tilt_rad=lut_tilt_rad)
+        vehicle = None if self.trajectory is None else self.trajectory.pose(self._exposure_t)
+        frame = self.optics.acquire(
+            self.scene, true_az, true_tilt, lut_tilt_rad=lut_tilt_rad, vehicle_pose=vehicle
+        )
         return frame.range_mm, frame.intensity
 
+    def _exposure_azimuth(self, t: float) -> float:
+        """The supervisor's encoder reading at mid-exposure, which it takes at the exposure's
+        time ``t`` just before it calls :meth:`_acquire` (under its lock): ``t`` is kept for
+        :meth:`_acquire` to place the vehicle where it was then."""
+        self._exposure_t = t
+        return self._encoder_azimuth(t)
+
     # -- backdoor --------------------------------------------------------------------------------
+    def true_pose(self, t_hw: float) -> Pose:
+        """(x_m, y_m, yaw_rad) of the vehicle in the scene at hardware time ``t_hw``, yaw in
+        [-pi, pi): the truth the odometry drifts from."""
+        if self.trajectory is None:
+            return (0.0, 0.0, 0.0)
+        return self.trajectory.pose(t_hw)
+
     @property
     def azimuth_counts(self) -> float:
         """The head's true azimuth in counts (0 = the zero index), read without side effects."""
@@ -690,6 +774,8 @@ class SimulatedBiris:
         self._supervisor_window.close()
         if self.usb_device is not None:
             self.usb_device.close()
+        for old in self.unplugged_usb_devices:
+            old.close()
 
     def __enter__(self) -> SimulatedBiris:
         return self.start()

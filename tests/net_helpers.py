@@ -234,13 +234,10 @@ def _serve(argv: Sequence[str]) -> None:
 
 
 def _cli_serve(argv: Sequence[str]) -> None:
-    from biris_hw.commands import serve
+    """``biris serve ARGV`` as the CLI runs it: its own SIGTERM handling (exit 143) included."""
+    from biris_hw.cli import main as cli_main
 
-    parser = argparse.ArgumentParser(prog="biris serve")
-    serve.add_arguments(parser)
-    args = parser.parse_args(argv)
-    args.command = "serve"
-    raise SystemExit(serve.run(args))
+    raise SystemExit(cli_main(["serve", *argv]))
 
 
 def _reader(argv: Sequence[str]) -> None:
@@ -302,7 +299,9 @@ def _on_term(signum: int, frame: object) -> None:
     interrupt in the middle of the service's close would leave its threads and session up)."""
     if not _STOPPING.is_set():
         _STOPPING.set()
-        raise KeyboardInterrupt
+        from biris_hw.commands.failures import Terminated
+
+        raise Terminated  # a KeyboardInterrupt that CPython does not turn into death by SIGINT
 
 
 def main(argv: Sequence[str]) -> None:

@@ -119,24 +119,29 @@ class _Ring:
 
     Frame k of the ring's life is exposed for one period from ``first + k * PERIOD`` in slot
     ``k % RING`` and written when it completes, with k in its first intensity sample, so that
-    every acquisition read says which frame it is. A stop abandons the frame in exposure.
+    every acquisition read says which frame it is; a hang (:meth:`hang`) holds it where it is,
+    and what follows is later by the hang's length. A stop abandons the frame in exposure.
     What the reader hands over is totalled in :attr:`read`, :attr:`lost` and :attr:`idle`.
+    ``look_slack_real_s`` is the reader's (None: its default).
     """
 
-    def __init__(self, first: float) -> None:
+    def __init__(self, first: float, look_slack_real_s: float | None = None) -> None:
         frame = 2 * (SAMPLES + 1)
         self.addr = FrameAddressing(0x40, frame, 0x40 + 2 * RING * frame)
         self.window = MemoryWindow(self.addr.azimuth_offset + 4 * RING)
         self.link = _Link()
         self.clock = _Clock()
+        slack = {} if look_slack_real_s is None else {"look_slack_real_s": look_slack_real_s}
         self.reader = AcquisitionReader(
             self.window,
             self.link,  # type: ignore[arg-type]
             self.clock,
             2000,
+            **slack,
         )
         self.reader.configure(self.addr, SAMPLES, PERIOD)
         self.first = first
+        self.hangs: list[tuple[float, float]] = []
         self.stopped_at: float | None = None
         self.written = 0
         self.read: list[int] = []
@@ -145,11 +150,19 @@ class _Ring:
         self.lives = 0
         self.sweeps_done: list[int] = []
 
+    def hang(self, start: float, end: float) -> None:
+        """BIRIS hangs from ``start`` to ``end``: nothing begins or completes meanwhile."""
+        self.hangs.append((start, end))
+
+    def _acquiring(self, t: float) -> float:
+        """``t`` less the time BIRIS spent hung by then: where its frames stand at ``t``."""
+        return t - sum(max(0.0, min(t, end) - start) for start, end in self.hangs)
+
     def completed(self, t: float) -> int:
         """Frames completed by ``t``."""
         if self.stopped_at is not None:
             t = min(t, self.stopped_at)
-        return max(0, math.floor((t - self.first) / PERIOD))
+        return max(0, math.floor((self._acquiring(t) - self.first) / PERIOD))
 
     def at(self, t: float) -> None:
         """Hardware time moves to ``t``: frames complete, ACQ_LINE names the one in exposure."""
@@ -163,18 +176,16 @@ class _Ring:
         elif t < self.first:
             self.link.line = ACQ_LINE_STARTUP
         else:
-            self.link.line = math.floor((t - self.first) / PERIOD) % RING
+            self.link.line = math.floor((self._acquiring(t) - self.first) / PERIOD) % RING
 
     def stop(self, t: float) -> None:
-        """BI_STOP_CONTINUOUS obeyed at ``t``: CURRENT_FRAME names the last completed frame (or,
-        if none completed, the slot of the abandoned frame 0, if it had begun)."""
+        """BI_STOP_CONTINUOUS written and obeyed at ``t``: CURRENT_FRAME names the last
+        completed frame's slot, -1 when none completed (whatever an earlier ring left there)."""
         self.at(t)
+        self.reader.stop_written()
         self.stopped_at = t
         done = self.completed(t)
-        if done:
-            self.link.set_current_frame((done - 1) % RING)
-        elif t >= self.first:
-            self.link.set_current_frame(0)
+        self.link.set_current_frame((done - 1) % RING if done else -1)
         self.at(t)
 
     def take(self, drained: Drained) -> Drained:
@@ -195,6 +206,12 @@ class _Ring:
         self.at(t)
         with self.reader.lock:
             return self.take(self.reader.end_sweep())
+
+    def watch(self, t: float) -> bool:
+        """The BIRIS timeout's look at an idle ring (BirisRecheck): is it moving?"""
+        self.at(t)
+        with self.reader.lock:
+            return self.reader.watch_ring()
 
     def open_sweep(self, t: float, seq: int, follows: bool = False) -> None:
         self.at(t)
@@ -223,8 +240,8 @@ class _Ring:
         assert len(self.read) + self.lost + self.idle == self.completed(math.inf)
 
 
-def _live_ring(first_offset: float = 0.3) -> _Ring:
-    ring = _Ring(first=STARTUP_S + 0.01)
+def _live_ring(first_offset: float = 0.3, look_slack_real_s: float | None = None) -> _Ring:
+    ring = _Ring(first=STARTUP_S + 0.01, look_slack_real_s=look_slack_real_s)
     ring.start(0.0)
     ring.drain(ring.frame(first_offset))  # the first data interrupt: live
     assert ring.reader.ring_state is RingState.IDLE and ring.lives == 1
@@ -334,6 +351,74 @@ def test_frames_overwritten_under_a_sweep_are_lost_not_idle() -> None:
     ring.stop(ring.frame(23.4))
     ring.stop_ring(ring.frame(23.5))
     ring.check_accounted()
+
+
+def test_a_stop_noticed_late_books_nothing_when_the_ring_completed_no_frame() -> None:
+    """CURRENT_FRAME reads -1 after a ring that completed nothing: a slot an earlier ring left
+    there, or the abandoned frame 0's, must not read as this ring's frames, however late the
+    stop is noticed (the random runs' +82 and +4)."""
+    for stopped in (0.1, STARTUP_S + 0.01 + 0.5 * PERIOD):  # in the start-up; in frame 0
+        ring = _Ring(first=STARTUP_S + 0.01)
+        ring.link.set_current_frame(5)  # left over from an earlier ring
+        ring.start(0.0)
+        ring.stop(stopped)
+        ring.stop_ring(ring.frame(2.5))  # when frame 1 could have completed
+        assert ring.read == [] and ring.idle == 0 and ring.lost == 0
+        ring.check_accounted()
+
+
+def test_the_watch_sees_an_idle_ring_move_and_stand_still() -> None:
+    ring = _live_ring(look_slack_real_s=0.0)
+    assert ring.watch(ring.frame(3.4))
+    assert ring.watch(ring.frame(3.5))  # too soon to tell: nothing begun, none due
+    ring.hang(ring.frame(4.6), ring.frame(40.0))
+    assert ring.watch(ring.frame(7.0))  # hung in frame 4, which began since the last look
+    assert not ring.watch(ring.frame(11.0))  # four periods, nothing begun: standing still
+    assert not ring.watch(ring.frame(30.0))  # and still (the clock would say two laps on)
+    assert ring.watch(ring.frame(42.5))  # resumed: frames 5 to 7 begun
+
+
+def test_a_ring_seen_standing_still_books_no_lap_across_the_hang() -> None:
+    """BIRIS hangs for 20 periods (two and a half laps) while the ring idles; the BIRIS
+    timeout's look sees it standing still, and the stop after BIRIS resumed books what BIRIS
+    made, not the laps the clock would give (the review's +1,024 per 34 s of hang)."""
+    ring = _live_ring(look_slack_real_s=0.0)
+    assert ring.watch(ring.frame(3.4))
+    ring.hang(ring.frame(3.6), ring.frame(23.6))
+    assert not ring.watch(ring.frame(7.4))  # half a lap (of this short ring) after the last
+    ring.stop(ring.frame(27.0))  # resumed at 23.6: frames 0..6 completed, 7 abandoned
+    ring.stop_ring(ring.frame(27.2))
+    assert ring.idle == 7 and ring.read == [] and ring.lost == 0
+    ring.check_accounted()
+
+
+def test_an_unwatched_ring_that_stopped_acquiring_books_the_slot_advance_only() -> None:
+    """No look during the hang (the timeout disabled): the clock's two laps do not agree with
+    the time that passed, so BIRIS is not known to have made them."""
+    ring = _live_ring(look_slack_real_s=0.0)
+    ring.hang(ring.frame(3.6), ring.frame(23.6))
+    ring.stop(ring.frame(27.0))
+    ring.stop_ring(ring.frame(27.2))
+    assert ring.idle == 7
+    ring.check_accounted()
+
+
+def test_a_stop_noticed_late_still_books_the_laps_biris_made() -> None:
+    """BIRIS acquired all the while; its stop's completion is noticed two and a half periods
+    late. BIRIS stopped between the stop's write and that notice, so the clock's laps are
+    borne out anywhere in that span."""
+    ring = _live_ring(look_slack_real_s=0.0)
+    ring.stop(ring.frame(25.7))  # frames 0..24 completed, 25 abandoned
+    ring.stop_ring(ring.frame(28.2))
+    assert ring.idle == 25
+    ring.check_accounted()
+
+
+def test_the_laps_of_an_unwatched_healthy_ring_are_booked_from_the_clock() -> None:
+    ring = _live_ring(look_slack_real_s=0.0)
+    ring.open_sweep(ring.frame(21.4), seq=1)  # two laps and more after going live: 21 frames
+    ring.drain(ring.frame(22.3))
+    assert ring.idle == 21 and ring.read == [21]
 
 
 @pytest.mark.parametrize("seed", range(24))

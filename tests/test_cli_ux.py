@@ -488,7 +488,7 @@ def test_ctrl_c_in_the_demo_draws_what_it_has(
     )  # fmt: skip
     assert code == EXIT_INTERRUPTED, err
     made = fired[0]
-    assert _lines(err) == [
+    assert _said(err) == [
         f"biris demo: interrupted: wrote the latest 2 of {made} sweeps to {out_dir}"
     ]
     assert f"biris demo: {made} sweeps (" in out

@@ -1,16 +1,21 @@
 """The live view, checked from the other end: a real WebSocket client (``websockets``) speaking
 the Foxglove protocol sees the channels advertised and receives messages that decode; through a
 fault it stays open, says ERROR on /diagnostics and gets data again after a reset. ``biris
-view`` itself is run in-process through a fault and a reset from another thread."""
+view`` itself is run in-process through a fault and a reset from another thread. A view nobody
+closes is closed by the garbage collector, or at the interpreter's exit."""
 
 from __future__ import annotations
 
 import argparse
+import gc
 import io
 import json
 import struct
+import subprocess
+import sys
 import threading
 import time
+import weakref
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -299,3 +304,69 @@ def test_biris_view_serves_on_through_a_fault(
     assert said[0].endswith("the live view serves on and shows it on /diagnostics")
     assert said[1].startswith("biris view: the server has left the fault (state ")
     assert said[2] == "biris view: sweeping again"
+
+
+# -- a view nobody closes --------------------------------------------------------------------------
+
+
+def _listening(port: int) -> bool:
+    """A viewer can open the WebSocket (a whole handshake: a bare TCP probe would make the
+    server log a failed one from a thread of its own)."""
+    try:
+        with connect(
+            f"ws://127.0.0.1:{port}",
+            subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
+            open_timeout=WAIT,
+        ):
+            return True
+    except OSError:
+        return False
+
+
+def test_a_view_nobody_closes_is_closed_by_the_garbage_collector(
+    rig: SimulatedBiris, server: BirisServer
+) -> None:
+    """The feed holds a view only weakly: once its owner drops it, the collector takes it, and
+    its WebSocket server stops and its sink detaches (the feed, its last, stops reading)."""
+    view: LiveView | None = LiveView(server, port=0).start()
+    assert view is not None
+    port = view.port
+    ref = weakref.ref(view)
+    assert _listening(port)
+    until(lambda: len(server.status().connections) > 0, what="the view's feed reading")
+    view = None
+    gc.collect()
+    assert ref() is None
+    until(lambda: not _listening(port), what="the WebSocket server stopped")
+    until(lambda: not server.status().connections, what="the feed's connections closed")
+
+
+_FORGETFUL = """
+import logging, sys
+logging.basicConfig(stream=sys.stderr, level=logging.WARNING, format="%(message)s")
+logging.getLogger("biris_hw.io.liveview").setLevel(logging.DEBUG)
+from sim import Scene, SimulatedBiris
+from biris_hw import BirisServer
+from biris_hw.records import BirisInitRecord
+from biris_hw.io.liveview import LiveView
+rig = SimulatedBiris(scene=Scene.circle(2.0), clock="virtual", seed=3).start()
+server = BirisServer(rig.hardware, BirisInitRecord()).__enter__()
+view = LiveView(server, port=0).start()
+print(view.port, flush=True)
+"""
+"""A script that opens a live view (and its sensor) and ends without closing anything."""
+
+
+def test_a_script_that_forgets_close_ends_and_its_view_is_closed_at_exit() -> None:
+    done = subprocess.run(
+        [sys.executable, "-c", _FORGETFUL],
+        cwd=Path(__file__).parents[1],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    port = int(done.stdout)
+    closed = f"live view on ws://127.0.0.1:{port} closed: its owner had not closed it"
+    assert closed in done.stderr.splitlines(), done.stderr

@@ -18,7 +18,7 @@ import pytest
 import zenoh
 
 from biris_hw.data import DeliveryPolicy, Direction
-from biris_hw.errors import ConnectionClosed, HardwareFault, RequestError
+from biris_hw.errors import ConnectionClosed, HardwareFault, Initialising, RequestError
 from biris_hw.io.net import RemoteSensor, Service, connect, remote, serve
 from biris_hw.io.net.keys import Keys
 from biris_hw.io.net.service import MAX_BLOCKING, NEW_CLIENT_BURST, _Client
@@ -248,12 +248,12 @@ def test_a_feed_that_ends_closes_its_connection(
 def test_a_feed_reads_on_while_the_server_initialises(
     fake: FakeSensor, served: tuple[Service, str]
 ) -> None:
-    """During a reset every read is refused (RequestError: the server is initialising); the
-    feed looks again on the same connection, whose data come back when the reset is done."""
+    """During a reset every read is refused (Initialising, a RequestError); the feed looks again
+    on the same connection, whose data come back when the reset is done."""
     until(lambda: any(c.policy is DeliveryPolicy.EVERY_BUFFER for c in fake.opened))
     scans = next(c for c in fake.opened if c.policy is DeliveryPolicy.EVERY_BUFFER)
     for _ in range(3):
-        fake.feed(RequestError("the server is initialising"))
+        fake.feed(Initialising("the server is initialising"))
     until(lambda: not fake.scans, what="every refusal read by the feed")
     assert not scans.closed
 

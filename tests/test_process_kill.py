@@ -48,6 +48,7 @@ from biris_hw.server import BirisServer
 from biris_hw.simlink import attach
 from regs.biexec import OFF_COMMAND
 from tests.conftest import until
+from tests.test_relink import needs_relink_first
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -120,15 +121,24 @@ class Process:
 
 
 class Simulator(Process):
-    """``biris sim`` on a unique shared-memory name and a socket of the test's own."""
+    """``biris sim`` on a unique shared-memory name and a socket of the test's own (or the
+    ``name`` of one that was killed: started again in its place)."""
 
-    def __init__(self, tmp: Path, env: dict[str, str], time_scale: float) -> None:
-        self.name = f"biris-test-kill-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    def __init__(
+        self,
+        tmp: Path,
+        env: dict[str, str],
+        time_scale: float,
+        *,
+        name: str | None = None,
+        samples: int = 64,
+    ) -> None:
+        self.name = name or f"biris-test-kill-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         self.socket = str(tmp / "sim.sock")
         super().__init__(
             [
                 *_biris(),
-                *("sim", "--shm", self.name, "--socket", self.socket),
+                *("sim", "--shm", self.name, "--socket", self.socket, "--samples", str(samples)),
                 *("--time-scale", f"{time_scale:g}", "--scene", "circle:2.0", "--seed", "3"),
             ],
             env,
@@ -263,6 +273,63 @@ def test_a_killed_simulator_is_a_bus_fault_for_every_caller(
     # fixture checks threads and descriptors again at teardown)
     left = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
     assert left == [], left
+
+
+def _segment_gone(name: str) -> None:
+    """Wait for a killed simulator's segment to go (its resource tracker unlinks it as the
+    process's end closes its pipe), bounded; then remove it as an operator would."""
+    path = f"/dev/shm/{name}"
+    with contextlib.suppress(AssertionError):
+        until(lambda: not os.path.exists(path), WAIT / 3, "the killed simulator's segment")
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(path)
+
+
+@pytest.mark.slow
+@needs_relink_first
+def test_a_restarted_simulator_is_found_again_by_one_reset(
+    no_leaks: None, tmp_path: Path, env: dict[str, str]
+) -> None:
+    """(a) again, then the simulator is started again under the same name (issue 24): a reset
+    while it is gone says so; once it runs, one reset reconnects the same bundle (new socket,
+    eventfds and segment, same objects), homes afresh on the new plant and scans; the new
+    simulator's audit is clean. Started again as another target, it is refused: only a new
+    driver process can use it."""
+    sim = Simulator(tmp_path, env, time_scale=10.0)
+    hw = attach(sim.name, socket_path=sim.socket, timeout=WAIT)
+    try:
+        with BirisServer(hw, BirisInitRecord()) as server:
+            conn = server.open()
+            conn.single_scan(30.0)
+            conn.wait_idle(timeout=WAIT)
+            sim.kill()
+            assert sim.finish()[0] == -signal.SIGKILL
+            until(lambda: server.status().fault is not None, WAIT, "the bus fault")
+            with pytest.raises(HardwareFault) as gone:
+                conn.reset()
+            assert gone.value.kind == "bus"
+            assert "still gone" in gone.value.message and "connection lost" in gone.value.message
+
+            _segment_gone(sim.name)
+            sim = Simulator(tmp_path, env, time_scale=10.0, name=sim.name)
+            conn.reset()
+            assert server.status().fault is None
+            assert getattr(hw, "relinks", None) == 1
+            conn.single_scan(-30.0)
+            conn.wait_idle(timeout=WAIT)
+            assert server.status().fault is None
+            rc, err = sim.stop()  # Ctrl-C: the new plant's audit (a wrong zero would show)
+            assert rc == 0 and "audit clean" in err, err
+
+            sim = Simulator(tmp_path, env, time_scale=10.0, name=sim.name, samples=128)
+            with pytest.raises(HardwareFault) as other:
+                conn.reset()
+            assert other.value.kind == "bus"
+            assert "another target" in other.value.message
+            assert "new driver process" in other.value.message
+    finally:
+        hw.close()
+        sim.tidy()
 
 
 # -- (b) a driver killed under the simulator -----------------------------------------------------

@@ -348,7 +348,7 @@ def test_warnings_reach_stderr_as_one_plain_line(capsys: pytest.CaptureFixture[s
     with log_to_stderr(False):
         admin.warning("scan %d (%s): %d acquisitions lost", 3, "CW", 2)
         admin.info("an info record is not shown")
-        logging.getLogger("sim.supervisor").warning("the simulator's own log is not shown")
+        logging.getLogger("sim.supervisor").warning("the simulator is late")
         try:
             raise ValueError("bad\nreply")
         except ValueError:
@@ -356,6 +356,7 @@ def test_warnings_reach_stderr_as_one_plain_line(capsys: pytest.CaptureFixture[s
     admin.warning("after the command: not ours to show")
     assert capsys.readouterr().err.splitlines() == [
         "biris: warning: scan 3 (CW): 2 acquisitions lost",
+        "biris: warning: simulator: the simulator is late",  # what the simulator warns of, named
         "biris: error: request failed (ValueError: bad reply)",
     ]
     with log_to_stderr(True):  # --debug: the whole log, named

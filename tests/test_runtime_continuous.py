@@ -37,7 +37,7 @@ from biris_hw.io.scanfile import load_scans, save_scans
 from biris_hw.server import BirisServer
 from biris_hw.server import messages as m
 from biris_hw.status import ServerState
-from regs.biexec import BiCommand
+from regs.biexec import OFF_CURRENT_FRAME, BiCommand
 from sim import SimulatedBiris
 from tests.conftest import RigFactory, until
 from tests.core import Core
@@ -416,6 +416,65 @@ def test_core_stop_withdraws_a_pending_start_and_a_reset_restores_the_record() -
     assert core.admin.status().acquisition == "continuous"
     start = core.command()  # the ring starts again after initialisation
     assert start is not None and start.code == BiCommand.BI_START_CONTINUOUS
+
+
+def test_core_a_live_ring_is_watched_and_one_standing_still_is_a_timeout(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """BIRIS owes a live ring's progress: with the head idle the BIRIS timeout still runs, each
+    expiry asks the level-2 routine to look (quietly: it is routine), a ring seen moving re-arms
+    it, one standing still is the ``timeout`` fault. Disabled, nothing is asked."""
+    core = Core(CONTINUOUS, recheck_biris=True)
+    core.initialise()
+    _live(core)
+    timeout_s = CONTINUOUS.timeout_s
+    with caplog.at_level("INFO", logger="biris_hw.server"):
+        core.advance(timeout_s)
+        assert core.biris_rechecks == 1
+        core.send(m.BirisRechecked(True))  # the ring has moved since the last look
+        assert core.admin.state() is ServerState.IDLE
+        core.advance(timeout_s - 0.01)
+        assert core.biris_rechecks == 1  # re-armed from the look, not from before
+        core.advance(0.02)
+        assert core.biris_rechecks == 2
+    assert not [r for r in caplog.records if "reading BIRIS afresh" in r.getMessage()]
+    core.send(m.BirisRechecked(False))  # it stands where the last look saw it
+    status = core.admin.status()
+    assert (status.state, status.fault) == (ServerState.FAULT, "timeout")
+    fault = core.admin.life.fault
+    assert fault is not None and "ring did not advance" in fault.message
+    core.advance(3 * timeout_s)
+    assert core.biris_rechecks == 2  # a fault stops the watch; a reset starts the ring anew
+
+    core = Core(CONTINUOUS, recheck_biris=True)
+    core.initialise()
+    _live(core)
+    core.call(p.TimeoutDisable(core.open()))
+    core.advance(5 * timeout_s)
+    assert core.biris_rechecks == 0 and core.admin.state() is ServerState.IDLE
+
+
+def test_a_ring_stopped_in_its_start_up_leaves_no_frame_of_an_earlier_ring(
+    rig: SimulatedBiris, server: BirisServer
+) -> None:
+    """CURRENT_FRAME after a stop names the last slot that ring completed, -1 when none: what an
+    earlier ring left there would otherwise read as this ring's frames (the review's random
+    runs: +82 and +4 accounted that BIRIS never made)."""
+    conn = server.open()
+    conn.start_continuous()
+    conn.wait_idle(timeout=WAIT)
+    rig.timebase.sleep(0.5)  # the first ring completes a dozen frames
+    conn.stop_continuous()
+    conn.wait_idle(timeout=WAIT)
+    link = server.link
+    assert link.window.read16(link.base + OFF_CURRENT_FRAME) > 0
+    made = rig.supervisor.acquisitions_made
+    conn.start_continuous()
+    conn.stop_continuous()  # issued as the start completes: inside BIRIS's 250 ms start-up
+    conn.wait_idle(timeout=WAIT)
+    assert rig.supervisor.acquisitions_made == made
+    assert link.window.read16(link.base + OFF_CURRENT_FRAME) == 0xFFFF  # -1: none
+    _drained(rig, server)
 
 
 # -- the data fields -----------------------------------------------------------------------------

@@ -207,6 +207,12 @@ class AxisSet(Protocol):
         """Record every pan move there first and cut its destination, as the HCTL driver does."""
         ...
 
+    def relink(self) -> None:
+        """Bring back every axis whose link was lost (a drive whose heartbeat stopped), as at
+        the first use, before a reset initialises; nothing for axes that are there. Raises
+        :class:`~biris_hw.errors.HardwareFault` (``bus``) naming what is still missing."""
+        ...
+
     def close(self) -> None:
         """Stop listening, close the line and whatever connection the set owns; idempotent."""
         ...

@@ -18,7 +18,14 @@ then NMT operational.
 
 **Moves** go by RPDO1: the target with the new-set-point bit (controlword bit 4) rising, a wait
 for set-point acknowledge (statusword bit 12, seen in TPDO1), then bit 4 cleared (single
-set-point, absolute, not "change immediately"). A move *ends* at the first TPDO1 after that
+set-point, absolute, not "change immediately"). CiA 402's handshake is kept: bit 4 rises only
+once the drive shows bit 12 clear again (it has seen bit 4 fall after the previous set-point; a
+drive takes no new set-point before that). A set-point that can no longer be taken ends at once
+as ``motor_stall``, never as a bus fault: the drive shows FAULT, an EMCY interrupted the move, or
+the axis was idled, held or reset meanwhile. The last is an *epoch* that moves on under the lock
+every controlword frame is sent under, so a motor worker the fault left waiting for an
+acknowledge that cannot come sends nothing into the reset's own controlwords and does not outlast
+it (which would fail the reset as ``bus``). A move *ends* at the first TPDO1 after that
 acknowledge with bit 12 clear and target reached (bit 10) set: only then does the controller
 set the axis's bit of :meth:`Cia402Controller.ended_axes` and trigger ``end_of_motion``, so a
 status sent before the set-point was taken can never end it. Every destination is clamped to
@@ -66,17 +73,20 @@ logged. A drive in FAULT refuses moves with HardwareFault("motor_stall") (its st
 shows the interrupted move's target reached). **Heartbeat loss** (no heartbeat for
 ``heartbeat_timeout_s``, or a boot-up message: the drive restarted and lost its set-up) makes
 every later access of that axis raise :class:`DriveBusError` -- a
-:class:`~biris_hw.errors.BusError` *and* a ``HardwareFault("bus")``. **Every fault reaches the
-server at once**, whatever the drive was doing: the controller holds it and raises its
-``end_of_motion`` line, the server's level-3 routine takes it
+:class:`~biris_hw.errors.BusError` *and* a ``HardwareFault("bus")`` -- until
+:meth:`Cia402Axis.relink` (the server's reset, through :meth:`Cia402Axes.relink`) brings the drive
+back: NMT reset communication, its boot-up awaited (``boot_timeout_s``), then the set-up above
+again; its CiA 402 state is left to the reset's chip reset (a fault reset first, if it faulted).
+**Every fault reaches the server at once**, whatever the drive was doing: the controller holds
+it and raises its ``end_of_motion`` line, the server's level-3 routine takes it
 (:meth:`Cia402Controller.take_fault`) and raises it, and its supervisor reports it with its kind
 (``bus`` or ``motor_stall``) to every caller -- an EMCY from a drive standing idle included,
 which would otherwise surface only when the next move was refused. One fault is held until the
 server's reset (the controller's notes say why and what is dropped). A ``motor_stall`` EMCY also
 ends the move it interrupted, as the HCTL-1000 ends its profile whatever the shaft does. SDO
 aborts and timeouts are DriveBusErrors too, naming the node and the object. A reset clears a
-drive's FAULT (fault reset); a drive whose heartbeat was lost stays lost for the life of its
-:class:`Cia402Bus`.
+drive's FAULT (fault reset) and brings back a drive whose heartbeat was lost, once it answers; a
+drive that stays silent fails the reset with ``bus``, saying what to restore.
 
 :class:`Cia402Axes` is the whole set a hardware bundle takes (``BirisHardware(axes=...)``): the
 bus, the pan and tilt drives, the controller and its line.
@@ -442,7 +452,11 @@ class Cia402Bus:
         except (can.CanError, OSError, ValueError) as exc:
             raise DriveBusError(f"CAN bus {can_config}: cannot connect ({exc})") from exc
         self._lock = threading.Lock()
+        self._booted = threading.Condition(self._lock)
         self._seen: dict[int, float] = {}
+        self._boots: dict[int, int] = {}
+        """Boot-up messages heard from each node (a drive that (re)started, or answered an
+        NMT reset): :meth:`wait_boot` waits for the next one."""
         self._watchers: dict[int, Callable[[str], None]] = {}
         self._closing = threading.Event()
         self._producer: Any = None
@@ -475,13 +489,27 @@ class Cia402Bus:
         with self._lock:
             self._watchers.pop(node_id, None)
 
+    def boots(self, node_id: int) -> int:
+        """How many boot-up messages node ``node_id`` has sent since the bus was opened."""
+        with self._lock:
+            return self._boots.get(node_id, 0)
+
+    def wait_boot(self, node_id: int, after: int, timeout: float) -> bool:
+        """Block until node ``node_id`` has sent more than ``after`` boot-up messages (see
+        :meth:`boots`), at most ``timeout`` real seconds; False if none came."""
+        with self._booted:
+            return self._booted.wait_for(lambda: self._boots.get(node_id, 0) > after, timeout)
+
     def _heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         node_id = can_id - 0x700
         lost: Callable[[str], None] | None = None
         with self._lock:
             self._seen[node_id] = time.monotonic()
-            if data and data[0] & 0x7F == 0 and node_id in self._watchers:
-                lost = self._watchers.pop(node_id)  # a boot-up: it restarted, set-up lost
+            if data and data[0] & 0x7F == 0:
+                self._boots[node_id] = self._boots.get(node_id, 0) + 1
+                self._booted.notify_all()
+                if node_id in self._watchers:  # a boot-up: it restarted, set-up lost
+                    lost = self._watchers.pop(node_id)
         if lost is not None:
             lost(f"node {node_id} restarted (boot-up message): its set-up is lost")
 
@@ -543,9 +571,12 @@ class Cia402Axis:
         position_window: int = 2,
         position_window_time_ms: int = 0,
         state_timeout_s: float = 0.5,
+        boot_timeout_s: float = 1.0,
     ) -> None:
         check_node_id(node_id)
         check_homing_method(homing_method)
+        if not boot_timeout_s > 0.0:
+            raise ValueError(f"boot_timeout_s must be positive, not {boot_timeout_s!r}")
         self.bus = bus
         self.node_id = node_id
         self.axis = axis
@@ -557,6 +588,8 @@ class Cia402Axis:
         self.position_window = position_window
         self.position_window_time_ms = position_window_time_ms
         self.state_timeout_s = state_timeout_s
+        self.boot_timeout_s = boot_timeout_s
+        """Real seconds :meth:`relink` waits for the boot-up that answers its NMT reset."""
         self._clock = clock
         self._scale = time_scale
         self._node = bus.add_node(node_id)
@@ -564,11 +597,22 @@ class Cia402Axis:
         """canopen's SDO client keeps one response queue: one transfer at a time."""
         self._start_lock = threading.Lock()
         self._started = False
+        self._listening = False
+        """TPDO1 and EMCY are subscribed to (once: a re-link starts the drive again)."""
         self._cond = threading.Condition()
         """Guards everything the receive thread updates: status, move, lost."""
         self._status = 0
         self._move = _Move.NONE
         self._lost: str | None = None
+        self._cw_lock = threading.Lock()
+        """Held while a controlword frame is sent and while :attr:`_epoch` moves on, so that a
+        set-point abandoned meanwhile never sends another frame (:meth:`_send`)."""
+        self._epoch = 0
+        """Moves on whenever the axis is idled, held or reset: a set-point of an earlier epoch
+        (a motor worker that the fault and the reset left behind) sends nothing more and waits
+        no longer."""
+        self.relinks = 0
+        """How many times :meth:`relink` brought the drive back."""
         self._target = 0
         self._end_listeners: list[Callable[[Axis], None]] = []
         self._fault_listeners: list[Callable[[DriveFault], None]] = []
@@ -618,9 +662,10 @@ class Cia402Axis:
             self._write(Obj.POSITION_WINDOW_TIME, 0, "<H", self.position_window_time_ms)
             self._write(Obj.TOUCH_PROBE_FUNCTION, 0, "<H", 0)
             self._write(Obj.TOUCH_PROBE_FUNCTION, 0, "<H", TOUCH_PROBE_INDEX)
-            network = self.bus.network
-            network.subscribe(0x180 + self.node_id, self._on_tpdo)
-            self._node.emcy.add_callback(self._on_emcy)
+            if not self._listening:
+                self.bus.network.subscribe(0x180 + self.node_id, self._on_tpdo)
+                self._node.emcy.add_callback(self._on_emcy)
+                self._listening = True
             status = self._read(Obj.STATUSWORD, 0, "<H")
             with self._cond:
                 self._status = status
@@ -648,14 +693,59 @@ class Cia402Axis:
             self._write(0x1400 + n, 1, "<I", 0x200 + 0x100 * n + node_id | _PDO_INVALID, True)
             self._write(0x1800 + n, 1, "<I", 0x180 + 0x100 * n + node_id | _PDO_INVALID, True)
 
+    @property
+    def lost(self) -> bool:
+        """The drive's heartbeat was lost (or it restarted): every access raises until
+        :meth:`relink` brings it back."""
+        return self._lost is not None
+
+    def relink(self) -> None:
+        """Bring a lost drive back, as at its first use; at once when it is not lost.
+
+        The drive is told NMT *reset communication* (its communication objects back to their
+        power-on values, which a drive that restarted has anyway) and must answer with its
+        boot-up message within :attr:`boot_timeout_s`; then it is set up again exactly as
+        :meth:`start` does the first time (pre-operational, heartbeats, PDO mappings, mode and
+        windows, touch probe, operational) and watched again. Its CiA 402 state is left as it is:
+        the reset's chip reset (:meth:`reset`) takes it through the state machine, a fault reset
+        first when it faulted meanwhile (losing the master's heartbeat faults a drive too).
+
+        Raises:
+            DriveBusError: no boot-up came (the drive is still unpowered or off the bus: the
+                message says so), or the set-up failed.
+        """
+        with self._start_lock:
+            lost = self._lost
+            if lost is None:
+                return
+            bus = self.bus
+            booted = bus.boots(self.node_id)
+            self._nmt(0x82)  # reset communication
+            if not bus.wait_boot(self.node_id, booted, self.boot_timeout_s):
+                raise DriveBusError(
+                    f"{self._who} is still silent (no boot-up within {self.boot_timeout_s:g} s "
+                    f"of an NMT reset communication; it was lost: {lost}); restore its power "
+                    "and its CAN cable, then reset again"
+                )
+            with self._cond:
+                self._lost = None
+                self._started = False
+                self._status = 0
+                self._move = _Move.NONE
+                self._cond.notify_all()
+        self.start()
+        self.relinks += 1
+        log.warning("%s: back on the bus (NMT reset communication), set up again", self._who)
+
     def close(self) -> None:
         """Stop listening to the drive (it is left as it is)."""
         self.bus.unwatch(self.node_id)
-        if self._started:
+        if self._listening:
             try:
                 self.bus.network.unsubscribe(0x180 + self.node_id, self._on_tpdo)
             except (KeyError, ValueError):
                 pass
+            self._listening = False
         with self._cond:
             self._started = False
             self._cond.notify_all()
@@ -777,13 +867,19 @@ class Cia402Axis:
                 f"{self._who}: NMT command 0x{command:02X} not sent: {exc}"
             ) from exc
 
-    def _send(self, controlword: int, target: int) -> None:
+    def _send(self, controlword: int, target: int, epoch: int | None = None) -> bool:
         """RPDO1: controlword and target in one frame, so the target is in place before the
-        controlword that uses it."""
-        try:
-            self.bus.network.send_message(0x200 + self.node_id, _FRAME.pack(controlword, target))
-        except (can.CanError, RuntimeError) as exc:
-            raise DriveBusError(f"{self._who}: RPDO1 not sent: {exc}") from exc
+        controlword that uses it. With ``epoch``, only while the axis is still in that epoch
+        (a set-point's frames: see :attr:`_epoch`); returns whether the frame was sent."""
+        with self._cw_lock:
+            if epoch is not None and epoch != self._epoch:
+                return False
+            try:
+                frame = _FRAME.pack(controlword, target)
+                self.bus.network.send_message(0x200 + self.node_id, frame)
+            except (can.CanError, RuntimeError) as exc:
+                raise DriveBusError(f"{self._who}: RPDO1 not sent: {exc}") from exc
+        return True
 
     def _state(self) -> DriveState | None:
         with self._cond:
@@ -850,8 +946,65 @@ class Cia402Axis:
         raise DriveBusError(f"{self._who}: the state machine did not reach OPERATION ENABLED")
 
     def _forget_move(self) -> None:
+        """Whoever idles, holds or resets the axis takes its controlword over: the epoch moves
+        on, so a set-point still waiting for its acknowledge gives up and sends nothing more."""
+        with self._cw_lock:
+            self._epoch += 1
         with self._cond:
             self._move = _Move.NONE
+            self._cond.notify_all()
+
+    def _await_set_point(
+        self, done: Callable[[int], bool], what: str, epoch: int, *, sent: bool = False
+    ) -> int:
+        """:meth:`_await` for a step of the set-point handshake, which ends at once -- as a
+        ``motor_stall``, never as a bus fault -- when the set-point can no longer be taken: the
+        drive shows FAULT, a fault interrupted the move once ``sent`` (:meth:`_interrupted`),
+        or the axis was idled, held or reset meanwhile (the epoch moved on: a reset has begun,
+        and this worker must not fail it). Silence past :attr:`state_timeout_s` stays a bus
+        fault."""
+
+        def over(status: int) -> str | None:
+            if epoch != self._epoch:
+                return "the axis was stopped or reset meanwhile"
+            if sent and self._move is _Move.ENDED:
+                return "a fault interrupted it"
+            if state_of(status) in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
+                return "the drive is in FAULT"
+            return None
+
+        deadline = time.monotonic() + self.state_timeout_s
+        with self._cond:
+            while True:
+                if self._lost is not None:
+                    raise DriveBusError(self._lost)
+                why = over(self._status)
+                if why is not None:
+                    raise self._given_up(why)
+                if done(self._status):
+                    return self._status
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0:
+                    break
+                self._cond.wait(remaining)
+        status = self._read(Obj.STATUSWORD, 0, "<H")
+        with self._cond:
+            self._status = status
+            why = over(status)
+        if why is not None:
+            raise self._given_up(why)
+        if done(status):
+            return status
+        state = _name(state_of(status))
+        raise DriveBusError(
+            f"{self._who} did not reach {what} (statusword 0x{status:04X}, {state})"
+        )
+
+    def _given_up(self, why: str) -> HardwareFault:
+        """The ``motor_stall`` a set-point that cannot be taken any more ends with."""
+        return HardwareFault(
+            "motor_stall", f"{self._who}: set-point given up ({why}){self._last_fault()}"
+        )
 
     # -- MotionAxis -----------------------------------------------------------------------------
     def actual_position(self) -> int:
@@ -980,6 +1133,7 @@ class Cia402Axis:
         not in OPERATION ENABLED, is HardwareFault("motor_stall"); a set-point the drive does
         not acknowledge in time is a DriveBusError.
         """
+        epoch = self._epoch  # first: an idle, hold or reset from here on abandons this set-point
         self._ready()
         dest = clamp_counts(destination)
         if self.reference is not None:
@@ -996,14 +1150,31 @@ class Cia402Axis:
             )
         if self.reference is not None:
             self.reference.record_move(self.command_position(), dest)
+        # CiA 402's handshake: bit 4 rises only once the drive shows bit 12 clear, i.e. it has
+        # seen bit 4 fall after the previous set-point (a drive ignores an edge before that)
+        self._await_set_point(
+            lambda sw: not sw & Sw.SET_POINT_ACKNOWLEDGE, "set-point acknowledge cleared", epoch
+        )
         with self._cond:
-            self._move = _Move.REQUESTED
+            # the epoch moves on before the move is forgotten: seen unchanged here, a forget
+            # still to come clears this REQUESTED, never the other way round
+            taken = epoch == self._epoch
+            if taken:
+                self._move = _Move.REQUESTED
         self._target = dest
-        self._send(ENABLE_OPERATION | Cw.NEW_SET_POINT, dest)
+        if not taken or not self._send(ENABLE_OPERATION | Cw.NEW_SET_POINT, dest, epoch):
+            raise self._given_up("the axis was stopped or reset meanwhile")
         try:
-            self._await(lambda sw: bool(sw & Sw.SET_POINT_ACKNOWLEDGE), "set-point acknowledge")
+            self._await_set_point(
+                lambda sw: bool(sw & Sw.SET_POINT_ACKNOWLEDGE),
+                "set-point acknowledge",
+                epoch,
+                sent=True,
+            )
         finally:
-            self._send(ENABLE_OPERATION, dest)
+            # bit 4 falls, unless the axis has been taken over meanwhile (whoever idled, held
+            # or reset it sends its own controlwords, none with bit 4 set)
+            self._send(ENABLE_OPERATION, dest, epoch)
         return dest
 
     def profile_active(self) -> bool:
@@ -1082,8 +1253,9 @@ class Cia402Controller:
     them). Otherwise one held after the level-3 routine had raised the first (and so waits for
     the reset) would be raised as that reset restarts the routine, before the initialiser's
     chip resets clear it, and fail the reset with a fault already gone. A held ``motor_stall``
-    fault of an axis is dropped by that axis's chip reset. A lost heartbeat is always held
-    (the drive stays lost: every reset must fail with ``bus``). ``on_fault`` (and
+    fault of an axis is dropped by that axis's chip reset. A lost heartbeat is always held; it
+    is dropped when :meth:`relink` brings that drive back (the reset re-links before it
+    initialises, and fails with ``bus`` while the drive stays silent). ``on_fault`` (and
     :attr:`faults`) receive every :class:`DriveFault` of every axis.
     """
 
@@ -1113,6 +1285,21 @@ class Cia402Controller:
         """Set every drive up now rather than on first use."""
         for driver in self.axes.values():
             driver.start()
+
+    def relink(self) -> None:
+        """Bring back every drive whose heartbeat was lost (:meth:`Cia402Axis.relink`), and
+        drop a fault still held for it: the drive is set up afresh, and the reset's chip reset
+        clears the rest. Raises :class:`DriveBusError` for the first drive that stays silent."""
+        for axis, driver in self.axes.items():
+            if not driver.lost:
+                continue
+            driver.relink()
+            with self._lock:
+                pending = self._pending
+                if pending is not None and pending.axis is axis:
+                    log.info("%s: the drive is back", pending.text)
+                    self._pending = None
+                self._reported = self._pending is not None
 
     def _move_ended(self, axis: Axis) -> None:
         bit = _AXIS_BIT[axis]
@@ -1228,6 +1415,7 @@ class Cia402Axes:
         master_id: int | None = DEFAULT_MASTER_ID,
         sdo_timeout_s: float = 0.3,
         state_timeout_s: float = 0.5,
+        boot_timeout_s: float = 1.0,
         homing_method: int = 35,
         params_index: int = Obj.MOTOR_PARAMS,
         **can_config: Any,
@@ -1248,6 +1436,7 @@ class Cia402Axes:
             "params_index": params_index,
             "homing_method": homing_method,
             "state_timeout_s": state_timeout_s,
+            "boot_timeout_s": boot_timeout_s,
         }
         self.pan = Cia402Axis(self.bus, pan_node, Axis.AZIMUTH, clock, time_scale, **options)
         self.tilt = Cia402Axis(self.bus, tilt_node, Axis.ELEVATION, clock, time_scale, **options)
@@ -1282,6 +1471,14 @@ class Cia402Axes:
 
     def use_pan_reference(self, reference: PanReference) -> None:
         self.pan.reference = reference
+
+    def relink(self) -> None:
+        """:meth:`Cia402Controller.relink`: every drive whose heartbeat was lost brought back
+        (NMT reset communication, set up as at the first use), or a :class:`DriveBusError`
+        (``HardwareFault("bus")``) naming the drive that stays silent."""
+        if self._closed:
+            raise DriveBusError(f"{self!r} is closed")
+        self._controller.relink()
 
     def close(self) -> None:
         if self._closed:

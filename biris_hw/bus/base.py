@@ -177,6 +177,19 @@ class BusWindow(ABC):
         raise BusError(f"{self.kind} windows are not memory-mapped; use read/write instead")
 
     # -- lifecycle -------------------------------------------------------------------------------
+    def relink(self) -> None:
+        """Reopen what the window reaches its bus through, if that link was lost, so that the
+        same window object works again (the server and its drivers hold it).
+
+        A window whose link can be lost and come back overrides this: a ``vmusb`` window finds
+        its VM-USB again by serial number once it is plugged back in. It returns at once when
+        the link is alive and raises :class:`BusError` naming what is still missing when it
+        cannot reopen it. A window over memory of this process has no link to lose: this default
+        does nothing. A closed window is not reopened (it raises).
+        """
+        if self._closed:
+            raise BusError(f"{self.kind} window is closed")
+
     def close(self) -> None:
         """Release the window and every view made of it. Calling it again does nothing."""
         with self._close_lock:

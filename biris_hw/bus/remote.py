@@ -233,8 +233,9 @@ class RemoteLink:
 
     Each access is a strict round trip under a lock, each of its send and receive bounded by
     ``timeout``. Any failure of the socket (peer gone, reply overdue, reply out of sequence)
-    breaks the link for good: after a timeout a late reply could be taken for the next request's,
-    so every later access raises :class:`BusError` until the owner closes the link.
+    breaks the link: after a timeout a late reply could be taken for the next request's, so
+    every later access raises :class:`BusError` until the owner either closes the link or
+    gives it a new connection (:meth:`reconnect`, once the simulator is back).
     """
 
     def __init__(self, sock: socket.socket, *, timeout: float = 10.0, label: str = "simulator"):
@@ -251,6 +252,40 @@ class RemoteLink:
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def broken(self) -> str | None:
+        """Why the link is unusable (the peer went away, a reply was overdue), or None."""
+        return self._broken
+
+    @property
+    def label(self) -> str:
+        return self._label
+
+    def reconnect(self, sock: socket.socket) -> socket.socket:
+        """Carry on over ``sock``, a new connection to the same simulator (restarted): the next
+        request goes out on it, sequence numbers afresh. Returns the old socket, which the
+        caller closes (a thread blocked on it still wakes with :class:`BusError`)."""
+        sock.settimeout(self._timeout)
+        with self._lock:
+            if self._closed:
+                raise BusError(f"{self._label}: the link is closed", errno.ENOTCONN)
+            old, self._sock = self._sock, sock
+            self._seq = 0
+            self._broken = None
+        return old
+
+    def drop_connection(self, why: str = "the connection was dropped") -> None:
+        """Shut the connection down (the peer sees this driver go) and leave the link broken
+        until :meth:`reconnect`; nothing once the link is closed."""
+        with self._close_lock:
+            if self._closed:
+                return
+            self._broken = self._broken or why
+            try:
+                self._sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass  # already disconnected
 
     def request(self, op: Op, region: Region, offset: int, length: int, data: bytes = b"") -> bytes:
         """One round trip; returns the data read (empty for a write)."""
@@ -383,6 +418,20 @@ class SliceWindow(BusWindow):
     @property
     def parent(self) -> BusWindow:
         return self._parent
+
+    def replace_parent(self, parent: BusWindow) -> BusWindow:
+        """Carry on over ``parent`` (the same region of a target that came back: a restarted
+        simulator's new segment), which must be large enough; returns the old parent, which the
+        caller closes. The slice object, which the driver holds, stays the same."""
+        if self.closed:
+            raise BusError(f"{self.kind} window is closed")
+        if self._base + self.size > parent.size:
+            raise BusError(
+                f"a slice of 0x{self.size:X} bytes at 0x{self._base:X} does not fit the new "
+                f"{parent.kind} window of 0x{parent.size:X} bytes"
+            )
+        old, self._parent = self._parent, parent
+        return old
 
     @property
     def base(self) -> int:

@@ -19,7 +19,11 @@ Three pieces:
   with one address modifier. Interrupt lines are :class:`biris_hw.irq.vmusb.VmUsbLine`.
 
 Every failure is a :class:`~biris_hw.errors.BusError` naming the bridge's serial number; once
-the device has gone (unplugged, powered off), every access raises and every armed line closes.
+the device has gone (unplugged, powered off), every access raises and every armed IRQ is
+suspended (its line's ``wait()`` raises the error), until :meth:`VmUsbBridge.relink` (or
+:meth:`VmUsbWindow.relink`, which a server's reset calls through its hardware bundle) finds the
+serial number again, brings the device up and re-arms the IRQs: the same windows and lines then
+work again.
 """
 
 from __future__ import annotations
@@ -365,6 +369,14 @@ class IrqSubscription:
     the values the stack read for the newest one are kept under the same lock as the count, so
     :meth:`take` returns a count and the values of the last event it counted, never those of an
     event it did not count.
+
+    **A lost device suspends the IRQ, it does not end it.** When the bridge's device goes away
+    the subscription stays registered with its stack and vector; its eventfd is made readable
+    and :meth:`take` raises the bridge's :class:`BusError` (so a thread polling the line wakes
+    and its ``wait()`` raises: the target is gone) until :meth:`VmUsbBridge.relink` has found
+    the device again and re-armed the stack; then it counts events as before. ``on_close`` is
+    not called for a lost device (the line stays usable across the loss); the parameter is kept
+    for callers that pass one.
     """
 
     def __init__(
@@ -382,7 +394,7 @@ class IrqSubscription:
         self.stack_id = stack_id
         self.reads = reads
         self.error: BusError | None = None
-        """Why the bridge dropped this IRQ (the device went away), or None."""
+        """Why the IRQ is suspended (the device went away), or None while it is armed."""
         self._on_close = on_close
         self._lock = threading.Lock()
         self._fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
@@ -398,10 +410,14 @@ class IrqSubscription:
         return self._fd
 
     def take(self) -> tuple[int, tuple[int, ...] | None]:
-        """Events since the last take, and the values read for the newest of them."""
+        """Events since the last take, and the values read for the newest of them; raises the
+        bridge's :class:`BusError` while the device is lost (see the class notes)."""
         with self._lock:
             if not self._fd_open:
                 return 0, None
+            loss = self.error
+            if loss is not None:
+                raise BusError(str(loss), loss.errno or errno.ENODEV)
             try:
                 count = int(os.eventfd_read(self._fd))
             except BlockingIOError:
@@ -435,19 +451,23 @@ class IrqSubscription:
             self._latest = values
             os.eventfd_write(self._fd, 1)
 
-    def _bridge_failed(self, error: BusError) -> None:
+    def _lost(self, error: BusError) -> None:
+        """The device went away: suspended, and pollers woken to find out (:meth:`take`)."""
         with self._lock:
-            if not self._armed:
+            if not self._armed or not self._fd_open:
                 return
-            self._armed = False
             self.error = error
-        self.bridge.release()  # the reference arm_irq took; the ISV entry died with the device
-        self.wake()
-        if self._on_close is not None:
-            try:
-                self._on_close(error)
-            except Exception:
-                log.exception("closing the line of VM-USB IRQ %d/0x%02X", self.level, self.vector)
+            os.eventfd_write(self._fd, 1)
+
+    def _restored(self) -> None:
+        """The bridge re-armed the stack on a device found again: events count afresh (what
+        was pending from before the loss is dropped with the loss's wake-up)."""
+        with self._lock:
+            self.error = None
+            self._latest = None
+            if self._fd_open:
+                with contextlib.suppress(BlockingIOError):
+                    os.eventfd_read(self._fd)
 
 
 _TABLE_LOCK = threading.RLock()
@@ -461,6 +481,13 @@ class VmUsbBridge:
     Get one with :meth:`acquire` and give it back with :meth:`release`; the last release stops
     data taking and frees the device. One lock covers every exchange (the bridge answers one
     list at a time, and a list must not run while data taking does).
+
+    **Lost and found.** A device that goes away (unplugged, the crate powered off) makes the
+    bridge *lost*: every access raises, every armed IRQ is suspended (its line's waiters get the
+    :class:`BusError`), and nothing else changes -- the windows and lines keep this bridge.
+    :meth:`relink` looks for the serial number again on the same backend and, once the device
+    is back, brings it up as at the first open and re-arms every suspended IRQ, so the same
+    windows and lines work again. :meth:`acquire` of a lost bridge's serial tries the same.
     """
 
     drain_timeout_s = DRAIN_TIMEOUT_S
@@ -485,11 +512,20 @@ class VmUsbBridge:
                 if known is not None and known._dead is None:
                     known._refs += 1
                     return known
+                if known is not None and known.lost:  # its windows keep it: find it again
+                    known.relink()
+                    known._refs += 1
+                    return known
             device, found_serial = _find(serial, backend)
             key = (found_serial, id(backend))
             known = _TABLE.get(key)
             if known is not None and known._dead is None:
                 usb.util.dispose_resources(device)
+                known._refs += 1
+                return known
+            if known is not None and known.lost:
+                usb.util.dispose_resources(device)
+                known.relink()
                 known._refs += 1
                 return known
             bridge = cls(device, found_serial, backend, float(timeout_s))
@@ -526,6 +562,12 @@ class VmUsbBridge:
         self._io = threading.RLock()
         self._cond = threading.Condition(threading.Lock())
         self._dead: BusError | None = None
+        self._released = False
+        """The last reference was given back: the bridge is gone for good (never re-linked)."""
+        self._generation = 0
+        """Bumped by every :meth:`relink`: a reader thread of an earlier device ends."""
+        self.relinks = 0
+        """How many times :meth:`relink` found the device again (for status and tests)."""
         self._subs: dict[int, IrqSubscription] = {}
         self._isv = [0] * 8
         self._daq = False
@@ -541,6 +583,7 @@ class VmUsbBridge:
                 self._bring_up()
         except BaseException:
             self._dead = self._dead or BusError(f"VM-USB {serial}: bring-up failed")
+            self._released = True  # never shared: nothing holds it to re-link
             self._free_device()
             raise
 
@@ -704,7 +747,7 @@ class VmUsbBridge:
                     with self._cond:
                         self._subs.pop(stack_id, None)
                     with sub._lock:
-                        retained = sub._armed  # else _bridge_failed gave the reference back
+                        retained = sub._armed
                         sub._armed = False
                     sub.disarm()  # closes the mailbox only
                     if restart and self._dead is None and self._subs:
@@ -725,8 +768,9 @@ class VmUsbBridge:
                 with self._cond:
                     if self._subs.get(sub.stack_id) is not sub:
                         return
-                if self._dead is not None:
-                    return
+                    if self._dead is not None:  # nothing to clear on a device that has gone
+                        del self._subs[sub.stack_id]
+                        return
                 self._stop_daq()
                 with self._cond:
                     del self._subs[sub.stack_id]
@@ -788,7 +832,10 @@ class VmUsbBridge:
             self._cond.notify_all()
         if self._reader is None:
             self._reader = threading.Thread(
-                target=self._read_buffers, name=f"vmusb-{self.serial}", daemon=True
+                target=self._read_buffers,
+                args=(self._generation, self._dev),
+                name=f"vmusb-{self.serial}",
+                daemon=True,
             )
             self._reader.start()
         try:
@@ -799,24 +846,32 @@ class VmUsbBridge:
         self._daq = True
         self.stats.daq_starts += 1
 
-    def _read_buffers(self) -> None:
-        """The reader thread: reads buffers while data taking runs, parks between runs."""
+    def _read_buffers(self, generation: int, device: Any) -> None:
+        """The reader thread of ``device``: reads buffers while data taking runs, parks between
+        runs; ends when the bridge is released or loses the device (a re-linked bridge starts
+        a reader of its own for the device it found)."""
         timeout_ms = max(1, round(READER_POLL_S * 1000))
+
+        def over() -> bool:
+            return self._quit or self._dead is not None or self._generation != generation
+
         while True:
             with self._cond:
-                while not self._reading and not self._quit and self._dead is None:
+                while not self._reading and not over():
                     self._cond.wait()
-                if self._quit or self._dead is not None:
+                if over():
                     return
             try:
-                data = self._dev.read(EP_IN, READ_SIZE, timeout_ms)
+                data = device.read(EP_IN, READ_SIZE, timeout_ms)
             except usb.core.USBTimeoutError:
                 continue
             except usb.core.USBError as exc:
-                self._fail(self._usb_failure("reading a data buffer", exc, fatal=True))
+                if self._generation == generation:
+                    self._fail(self._usb_failure("reading a data buffer", exc, fatal=True))
                 return
             except Exception as exc:
-                self._fail(BusError(f"VM-USB {self.serial}: reading a data buffer: {exc!r}"))
+                if self._generation == generation:
+                    self._fail(BusError(f"VM-USB {self.serial}: reading a data buffer: {exc!r}"))
                 return
             self.stats.transfers_in += 1
             try:
@@ -905,7 +960,8 @@ class VmUsbBridge:
         if err in _VANISHED or fatal:
             error = BusError(
                 f"VM-USB {self.serial} is gone ({doing}: {exc.strerror or exc}); check its "
-                "cable and power, then open it again",
+                "cable and the crate's power: once it is back, a reset finds it again by its "
+                "serial number",
                 err,
             )
             self._fail(error)
@@ -919,8 +975,98 @@ class VmUsbBridge:
 
     @property
     def alive(self) -> bool:
-        """False once the device has gone (every access then raises)."""
+        """False once the device has gone (every access then raises) or the bridge was
+        released; True again after a successful :meth:`relink`."""
         return self._dead is None
+
+    @property
+    def lost(self) -> bool:
+        """The device has gone while the bridge is still in use: :meth:`relink` may find it."""
+        return self._dead is not None and not self._released
+
+    # -- lost and found --------------------------------------------------------------------------
+    def relink(self) -> None:
+        """Find the device again after it was lost, and carry on with it; at once if alive.
+
+        Looks for this serial number on the same backend; once found, brings the device up as
+        the first open did (claim, stop whatever runs, drain, clear the ISV registers) and
+        re-arms every suspended IRQ: its stack loaded again, its ISV entry written, data taking
+        started. The windows and lines of this bridge then work as before the loss.
+
+        Raises:
+            BusError: ``ENODEV`` when the device is still gone (the message says what to
+                check), ``EBUSY`` when another bridge of this process has opened it meanwhile,
+                or the bring-up's own error; the bridge stays lost and may be re-linked later.
+                ``EBADF`` for a bridge that was released.
+        """
+        with _TABLE_LOCK, self._io:  # the table's lock first, as acquire() and release() take it
+            if self._released:
+                raise BusError(f"VM-USB {self.serial} was released", errno.EBADF)
+            if self._dead is None:
+                return
+            self._retire_device()
+            try:
+                device, _ = _find(self.serial, self.backend)
+            except BusError as exc:
+                raise BusError(
+                    f"VM-USB {self.serial} is still gone: {exc}; once it is back, reset again",
+                    exc.errno or errno.ENODEV,
+                ) from None
+            other = _TABLE.get(self._key)
+            if other is not None and other is not self and other._dead is None:
+                usb.util.dispose_resources(device)
+                raise BusError(
+                    f"VM-USB {self.serial} is open again through another bridge of this "
+                    "process; close what opened it, or start a new driver process",
+                    errno.EBUSY,
+                )
+            _TABLE[self._key] = self
+            self._bring_up_again(device)
+        log.warning("VM-USB %s: found again; %d IRQ(s) re-armed", self.serial, len(self._subs))
+
+    def _retire_device(self) -> None:
+        """Let go of the lost device: its reader thread ends (the generation moves on), and
+        its resources are freed."""
+        with self._cond:
+            self._generation += 1
+            self._reading = False
+            self._cond.notify_all()
+        reader, self._reader = self._reader, None
+        if reader is not None and reader is not threading.current_thread():
+            reader.join(READER_POLL_S + self.timeout_s)
+        self._free_device()
+
+    def _bring_up_again(self, device: Any) -> None:
+        """The lost bridge on ``device``: bring-up, stacks and ISV entries of every suspended
+        IRQ, then data taking (the lock and the table's are held)."""
+        self._dev = device
+        self._daq = False
+        self._owed_start = False
+        self._resync = False
+        self._inbuf.clear()
+        self._isv = [0] * 8
+        lost = self._dead
+        self._dead = None
+        try:
+            self._bring_up()
+            with self._cond:
+                subs = list(self._subs.values())
+            for sub in subs:
+                self._load_stack(sub.stack_id, sub.reads.words())
+                index = sub.stack_id - IRQ_STACK_IDS.start
+                self._set_isv(index, isv_entry(sub.vector, sub.level, sub.stack_id))
+            for sub in subs:  # before data taking: no event of the new device is drained
+                sub._restored()
+            self._start_daq()
+        except BusError as exc:
+            self._fail(exc)  # the subscriptions are suspended again
+            self._free_device()
+            raise BusError(
+                f"VM-USB {self.serial} was found again but could not be brought up ({exc}); "
+                f"it was lost with: {lost}",
+                exc.errno or errno.EIO,
+            ) from exc
+        self.relinks += 1
 
     @property
     def daq_running(self) -> bool:
@@ -929,18 +1075,18 @@ class VmUsbBridge:
 
     # -- endings ---------------------------------------------------------------------------------
     def _fail(self, error: BusError) -> None:
-        """The device is gone or out of step: refuse every access, close every armed line."""
+        """The device is gone or out of step: refuse every access and suspend every armed IRQ
+        (their lines' waiters get the error) until :meth:`relink`."""
         with self._cond:
             if self._dead is not None:
                 return
             self._dead = error
             self._reading = False
             subs = list(self._subs.values())
-            self._subs.clear()
             self._cond.notify_all()
         log.error("%s", error)
         for sub in subs:
-            sub._bridge_failed(error)
+            sub._lost(error)
 
     def _shutdown(self) -> None:
         # Bounded: a thread still in an exchange (a window closed under another thread's access)
@@ -958,6 +1104,7 @@ class VmUsbBridge:
             reader = self._reader
             if reader is not None and reader is not threading.current_thread():
                 reader.join(READER_POLL_S + self.timeout_s)
+            self._released = True
             if self._dead is None:
                 self._dead = BusError(f"VM-USB {self.serial} was released", errno.EBADF)
             self._free_device()
@@ -976,7 +1123,7 @@ class VmUsbBridge:
             pass
 
     def __repr__(self) -> str:
-        state = "alive" if self._dead is None else "dead"
+        state = "alive" if self._dead is None else "released" if self._released else "lost"
         return f"<VmUsbBridge {self.serial} {state} refs={self._refs}>"
 
 
@@ -1248,6 +1395,14 @@ class VmUsbWindow(BusWindow):
         (value,) = self.bridge.execute(lst)
         assert isinstance(value, int)
         return value
+
+    # -- lost and found --------------------------------------------------------------------------
+    def relink(self) -> None:
+        """The bridge's :meth:`VmUsbBridge.relink`: the VM-USB found again by its serial number
+        once it is plugged back in; at once while it is there. Every window and line of the
+        bridge works again after it."""
+        super().relink()  # a closed window is not reopened
+        self.bridge.relink()
 
     def _close(self) -> None:
         self.bridge.release()

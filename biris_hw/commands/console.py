@@ -2,10 +2,14 @@
 
 Three kinds of line, each one line, each starting with the command's name (:func:`prog_of`):
 what the server is doing while the person waits (homing, booting BIRIS: the progress log,
-:func:`progress_to_stderr`, shown only when a terminal watches), what the driver warns about
-(a short scan, acquisitions lost: :func:`log_to_stderr`, always), and an angle the server
-clamped (:func:`note_clamped`). Failures have their own module
+:func:`progress_to_stderr`, shown only when a terminal watches), what the driver and the
+simulator warn about (a short scan, acquisitions lost: :func:`log_to_stderr`, always), and an
+angle the server clamped (:func:`note_clamped`). Failures have their own module
 (:mod:`biris_hw.commands.failures`).
+
+A service (``biris serve``) is not watched by a person but read from a log: there
+:func:`log_to_stderr` writes the whole log from INFO up (DEBUG with ``--debug``), one line per
+event in a form the systemd journal reads (:class:`ServiceLines`).
 
 The dispatcher (:mod:`biris_hw.cli`) wraps every command in these, ``biris --help`` included, so
 this module imports nothing of the server, the hardware or the outside world.
@@ -16,7 +20,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import os
 import sys
+import time
 from collections.abc import Iterator
 from typing import TextIO
 
@@ -24,7 +30,9 @@ from biris_hw.errors import HardwareFault
 
 __all__ = [
     "PROGRESS_LOGGER",
+    "ServiceLines",
     "is_terminal",
+    "journal_stream",
     "log_to_stderr",
     "note_clamped",
     "prog_of",
@@ -147,9 +155,11 @@ class _WarningLines(logging.Handler):
     What the server warns about (a scan that came out short, acquisitions lost, a task that
     failed) is what a person running a command must not miss, so it is shown without --debug,
     but plainly: one line, no logger name or time, a multi-line message folded onto it, an
-    exception's traceback reduced to its type and text (--debug shows it whole). stderr is looked
-    up at each record, not kept, as for the progress lines: a live display that has taken stderr
-    over prints the line above itself instead of being scribbled over.
+    exception's traceback reduced to its type and text (--debug shows it whole). The
+    simulator's warnings (a rule of a simulated device broken, its supervisor stopped) are
+    shown the same way, after ``simulator:``. stderr is looked up at each record, not kept, as
+    for the progress lines: a live display that has taken stderr over prints the line above
+    itself instead of being scribbled over.
 
     A record that announces a hardware fault (a :class:`HardwareFault` among its arguments) is
     left out: the server hands that fault to every caller, so the command reports it in its own
@@ -164,10 +174,9 @@ class _WarningLines(logging.Handler):
         if _carries_fault(record):
             return
         try:
-            text = " ".join(record.getMessage().split())
-            if record.exc_info and record.exc_info[1] is not None:
-                exc = record.exc_info[1]
-                text += f" ({type(exc).__name__}: {' '.join(str(exc).split())})"
+            text = _one_line(record)
+            if record.name == "sim" or record.name.startswith("sim."):
+                text = f"simulator: {text}"
             kind = "warning" if record.levelno < logging.ERROR else "error"
             stream = sys.stderr
             stream.write(f"biris: {kind}: {text}\n")
@@ -176,31 +185,143 @@ class _WarningLines(logging.Handler):
             self.handleError(record)
 
 
-@contextlib.contextmanager
-def log_to_stderr(debug: bool) -> Iterator[None]:
-    """The driver's warnings and errors on stderr, a plain line each (``biris: warning: ...``);
-    with --debug its whole log instead, every record with its time and logger.
+def _one_line(record: logging.LogRecord) -> str:
+    """The record's message on one line, an exception's type and text folded onto it."""
+    text = " ".join(record.getMessage().split())
+    if record.exc_info and record.exc_info[1] is not None:
+        exc = record.exc_info[1]
+        text += f" ({type(exc).__name__}: {' '.join(str(exc).split())})"
+    return text
 
-    The simulator's log (``sim``) is shown with --debug only: it is about the simulation, not
-    the sensor. Without some handler Python's last resort would print warnings in its own form
-    (and the simulator's too); here every record goes through one of ours or none.
+
+def journal_stream(stream: TextIO) -> bool:
+    """True when ``stream`` is connected to the systemd journal: systemd names the journal's
+    stream in ``$JOURNAL_STREAM`` (``device:inode``) for a service whose stderr goes there, and
+    the check against the stream's own device and inode keeps a program it started with
+    stderr redirected elsewhere from taking the variable for its own."""
+    value = os.environ.get("JOURNAL_STREAM", "")
+    if not value:
+        return False
+    try:
+        found = os.fstat(stream.fileno())
+    except (AttributeError, OSError, ValueError):  # no file behind it (a test's capture)
+        return False
+    return value == f"{found.st_dev}:{found.st_ino}"
+
+
+_PRIORITY = {
+    logging.DEBUG: 7,
+    logging.INFO: 6,
+    logging.WARNING: 4,
+    logging.ERROR: 3,
+    logging.CRITICAL: 2,
+}
+"""syslog priorities (debug, info, warning, err, crit), as sd-daemon's ``<N>`` line prefix."""
+
+
+class ServiceLines(logging.Handler):
+    """A service's log on stderr, one line per record, for the journal or for a person.
+
+    Under systemd (:func:`journal_stream`) a line is ``<6>service: client 3fa2 connected``: the
+    sd-daemon prefix gives the journal the record's priority (``journalctl -p warning`` finds
+    the faults), and no time, which the journal keeps itself. Elsewhere (a terminal, a file, a
+    container's log) it is ``2026-11-03 14:02:11 INFO service: client 3fa2 connected``. The name
+    is the last part of the logger's (``service``, ``serve``, ``initialiser``); a multi-line
+    message is folded onto its line and an exception reduced to its type and text, unless
+    ``tracebacks`` (``--debug``) asks for the traceback, a line each.
+
+    Records that carry a :class:`HardwareFault` are left out unless ``faults``: the service
+    says a fault itself, with what it does about it (:class:`~biris_hw.commands.reset.AutoReset`),
+    and the server's own line would say it a second time. stderr is looked up at each record.
+    """
+
+    def __init__(
+        self,
+        level: int = logging.INFO,
+        *,
+        journal: bool | None = None,
+        tracebacks: bool = False,
+        faults: bool = False,
+    ) -> None:
+        super().__init__(level)
+        self._journal = journal
+        self._tracebacks = tracebacks
+        self._faults = faults
+
+    def line(self, record: logging.LogRecord, journal: bool) -> str:
+        """The line (without its newline) that ``record`` is written as."""
+        name = record.name.rsplit(".", 1)[-1]
+        text = " ".join(record.getMessage().split()) if self._tracebacks else _one_line(record)
+        if journal:
+            return f"<{_priority(record.levelno)}>{name}: {text}"
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(record.created))
+        return f"{when} {record.levelname} {name}: {text}"
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if not self._faults and _carries_fault(record):
+            return
+        try:
+            stream = sys.stderr
+            journal = journal_stream(stream) if self._journal is None else self._journal
+            lines = [self.line(record, journal)]
+            if self._tracebacks and record.exc_info and record.exc_info[1] is not None:
+                import traceback
+
+                lead = f"<{_priority(record.levelno)}>" if journal else ""
+                for chunk in traceback.format_exception(*record.exc_info):
+                    lines += [f"{lead}  {part}" for part in chunk.rstrip().splitlines()]
+            stream.write("".join(f"{line}\n" for line in lines))
+            stream.flush()
+        except Exception:
+            self.handleError(record)
+
+
+def _priority(level: int) -> int:
+    """The syslog priority of a logging level (a custom level takes the next standard one's)."""
+    for standard in sorted(_PRIORITY):
+        if level <= standard:
+            return _PRIORITY[standard]
+    return _PRIORITY[logging.CRITICAL]
+
+
+@contextlib.contextmanager
+def log_to_stderr(debug: bool, *, service: bool = False) -> Iterator[None]:
+    """The driver's and the simulator's warnings and errors on stderr, a plain line each
+    (``biris: warning: ...``); with --debug the whole log instead, every record with its time
+    and logger.
+
+    ``service`` (``biris serve``): the log a supervisor keeps, from INFO up (the service's
+    start, its clients coming and going, faults, resets, recoveries, refusals, drops), DEBUG
+    with --debug, as :class:`ServiceLines`; the simulator's from WARNING up (DEBUG with
+    --debug). Without some handler Python's last resort would print warnings in its own form;
+    here every record goes through one of ours.
     """
     loggers = [logging.getLogger(name) for name in ("biris_hw", "sim")]
     handlers: list[logging.Handler]
-    if debug:
+    levels: list[int]
+    if service:
+        shared: logging.Handler = ServiceLines(
+            logging.DEBUG if debug else logging.INFO, tracebacks=debug, faults=debug
+        )
+        handlers = [shared, shared]
+        levels = [logging.DEBUG, logging.DEBUG] if debug else [logging.INFO, logging.WARNING]
+    elif debug:
         shared = logging.StreamHandler(sys.stderr)
         shared.setFormatter(logging.Formatter("%(relativeCreated)8.0f ms %(name)s: %(message)s"))
         handlers = [shared, shared]
+        levels = [logging.DEBUG, logging.DEBUG]
     else:
-        handlers = [_WarningLines(), logging.NullHandler()]
+        warnings = _WarningLines()
+        handlers = [warnings, warnings]
+        levels = [logging.WARNING, logging.WARNING]
     saved: list[tuple[logging.Logger, int]] = []
-    for logger, handler in zip(loggers, handlers, strict=True):
+    for logger, handler, level in zip(loggers, handlers, levels, strict=True):
         saved.append((logger, logger.level))
         logger.addHandler(handler)
         if debug:
-            logger.setLevel(logging.DEBUG)
-        elif logger.name == "biris_hw" and logger.getEffectiveLevel() > logging.WARNING:
-            logger.setLevel(logging.WARNING)  # a quieter root must not hide the warnings
+            logger.setLevel(level)
+        elif logger.getEffectiveLevel() > level:
+            logger.setLevel(level)  # a quieter root must not hide what this run shows
     try:
         yield
     finally:

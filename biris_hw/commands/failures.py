@@ -5,7 +5,9 @@ names the BIRIS command by its name, a missing module says which extra to instal
 status says whose move it is: 2 means "fix what you asked for" (a flag, a file, a device node
 or its permissions, a controller's credentials), 1 means "the hardware failed" (a fault, a bus
 error while running, no answer in time, a rule the simulator's audit caught the driver
-breaking), 130 is Ctrl-C. ``--debug`` adds the traceback.
+breaking, the network to the service lost), 130 is Ctrl-C and 143 SIGTERM (128 + the signal's
+number, as a shell reports a process the signal ended: the command has kept what it could, as
+for Ctrl-C). ``--debug`` adds the traceback.
 
 The dispatcher (:mod:`biris_hw.cli`) imports this module to run every command, ``biris --help``
 included, so it imports nothing of the server, the hardware or the outside world.
@@ -23,6 +25,7 @@ from biris_hw.errors import (
     BirisError,
     BusError,
     ConnectionClosed,
+    ConnectionLost,
     HardwareFault,
     RequestError,
     SetupError,
@@ -32,9 +35,11 @@ from biris_hw.errors import (
 __all__ = [
     "EXIT_FAULT",
     "EXIT_INTERRUPTED",
+    "EXIT_TERMINATED",
     "EXIT_USAGE",
     "AuditFailure",
     "SetupError",
+    "Terminated",
     "UsageError",
     "error_line",
     "exit_status",
@@ -44,6 +49,20 @@ __all__ = [
 EXIT_FAULT = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
+"""SIGTERM (systemd's stop, ``docker stop``, ``timeout``, a launch file): ended as Ctrl-C ends a
+command, with 128 + 15 as the status."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread as Ctrl-C's KeyboardInterrupt is (:mod:`biris_hw.cli`):
+    every ``except KeyboardInterrupt`` takes it, so a command ends by its Ctrl-C path.
+
+    A class of its own, not KeyboardInterrupt itself: CPython marks the process to end by
+    SIGINT (status 130, whatever ``sys.exit`` said) when a KeyboardInterrupt *exactly* passes
+    out of code run from a string (``exec``: dataclasses make their methods so, and an import
+    interrupted there is enough), even if it is caught further up; a subclass is not marked.
+    """
 
 
 class UsageError(BirisError, ValueError):
@@ -55,9 +74,14 @@ class AuditFailure(BirisError):
 
 
 def exit_status(exc: BaseException) -> int:
-    """2 for what the user must fix, 1 for what the hardware did, 130 for Ctrl-C."""
+    """2 for what the user must fix, 1 for what the hardware (or the network to the service)
+    did, 130 for Ctrl-C."""
+    if isinstance(exc, Terminated):
+        return EXIT_TERMINATED
     if isinstance(exc, KeyboardInterrupt):
         return EXIT_INTERRUPTED
+    if isinstance(exc, ConnectionLost):  # an OSError too, but not the user's to fix
+        return EXIT_FAULT
     usage = (UsageError, SetupError, RequestError, UnknownKind, ModuleNotFoundError, AccessDenied)
     if isinstance(exc, usage):  # AccessDenied: give a controller's credentials
         return EXIT_USAGE

@@ -15,7 +15,6 @@ needs attention.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 from typing import TYPE_CHECKING
 
@@ -35,11 +34,11 @@ def recovery_hint(args: argparse.Namespace) -> str:
     """How to bring the server out of a fault, for the server this command uses.
 
     A served sensor (``--connect NAME``) is reset by one of its controllers, with ``biris
-    reset`` where this installation has that command; a server of the command's own (``--sim``,
-    ``--target``, ``--attach``) only by the program holding it, so by restarting the command.
+    reset --connect``; a server of the command's own (``--sim``, ``--target``, ``--attach``)
+    only by the program holding it, so by restarting the command.
     """
     name = getattr(args, "connect", None)
-    if name is not None and importlib.util.find_spec("biris_hw.commands.reset") is not None:
+    if name is not None:
         endpoints = "".join(f" --endpoint {e}" for e in getattr(args, "endpoint", None) or ())
         return f"check the sensor, then a controller runs: biris reset --connect {name}{endpoints}"
     return "check the sensor, then reset the server (conn.reset() or restart the command)"

@@ -4,10 +4,15 @@
 the sensor named by the session flags), opens a :class:`~biris_hw.io.record.Recorder` on it, sweeps
 between the limits (``--to DEG``: one scan; neither: nothing is commanded, whatever the sensor
 does is recorded) and stops after ``--duration`` seconds or at Ctrl-C. The file is checked
-before the sensor is touched; it is closed with its summary however the run ends, and the
-command prints what it holds and what was dropped however the run ends too: after Ctrl-C (exit
-130, the file complete), and before the error's line when a fault, a timeout or a full disk
-stops the run (exit 1, or 2 for a full disk, with a valid, shorter file).
+before the sensor is touched, and an existing file is refused (exit 2, the file untouched)
+unless ``--force`` is given. The file is closed with its summary however the run ends, within
+:data:`~biris_hw.io.record.recorder.CLOSE_TIMEOUT_S` (what the recorder then had no time to write
+is dropped and counted), and the command prints what it holds and what was dropped however the
+run ends too: after Ctrl-C or SIGTERM (exit 130 or 143, the file complete: :mod:`biris_hw.cli`
+turns SIGTERM into the same KeyboardInterrupt), and before the error's line when a
+fault, a timeout, a full disk or a network to the service lost for longer than
+:data:`~biris_hw.io.feed.LOST_LIMIT_S` stops the run (exit 1, or 2 for a full disk, with a
+valid, shorter file). A shorter loss of the network is ridden out: the summary names the span.
 """
 
 from __future__ import annotations
@@ -39,7 +44,16 @@ __all__ = ["add_arguments", "recording_metadata", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     out = parser.add_argument_group("recording")
-    out.add_argument("--out", type=path, required=True, metavar="FILE", help="the .mcap file")
+    out.add_argument(
+        "--out",
+        type=path,
+        required=True,
+        metavar="FILE",
+        help="the .mcap file (an existing one is refused without --force)",
+    )
+    out.add_argument(
+        "--force", action="store_true", help="overwrite FILE if it exists (default: refuse)"
+    )
     out.add_argument(
         "--duration",
         type=positive_float,
@@ -72,7 +86,11 @@ def _check(args: argparse.Namespace) -> None:
     sweep_chosen(args)
     if args.to is None and args.duration is None:
         raise UsageError("say how long to record: --duration S (or --to DEG for one scan)")
-    check_output_file("--out", Path(args.out), suffixes={".mcap"})
+    out = check_output_file("--out", Path(args.out), suffixes={".mcap"})
+    if (out.exists() or out.is_symlink()) and not getattr(args, "force", False):
+        raise UsageError(
+            f"--out {out}: the file exists; give another name, or --force to overwrite it"
+        )
 
 
 def recording_metadata(session: Session, args: argparse.Namespace) -> dict[str, object]:
@@ -114,14 +132,19 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 frame=args.frame,
                 profiles=not args.no_profiles,
                 metadata=recording_metadata(session, args),
+                overwrite=getattr(args, "force", False),
             )
             try:
                 with recorder:
                     _scan(session, args, recorder)
-            except KeyboardInterrupt:
+            except KeyboardInterrupt:  # Ctrl-C (or SIGTERM), even a second one during close
                 interrupted = True
     finally:  # however the run ended (a fault, a full disk): what the file holds, then the error
-        summary = None if recorder is None else recorder.summary
+        summary = None
+        if recorder is not None:
+            summary = recorder.summary
+            if summary is None:  # close() was interrupted (a second Ctrl-C): once more
+                summary = recorder.close()
         if summary is not None:
             print(f"recorded {summary}", file=stream, flush=True)
     if interrupted:

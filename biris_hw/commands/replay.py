@@ -6,7 +6,9 @@ live server offers, read here through a DATA connection that takes every complet
 scan --json``) and ``--plot PATH`` draws them all, as ``biris scan --plot`` does for a live run.
 ``--speed X`` plays at X times the recorded pace (default: as fast as possible). A file damaged
 part way is printed up to the damage, then reported on one line with exit status 1 (a file
-that is not a recording at all is a usage error, 2).
+that is not a recording at all is a usage error, 2). A file without a footer (its recorder was
+killed) plays up to its last complete chunk with exit status 0: the replay's warning says so on
+stderr (``biris: warning: FILE ends without a footer ...``), and the last line adds it.
 
 ``--check`` reads every scan instead of printing it and judges the stream by
 :mod:`biris_hw.scancheck` (issue 21: no silently short or empty scan, none holding another's
@@ -94,10 +96,11 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
             report_error(prog_of(args), exc, debug=getattr(args, "debug", False))
             return EXIT_FAULT
         played = dict(replay.played)
+        cut = " (up to its last complete chunk: it has no footer)" if replay.recovered else ""
     if not args.json:
         print(
             f"replayed {args.file}: {played['scans']} scans, {played['points']} acquisitions, "
-            f"{played['statuses']} status records",
+            f"{played['statuses']} status records{cut}",
             file=stream,
         )
     if args.plot is not None:

@@ -17,9 +17,21 @@ read-only. A service with credentials does no multicast scouting unless ``--mult
 continuous scan nobody controls any more does not sweep for ever.
 
 A fault of the sensor does not end the service: the server stays up in its fault, the service
-goes on answering (the status says ``fault:<kind>``) and publishes the fault, and once a
-controller has reset the sensor over the network it publishes the sensor's data again
-(:class:`~biris_hw.io.net.Service`); the ``--foxglove`` view shows the fault on ``/diagnostics``.
+goes on answering (the status says ``fault:<kind>``) and publishes the fault, and once the
+sensor has been reset it publishes the sensor's data again (:class:`~biris_hw.io.net.Service`);
+the ``--foxglove`` view shows the fault on ``/diagnostics``. A controller resets it over the
+network (``biris reset --connect NAME``), or the service does, with ``--auto-reset N``
+(:class:`~biris_hw.commands.reset.AutoReset`: at most N tries, the pause between them doubling
+from ``--reset-delay``); a sensor still in a fault after the last try ends the service with
+status 1, so that its supervisor starts a new one (a lost link may need a new process).
+
+The service logs to stderr, from INFO up (``--debug``: DEBUG), one line per event, in the
+journal's form under systemd (:class:`~biris_hw.commands.console.ServiceLines`): its start (name,
+endpoints, sensor), clients connecting and leaving, access refused, faults with their kind,
+resets and recoveries, what could not be published. SIGTERM ends it as Ctrl-C does (the
+dispatcher, :mod:`biris_hw.cli`): clients' connections closed, the head stopped, ``stopping
+NAME``; exit status 0 after ``--duration``, 1 when ``--auto-reset`` gave up, 2 for a usage or
+set-up error, 130 after Ctrl-C, 143 after SIGTERM.
 
 ``--foxglove PORT`` also shows the served sensor live in Foxglove or Lichtblick
 (:class:`~biris_hw.io.liveview.LiveView`) for as long as the service runs: one process, one server,
@@ -35,21 +47,23 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import signal
+import logging
 import sys
 import threading
 from collections.abc import Iterator, Mapping
 from pathlib import Path
-from types import FrameType
 from typing import Any, TextIO
 
 from biris_hw.commands.argtypes import path, positive_float, seconds
-from biris_hw.commands.failures import SetupError, UsageError
+from biris_hw.commands.failures import EXIT_INTERRUPTED, SetupError, UsageError
 from biris_hw.commands.options import add_target_arguments, parse_zenoh_options, read_toml
+from biris_hw.commands.reset import AutoReset, add_auto_reset_arguments, check_auto_reset
 from biris_hw.commands.session import open_session, quiet_collector
-from biris_hw.errors import BirisError
+from biris_hw.errors import BirisError, HardwareFault
 
 __all__ = ["add_arguments", "run"]
+
+log = logging.getLogger(__name__)
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
@@ -108,6 +122,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help="stop after S real seconds (default: at Ctrl-C or SIGTERM)",
     )
+    add_auto_reset_arguments(parser)
     view = parser.add_argument_group("live view")
     view.add_argument(
         "--foxglove",
@@ -262,7 +277,25 @@ def _multicast(args: argparse.Namespace, controllers: Mapping[str, str] | None) 
     return bool(args.multicast or not (controllers or args.credentials is not None))
 
 
-def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
+def _describe(args: argparse.Namespace) -> str:
+    """What is served, for the log (the flags resolved by then: $BIRIS_TARGET, the
+    simulator's defaults)."""
+    if args.replay is not None:
+        return f"the recording {args.replay} at x{args.speed:g}"
+    if getattr(args, "attach", None) is not None:
+        return f"the simulator process {args.attach!r}"
+    if args.sim:
+        return f"the simulator (scene {args.scene}, x{args.time_scale:g}, seed {args.seed})"
+    return f"the target {args.target}"
+
+
+def run(
+    args: argparse.Namespace, out: TextIO | None = None, stop: threading.Event | None = None
+) -> int:
+    """Serve until ``--duration`` is over (0), Ctrl-C or SIGTERM (130: the dispatcher makes it
+    143 for SIGTERM), or ``--auto-reset`` gives up (the fault is raised: status 1). ``stop``
+    (tests, an embedding program), if given, ends the service when set, as the end of
+    ``--duration`` would."""
     stream = out or sys.stdout
     try:
         from biris_hw.io.net import serve
@@ -271,45 +304,74 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
             f"biris serve needs the net extra (pip install 'biris-hw[net]'): {exc}"
         ) from exc
     _check_replay_arguments(args)
+    check_auto_reset(args, playback=args.replay is not None)
     controllers, readers = _tables(args.credentials)
     options = _zenoh_options(args)
     listen = args.listen or [DEFAULT_LISTEN]
-    stop = threading.Event()
+    stop = stop or threading.Event()
+    gave_up: list[HardwareFault] = []
+    interrupted = False
 
-    def on_term(signum: int, frame: FrameType | None) -> None:
+    def give_up(fault: HardwareFault) -> None:
+        gave_up.append(fault)
         stop.set()
 
-    previous = signal.signal(signal.SIGTERM, on_term)
     try:
-        with (
-            _sensor(args) as sensor,
-            serve(
-                sensor,
-                name=args.name,
-                listen=listen,
-                controllers=controllers,
-                readers=readers,
-                multicast=_multicast(args, controllers),
-                options=options,
-                stop_when_controllers_leave=args.dead_man,
-            ) as service,
-            _live_view(args, sensor, stream),
-        ):
-            if args.replay is not None:
-                who = f"replay of {args.replay} at x{args.speed:g}, read-only"
-                _start_playing(sensor, service, args.replay_now, stop)
-            elif controllers:
-                who = f"{len(controllers)} controller(s)"
-            else:
-                who = "read-only"
-            print(
-                f"serving {service.name} on {' '.join(listen)} ({who}); Ctrl-C to stop",
-                file=stream,
-                flush=True,
+        with contextlib.ExitStack() as stack:
+            watches: list[AutoReset] = []
+
+            def join_watches() -> None:
+                for each in watches:
+                    each.join()
+
+            # joined last, once the sensor is closed: a reset under way ends with it
+            stack.callback(join_watches)
+            sensor = stack.enter_context(_sensor(args))
+            service = stack.enter_context(
+                serve(
+                    sensor,
+                    name=args.name,
+                    listen=listen,
+                    controllers=controllers,
+                    readers=readers,
+                    multicast=_multicast(args, controllers),
+                    options=options,
+                    stop_when_controllers_leave=args.dead_man,
+                )
             )
-            stop.wait(args.duration)
+            try:  # from here the service is up: Ctrl-C or SIGTERM closes it in order
+                stack.enter_context(_live_view(args, sensor, stream))
+                if args.replay is not None:
+                    who = f"replay of {args.replay} at x{args.speed:g}, read-only"
+                    _start_playing(sensor, service, args.replay_now, stop)
+                    log.info("serving %s", _describe(args))
+                else:
+                    who = f"{len(controllers)} controller(s)" if controllers else "read-only"
+                    watch = AutoReset(
+                        sensor, tries=args.auto_reset, delay_s=args.reset_delay, on_give_up=give_up
+                    )
+                    watches.append(watch.start())
+                    stack.callback(watch.stop)
+                    if args.auto_reset:
+                        after = (
+                            f"reset at most {args.auto_reset} time(s), {args.reset_delay:g} s "
+                            "after it, then twice as long before each further try"
+                        )
+                    else:
+                        after = "wait for a controller's reset"
+                    log.info("serving %s; after a fault: %s", _describe(args), after)
+                print(
+                    f"serving {service.name} on {' '.join(listen)} ({who}); Ctrl-C to stop",
+                    file=stream,
+                    flush=True,
+                )
+                stop.wait(args.duration)
+            except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (the dispatcher's)
+                interrupted = True
             print(f"stopping {service.name}", file=stream, flush=True)
+            log.info("stopping %s", service.name)
     finally:
         stop.set()  # ends the thread waiting to start a replay, if any
-        signal.signal(signal.SIGTERM, previous)
-    return 0
+    if gave_up:
+        raise gave_up[0]
+    return EXIT_INTERRUPTED if interrupted else 0

@@ -12,7 +12,8 @@ ERROR with the fault, the command says once on stderr what the fault is and how 
 (:class:`~biris_hw.commands.faults.FaultNotice`), and once the sensor has been reset the data
 come back (a sweep the fault ended is started again once the server is idle). Meanwhile the
 command looks at the status every :data:`POLL_S`. Exit status: 0, or 1 when the sensor was
-still in a fault as the view ended, 130 after Ctrl-C.
+still in a fault as the view ended, 130 after Ctrl-C, 143 after SIGTERM (which the dispatcher,
+:mod:`biris_hw.cli`, turns into Ctrl-C's interruption: the view closes the same way).
 """
 
 from __future__ import annotations

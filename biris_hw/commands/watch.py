@@ -14,6 +14,13 @@ abandoned at the fault and started again once the server is idle after the reset
 at ``--duration`` or Ctrl-C as always; its exit status says whether the server was still in a
 fault then (:class:`~biris_hw.commands.faults.FaultNotice`): 0 if not, 1 if so, 130 after
 Ctrl-C.
+
+A service watched with ``--connect`` that cannot be reached (a partition, a router or the service
+restarting: :class:`~biris_hw.errors.ConnectionLost`) is waited for, up to :data:`RIDE_OUT_S`:
+``watch`` says on stderr when the link is lost and when it is back (and for how long it was
+away), and goes on; a sweep asked for goes on in the service meanwhile and is stopped as usual
+at the end. A link still lost after :data:`RIDE_OUT_S`, or when the run ends, is exit status 1,
+with the span during which no status could be read.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from biris_hw.angles import counts_to_deg, destination_counts
 from biris_hw.commands.argtypes import degrees, seconds
 from biris_hw.commands.console import is_terminal, note_clamped
-from biris_hw.commands.failures import UsageError
+from biris_hw.commands.failures import EXIT_FAULT, UsageError
 from biris_hw.commands.faults import FaultNotice
 from biris_hw.commands.options import (
     add_continuous_argument,
@@ -37,14 +44,14 @@ from biris_hw.commands.options import (
     add_yes_argument,
 )
 from biris_hw.commands.session import confirm_moves, open_session, quiet_collector
-from biris_hw.errors import HardwareFault
+from biris_hw.errors import RIDE_OUT_S, ConnectionLost, HardwareFault
 from biris_hw.status import ServerState, ServerStatus
 from regs.wiener_crate import CrateReading
 
 if TYPE_CHECKING:
     from biris_hw.sensor import Sensor
 
-__all__ = ["add_arguments", "crate_summary", "run", "status_line", "status_table"]
+__all__ = ["RIDE_OUT_S", "add_arguments", "crate_summary", "run", "status_line", "status_table"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -91,12 +98,97 @@ def run(
             confirm_moves(session, args, limits)
         with _Live(stream) if is_terminal(stream) else _Lines(stream) as show:
             watcher = _Watcher(session.prog, server, args, show, stop or threading.Event())
-            watcher.run()
+            try:
+                watcher.run()
+            except _LinkGone as gone:
+                print(f"{session.prog}: {gone}", file=sys.stderr, flush=True)
+                return EXIT_FAULT
+        if watcher.link.since is not None:
+            print(f"{session.prog}: {watcher.link.unfinished()}", file=sys.stderr, flush=True)
+            return EXIT_FAULT
         if watcher.notice.faulted:
             return watcher.notice.exit_status()
-        with server.open() as conn:
-            conn.wait_idle(timeout=args.timeout)  # raises a fault that came since the last look
+        try:
+            with server.open() as conn:
+                conn.wait_idle(timeout=args.timeout)  # raises a fault that came since the last look
+        except ConnectionLost:
+            watcher.link.begin()
+            print(f"{session.prog}: {watcher.link.unfinished()}", file=sys.stderr, flush=True)
+            return EXIT_FAULT
     return 0
+
+
+class _LinkGone(Exception):
+    """The service stayed out of reach longer than :data:`RIDE_OUT_S`; says the span."""
+
+
+class _Link:
+    """Whether the watched sensor can be reached; says on stderr when it is lost and back.
+
+    Only a :class:`~biris_hw.errors.ConnectionLost` (a remote sensor's) makes it lost; a
+    local server never raises one. An outage is counted from the last status read, so the
+    span it names is the one without a status, and the bound applies to that span.
+    """
+
+    def __init__(self, prog: str, bound: float) -> None:
+        self._prog = prog
+        self._bound = bound
+        self.since: float | None = None
+        """time.monotonic() of the last status read before the outage under way, else None."""
+        self._since_wall = 0.0
+        self._last = time.monotonic()
+        self._last_wall = time.time()
+        self.outages = 0
+
+    def ok(self) -> None:
+        """A status was read: an outage under way ends (said, with its span)."""
+        now, now_wall = time.monotonic(), time.time()
+        if self.since is not None:
+            self._say(
+                f"the link to the service is back after {now - self.since:.1f} s (no status "
+                f"from {_clock(self._since_wall)} to {_clock(now_wall)})"
+            )
+            self.since = None
+        self._last, self._last_wall = now, now_wall
+
+    def lost(self, exc: ConnectionLost) -> None:
+        """A look failed with ``exc``: the first says so; past the bound, :class:`_LinkGone`."""
+        now = time.monotonic()
+        if self.begin():
+            self._say(
+                f"the link to the service is lost ({exc}); waiting up to {self._bound:g} s "
+                "for it to come back"
+            )
+        since = self._last if self.since is None else self.since
+        if now - since >= self._bound:
+            raise _LinkGone(
+                f"the service could not be reached for {now - since:.1f} s: no status "
+                f"from {_clock(self._since_wall)} to {_clock(time.time())}; giving up ({exc})"
+            )
+
+    def begin(self) -> bool:
+        """An outage begins (at the last status read), unless one is under way; True if new."""
+        if self.since is not None:
+            return False
+        self.since, self._since_wall = self._last, self._last_wall
+        self.outages += 1
+        return True
+
+    def unfinished(self) -> str:
+        """What to say when the run ends while the service is lost."""
+        away = 0.0 if self.since is None else time.monotonic() - self.since
+        return (
+            f"the run ended with the service out of reach for {away:.1f} s: no status from "
+            f"{_clock(self._since_wall)} to {_clock(time.time())}"
+        )
+
+    def _say(self, text: str) -> None:
+        print(f"{self._prog}: {text}", file=sys.stderr, flush=True)
+
+
+def _clock(t: float) -> str:
+    """Wall-clock time of day, to the second: what a person compares with a log."""
+    return time.strftime("%H:%M:%S", time.localtime(t))
 
 
 class _Abandon(Exception):
@@ -129,6 +221,7 @@ class _Watcher:
         self._status: ServerStatus | None = None
         self._sweeps = 0
         self.notice = FaultNotice(server, args, "watch goes on showing the status")
+        self.link = _Link(prog, RIDE_OUT_S)
 
     def run(self) -> None:
         sweep = self._args.cw is not None
@@ -156,6 +249,10 @@ class _Watcher:
                     raise _Abandon
         except _Abandon:
             pass
+        except ConnectionLost as exc:  # met starting or stopping the sweep: waited for, as a
+            self.link.lost(exc)  # look's; the next sweep starts once the service is idle again
+            self._status = None
+            self._wait()
         except HardwareFault:  # met starting the sweep or waiting for its end: the status
             self._look()  # shows it (and the notice says it), like a fault seen by a look
             if not self.notice.faulted:  # reset meanwhile: the next sweep waits its turn
@@ -174,7 +271,12 @@ class _Watcher:
             self._wait()
 
     def _look(self) -> None:
-        status = self._server.status()
+        try:
+            status = self._server.status()
+        except ConnectionLost as exc:  # a remote service out of reach: waited for (bounded)
+            self.link.lost(exc)
+            return
+        self.link.ok()
         self._show.update(status, time.monotonic() - self._started)
         self.notice.observe(status)
         self._status = status

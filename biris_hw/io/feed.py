@@ -38,6 +38,25 @@ acquisitions flow (each ask is a round trip), so a scan goes out within one or t
 hear the fault again); while a reset initialises the sensor, reading goes on at the batch rate,
 on the same connections.
 
+**A lost network** (a remote sensor's :class:`~biris_hw.errors.ConnectionLost`: a partition, a
+router restarting; the remote client reconnects by itself) is ridden out: the asks go on with a
+back-off (:data:`LOST_RETRY_S` doubling up to :data:`LOST_RETRY_MAX_S`), and when they succeed
+again reading carries on on the same connections. The span without the network is kept
+(:class:`LostSpan`: from when, to when, the hardware time of the last data before it) in every
+sink's :attr:`Sink.lost_spans`, and logged as a warning when it begins and when it ends. A sink
+whose ``lost_limit_s`` (:data:`LOST_LIMIT_S`, 30 real seconds, by default) passes without the
+network fails with a ConnectionLost that names the span; the others go on waiting.
+
+**Detaching within a bound.** :meth:`Sink.detach` with a ``timeout`` returns by then whatever
+the sink's backlog. For the first half of it the reader goes on taking what the sensor queued
+while a drain comes back full, and the sink's thread goes on handling its queue; what still
+waits in the queue then is dropped and counted (:attr:`Sink.unhandled_points`, in
+:attr:`Sink.dropped_points`), and what the sensor still held is left to it (the sensor counts
+what it drops). If ``on_batch`` is still running at the timeout (a write that blocks) detach
+returns all the same: the sink's thread goes on to its last batch by itself and sets
+:attr:`Sink.done`. Without a timeout detach hands over one drain more, then the last batch, and
+waits for ``on_batch`` however long it takes.
+
 **Status.** A second thread reads the status for sinks that want it periodically
 (``status_period_s``) or on every change (``status_changes``). When the sensor pushes (its
 ``status`` takes ``newer_than``: a parked request answered on change) the thread waits on a
@@ -64,7 +83,14 @@ from dataclasses import dataclass, field
 from typing import Any, TypeAlias
 
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Point, Scan
-from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault, RequestError
+from biris_hw.errors import (
+    RIDE_OUT_S,
+    BirisError,
+    ConnectionClosed,
+    ConnectionLost,
+    HardwareFault,
+    Initialising,
+)
 from biris_hw.geometry import Frame
 from biris_hw.io import codec
 from biris_hw.sensor import Sensor
@@ -75,11 +101,15 @@ __all__ = [
     "DRAIN_MAX",
     "FAULT_POLL_S",
     "FEED_TOPICS",
+    "LOST_LIMIT_S",
+    "LOST_RETRY_MAX_S",
+    "LOST_RETRY_S",
     "POINT_DEPTH",
     "SCAN_DEPTH",
     "STATUS_POLL_S",
     "Batch",
     "FeedStopped",
+    "LostSpan",
     "Message",
     "SensorFeed",
     "SensorSource",
@@ -109,6 +139,16 @@ SCAN_DEPTH = 256
 
 FAULT_POLL_S = 0.5
 """While the sensor is in a fault, the pause between two asks for data (real seconds)."""
+
+LOST_LIMIT_S = RIDE_OUT_S
+"""How long (real seconds) a sink waits for a lost network to come back before it fails (the
+project's one bound, :data:`biris_hw.errors.RIDE_OUT_S`)."""
+
+LOST_RETRY_S = 0.1
+"""The first pause (real seconds) between two asks of a sensor whose network is lost..."""
+
+LOST_RETRY_MAX_S = 2.0
+"""...doubled at each ask up to this: a network that comes back is heard within it."""
 
 STATUS_POLL_S = 0.05
 """How often the status is read while a sink watches for changes and the sensor cannot push."""
@@ -163,6 +203,39 @@ class StatusReading:
     t: float
 
 
+def _clock_text(wall: float) -> str:
+    """A wall-clock time for a person: ``14:02:11.3`` (local time)."""
+    return time.strftime("%H:%M:%S", time.localtime(wall)) + f".{int(wall % 1 * 10)}"
+
+
+@dataclass(frozen=True)
+class LostSpan:
+    """A span of real time without the network to a remote sensor: nothing was received from
+    ``began`` to ``ended`` (wall-clock seconds, ``time.time()``; ``ended`` None while it
+    lasts); ``after_t`` is the hardware time of the last data before it (0.0: none came
+    before), ``gave_up`` True when the sink failed at ``ended`` instead of the network coming
+    back."""
+
+    began: float
+    ended: float | None
+    after_t: float
+    gave_up: bool = False
+
+    @property
+    def seconds(self) -> float:
+        """How long it lasted (so far, while it lasts)."""
+        return (time.time() if self.ended is None else self.ended) - self.began
+
+    def __str__(self) -> str:
+        end = "still lost" if self.ended is None else f"to {_clock_text(self.ended)}"
+        how = ", gave up" if self.gave_up else ""
+        return f"from {_clock_text(self.began)} {end} ({self.seconds:.1f} s{how}{self.after()})"
+
+    def after(self) -> str:
+        """``; after hardware time 12.345 s``: where the data stop, if any came before."""
+        return f"; after hardware time {self.after_t:.3f} s" if self.after_t > 0 else ""
+
+
 @dataclass(frozen=True)
 class Batch:
     """What one sink is handed at a time: items, the messages made from them on its topics (in
@@ -212,6 +285,7 @@ class Sink:
         sweep_period_s: float,
         point_depth: int,
         scan_depth: int,
+        lost_limit_s: float,
     ) -> None:
         self.feed = feed
         self.name = name
@@ -224,6 +298,7 @@ class Sink:
         self.sweep_period_s = sweep_period_s
         self.point_depth = point_depth
         self.scan_depth = scan_depth
+        self.lost_limit_s = lost_limit_s
         self._on_batch = on_batch
         self._wants = wants
         self._cond = threading.Condition()
@@ -241,6 +316,16 @@ class Sink:
         """Acquisitions this sink's queue had no room for."""
         self.lost_scans = 0
         self.lost_statuses = 0
+        self.unhandled_points = 0
+        """Acquisitions still in its queue when its detach's time for them had passed."""
+        self.unhandled_scans = 0
+        self._drop_after = math.inf
+        """Past this (monotonic), what waits in the queue is dropped and counted (detach)."""
+        self._spans: list[LostSpan] = []
+        """The spans without the network while it was attached (closed ones)."""
+        self._attached_at = time.time()
+        self.done = threading.Event()
+        """Set once its last batch has been handled (or skipped: a failed sink)."""
         self.points = 0
         """Acquisitions handed to ``on_batch``."""
         self.scans = 0
@@ -263,13 +348,33 @@ class Sink:
     @property
     def dropped_points(self) -> int:
         """Acquisitions this sink missed: dropped by the sensor on the feed's connection since
-        the sink attached (too slow a feed, or lost by the sensor), and by its own queue."""
-        return max(0, self.feed.dropped_points - self._base_points) + self.lost_points
+        the sink attached (too slow a feed, or lost by the sensor), by its own queue, and left
+        in it at a bounded detach. What a sensor made while the network was lost is not here
+        unless the sensor counted it: see :attr:`lost_spans`."""
+        return (
+            max(0, self.feed.dropped_points - self._base_points)
+            + self.lost_points
+            + self.unhandled_points
+        )
 
     @property
     def dropped_scans(self) -> int:
         """Scans this sink missed, counted as :attr:`dropped_points` are."""
-        return max(0, self.feed.dropped_scans - self._base_scans) + self.lost_scans
+        return (
+            max(0, self.feed.dropped_scans - self._base_scans)
+            + self.lost_scans
+            + self.unhandled_scans
+        )
+
+    @property
+    def lost_spans(self) -> tuple[LostSpan, ...]:
+        """Every span without the network to the sensor while this sink was attached, the one
+        under way included (``ended`` None)."""
+        spans = list(self._spans)
+        ongoing = self.feed.lost_span
+        if ongoing is not None and not (spans and spans[-1].gave_up):
+            spans.append(ongoing)
+        return tuple(spans)
 
     def active(self) -> frozenset[str]:
         """The topics to make for this sink now (``wants`` asked once per batch); none once
@@ -280,10 +385,15 @@ class Sink:
             return self.topics
         return frozenset(t for t in self.topics if self._wants(t))
 
-    def detach(self) -> None:
+    def detach(self, timeout: float | None = None) -> None:
         """Take what the sensor queued until now, then stop; returns once ``on_batch`` has
-        been handed the last batch (idempotent). From ``on_batch`` itself it does not wait."""
-        self.feed._detach(self)
+        been handed the last batch (idempotent). From ``on_batch`` itself it does not wait.
+
+        With ``timeout`` (real seconds) it returns by then whatever waits: what is still in the
+        queue once half of it has passed is dropped and counted (:attr:`unhandled_points`), and
+        an ``on_batch`` still running then is left to finish in the sink's thread (which sets
+        :attr:`done` after the last batch)."""
+        self.feed._detach(self, timeout)
 
     # -- the queue ---------------------------------------------------------------------------
     def _start(self) -> None:
@@ -301,7 +411,9 @@ class Sink:
             self._hand_now(batch)
             return
         with self._cond:
-            if self._sealed:
+            if self._sealed:  # a bounded detach sealed it first: counted, not lost silently
+                self.unhandled_points += len(batch.points)
+                self.unhandled_scans += len(batch.scans)
                 return
             points, scans, status = batch.points, batch.scans, batch.status
             lost_points = bool(points) and self._pending[0] + len(points) > self.point_depth
@@ -352,6 +464,7 @@ class Sink:
                 with self._cond:
                     self._sealed = True
                     self._cond.notify_all()  # a detach waiting for the seal
+                self.done.set()
 
     def _deliver(self, batch: Batch) -> None:
         """Hand ``batch`` to ``on_batch`` and count it; a sink that raises fails alone, and is
@@ -375,19 +488,33 @@ class Sink:
                 self._pending[0] -= len(batch.points)
                 self._pending[1] -= len(batch.scans)
                 self._pending[2] -= batch.status is not None
+            if time.monotonic() >= self._drop_after:
+                batch = self._without_data(batch)
             self._deliver(batch)
             if batch.final:
+                self.done.set()
                 return
+
+    def _without_data(self, batch: Batch) -> Batch:
+        """``batch`` less its acquisitions and scans (and the messages made of them), counted:
+        a bounded detach has no more time for them. The status and the faults stay."""
+        if not (batch.points or batch.scans):
+            return batch
+        self.unhandled_points += len(batch.points)
+        self.unhandled_scans += len(batch.scans)
+        gone = {id(item) for item in (*batch.points, *batch.scans)}
+        messages = tuple(m for m in batch.messages if m.item is not None and id(m.item) not in gone)
+        return Batch((), (), messages, batch.status, batch.faults, batch.final)
 
     def _fail(self, exc: BaseException) -> None:
         if self.error is None:
             self.error = exc
         self.failed.set()
 
-    def _join(self) -> None:
+    def _join(self, timeout: float | None = None) -> None:
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
-            thread.join()
+            thread.join(timeout)
 
 
 _REGISTRY: dict[int, SharedFeed] = {}
@@ -445,10 +572,19 @@ class SharedFeed:
         self._last_seen = 0.0
         self._last_fault: HardwareFault | None = None
         self._fault_until = -math.inf
+        """No ask for data before this (monotonic): a fault's pause, a lost network's back-off."""
+        self._lost_since: float | None = None
+        """When (monotonic) the network to the sensor was lost, while it is."""
+        self._lost: LostSpan | None = None
+        self._lost_retry = LOST_RETRY_S
         self._sweep: list[Point] = []
         self._sweep_sent = -math.inf
         self._server_dropped = [0, 0]
-        """What the sensor dropped on the feed's two connections (its counts)."""
+        """What the sensor dropped on the feed's two connections (its counts, added up across
+        a count that starts again: a remote client's connections reopened after a lost
+        network)."""
+        self._server_seen = [0, 0]
+        """The two connections' counts as last read."""
         self._unencoded = [0, 0]
         """Acquisitions and scans lost because they could not be encoded."""
         self.encoded: collections.Counter[str] = collections.Counter()
@@ -477,6 +613,11 @@ class SharedFeed:
         with self._lock:
             return tuple(self._sinks)
 
+    @property
+    def lost_span(self) -> LostSpan | None:
+        """The span without the network under way, or None."""
+        return self._lost
+
     # -- attaching and detaching -------------------------------------------------------------
     def attach(
         self,
@@ -493,6 +634,7 @@ class SharedFeed:
         sweep_period_s: float = 0.1,
         point_depth: int = POINT_DEPTH,
         scan_depth: int = SCAN_DEPTH,
+        lost_limit_s: float | None = None,
     ) -> Sink:
         """Attach a sink; ``on_batch`` is called in the sink's own thread with each
         :class:`Batch`. Nothing the sensor produces after this returns is missed.
@@ -510,6 +652,9 @@ class SharedFeed:
             sweep_period_s: at most one ``/biris/sweep`` message this often.
             point_depth: acquisitions that may wait in its queue; beyond, dropped and counted.
             scan_depth: likewise for scans.
+            lost_limit_s: how long (real seconds) it waits for a lost network to come back
+                before it fails with a :class:`~biris_hw.errors.ConnectionLost` naming the span
+                (None: :data:`LOST_LIMIT_S`).
 
         Raises:
             ValueError: a topic the feed does not make, a frame that is neither.
@@ -537,6 +682,7 @@ class SharedFeed:
             sweep_period_s=sweep_period_s,
             point_depth=point_depth,
             scan_depth=scan_depth,
+            lost_limit_s=LOST_LIMIT_S if lost_limit_s is None else lost_limit_s,
         )
         with _REGISTRY_LOCK:
             if self._over or self._ended.is_set():
@@ -574,7 +720,18 @@ class SharedFeed:
         self._watcher = threading.Thread(target=self._watch, name="biris-feed-status", daemon=True)
         self._watcher.start()
 
-    def _detach(self, sink: Sink) -> None:
+    def _detach(self, sink: Sink, timeout: float | None = None) -> None:
+        deadline = math.inf if timeout is None else time.monotonic() + max(0.0, timeout)
+        if timeout is not None:
+            sink._drop_after = min(sink._drop_after, time.monotonic() + max(0.0, timeout) / 2)
+
+        def left() -> float | None:
+            return None if timeout is None else max(0.0, deadline - time.monotonic())
+
+        # from a thread of the feed's own (a sink's on_batch, the reader, the status thread:
+        # a garbage collection may run a finaliser there) a wait would wait for itself
+        mine = (sink._thread, self._reader, self._watcher)
+        may_wait = threading.current_thread() not in mine
         with self._lock:
             attached = sink in self._sinks
             if attached:
@@ -582,15 +739,16 @@ class SharedFeed:
         if attached and not self._ended.is_set():
             self._wake.set()  # the reader hands it what waits, then its final batch
             self._status_wake.set()
-            with sink._cond:
-                if threading.current_thread() is not sink._thread:
-                    sink._cond.wait_for(lambda: sink._sealed or self._ended.is_set())
-        if not sink._sealed:  # the reader has gone: nothing more will come
+            if may_wait:
+                with sink._cond:
+                    sink._cond.wait_for(lambda: sink._sealed or self._ended.is_set(), left())
+        if not sink._sealed:  # the reader has gone, or had no time: nothing more will come
             self._remove([sink])
             sink._offer(Batch(messages=self._flush_sweep([sink]), final=True))
-        sink._join()
-        if self._over:
-            self._join()
+        if may_wait:
+            sink._join(left())
+            if self._over:
+                self._join(left())
 
     def _remove(self, sinks: Sequence[Sink]) -> None:
         """Take ``sinks`` off; the last one to go stops the feed."""
@@ -607,10 +765,11 @@ class SharedFeed:
                 self._status_wake.set()
                 self._interrupt_status()
 
-    def _join(self) -> None:
+    def _join(self, timeout: float | None = None) -> None:
+        deadline = None if timeout is None else time.monotonic() + timeout
         for thread in (self._reader, self._watcher):
             if thread is not None and thread is not threading.current_thread():
-                thread.join()
+                thread.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
 
     # -- reading the data --------------------------------------------------------------------
     def _open(self, policy: DeliveryPolicy, depth: int) -> Any:
@@ -675,7 +834,7 @@ class SharedFeed:
                     if not closing and any(s.prompt for s in sinks):
                         wait = min(BATCH_S, *(s.batch_s for s in sinks))
                     points, ended[0], waited = self._drain(points_conn, wait, faults)
-                    self._server_dropped[0] = int(points_conn.dropped)
+                    self._dropped_count(0, points_conn)
                     if wait > 0 and points and not faults:
                         # prompt: the acquisition goes out now, before anything else is asked
                         # (a poll for more, the scans: round trips a remote reader would wait)
@@ -683,20 +842,33 @@ class SharedFeed:
                         points = []
                         if begun - scans_polled < wait:
                             continue  # the scans at most every batch: a poll is a round trip
-                if not ended[1] and not faults:
+                if not ended[1] and not faults and self._lost_since is None:
                     scans_polled = begun
                     scans, ended[1], _ = self._drain(scans_conn, 0.0, faults)
-                    self._server_dropped[1] = int(scans_conn.dropped)
+                    self._dropped_count(1, scans_conn)
+            more = len(points) >= DRAIN_MAX or len(scans) >= DRAIN_MAX
+            going = self.error is not None or all(ended)
+            if more and not going:  # a bounded detach takes what waits, until half its time
+                now = time.monotonic()
+                closing = [s for s in closing if not now < s._drop_after < math.inf]
             if points or scans or faults or closing or self._sweep:
                 self._hand_out(sinks, points, scans, faults, closing)
             if closing:
                 self._remove(closing)
-            if self.error is not None or all(ended):
+            if going:
                 return  # the sensor has gone (or failed): what came is handed over
-            if len(points) >= DRAIN_MAX or len(scans) >= DRAIN_MAX:
+            if more:
                 continue  # more waits: no pause
             if not waited:
                 self._wake.wait(self._pause(sinks, begun))
+
+    def _dropped_count(self, which: int, conn: Any) -> None:
+        """Add what the sensor dropped on ``conn`` since last read; a count that went down
+        started again (a connection reopened under the feed): all of it is new."""
+        count = int(conn.dropped)
+        seen = self._server_seen[which]
+        self._server_dropped[which] += count - seen if count >= seen else count
+        self._server_seen[which] = count
 
     def _pause(self, sinks: Sequence[Sink], begun: float) -> float:
         """How long the reader rests: until the next batch, the end of a fault's pause, or a
@@ -725,10 +897,15 @@ class SharedFeed:
         while len(got) < DRAIN_MAX:
             try:
                 got.append(conn.ready_for_data(timeout=timeout))
+                self._network_back()
                 if wait > 0:  # a prompt wait: what came goes out at once, the rest next time
                     return got, False, True
             except TimeoutError:
+                self._network_back()
                 return got, False, wait > 0
+            except ConnectionLost as exc:  # ridden out: asked again after a back-off
+                self._network_lost(exc)
+                return got, False, False
             except ConnectionClosed:
                 self._close([conn])
                 return got, True, False  # the sensor stopped (or the replay ended)
@@ -737,14 +914,65 @@ class SharedFeed:
                 self._last_fault = exc
                 self._fault_until = time.monotonic() + FAULT_POLL_S
                 return got, False, False
-            except RequestError:  # the sensor is initialising (a reset): its data come back
-                return got, False, False  # when it is done, on these same connections
+            except Initialising:  # a reset under way: its data come back
+                self._network_back()  # when it is done, on these same connections
+                return got, False, False
             except BirisError as exc:
                 log.info("sensor feed stopped: %s", exc)
                 self._fail(exc)
                 return got, True, False
             timeout = 0.0
         return got, False, True
+
+    # -- a lost network --------------------------------------------------------------------------
+    def _network_lost(self, exc: ConnectionLost) -> None:
+        """An ask met a lost network: the span begins (or goes on), the next ask waits for the
+        back-off, and each sink whose limit has passed fails, naming the span."""
+        now = time.monotonic()
+        if self._lost_since is None:
+            self._lost_since = now
+            self._lost = LostSpan(time.time(), None, self._last_seen)
+            self._lost_retry = LOST_RETRY_S
+            log.warning("the network to the sensor is lost (%s): asking again", exc)
+        else:
+            self._lost_retry = min(LOST_RETRY_MAX_S, self._lost_retry * 2)
+        self._fault_until = now + self._lost_retry
+        lost = now - self._lost_since
+        span = self._lost
+        assert span is not None
+        for sink in self.sinks:
+            if sink.error is None and lost >= sink.lost_limit_s:
+                ended = LostSpan(span.began, time.time(), span.after_t, gave_up=True)
+                sink._spans.append(ended)
+                assert ended.ended is not None
+                log.info("sink %s gives up: no network %s", sink.name, ended)
+                sink._fail(
+                    ConnectionLost(
+                        f"the network to the sensor was lost from {_clock_text(ended.began)} "
+                        f"to {_clock_text(ended.ended)} and did not come back within "
+                        f"{sink.lost_limit_s:g} s ({exc}): nothing was received in that span"
+                        f"{ended.after()}"
+                    )
+                )
+
+    def _network_back(self) -> None:
+        """An ask succeeded: a span without the network under way ends, for every sink that
+        still waited for it."""
+        if self._lost_since is None:
+            return
+        span = self._lost
+        self._lost_since = None
+        self._lost = None
+        self._fault_until = -math.inf
+        if span is None:
+            return
+        ended = LostSpan(span.began, time.time(), span.after_t)
+        log.warning("the network to the sensor is back: nothing was received %s", ended)
+        for sink in self.sinks:
+            if not (
+                sink._spans and sink._spans[-1].gave_up and sink._spans[-1].began == span.began
+            ):
+                sink._spans.append(ended)
 
     # -- encoding and handing out ------------------------------------------------------------
     def _hand_out(
@@ -1009,6 +1237,9 @@ class SharedFeed:
                     last = reading.status
                 with self._status_lock:
                     self._deliver_status(reading, sinks, force=False)
+                if reading.status is None:  # not read (a lost network): asked again after a
+                    pause = STATUS_POLL_S if self._lost_since is None else self._lost_retry
+                    self._status_wake.wait(pause)  # pause, as the data are
         finally:
             if conn is not None:
                 self._close([conn])

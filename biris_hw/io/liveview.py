@@ -28,14 +28,20 @@ status period), and the data come back by themselves once the sensor has been re
 the feed asks the sensor for data only every :data:`FAULT_POLL_S` (each ask would only hear the
 fault again), not at the batch rate, which would load a sensor reached over the network for
 nothing.
+
+A view its owner forgets to close is closed when the garbage collector takes it, or at the
+interpreter's exit at the latest, as a file is: the feed holds it only weakly, so a script that
+ends without ``close()`` ends (its WebSocket closed, its sink detached) rather than serve on.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import weakref
+from collections.abc import Callable, Sequence
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 from biris_hw.data import ConnectionKind
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
@@ -57,6 +63,45 @@ feed's."""
 
 _TOPICS = frozenset({codec.PROFILE_TOPIC, codec.TF_TOPIC, codec.SWEEP_TOPIC, codec.POINTS_TOPIC})
 """What the view takes from the feed; it makes ``/tf_static`` and ``/diagnostics`` itself."""
+
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
+
+
+def _weakly(method: Callable[[_T], _R], default: _R) -> Callable[[_T], _R]:
+    """``method`` (a bound method) called through a weak reference to its object: what the
+    feed holds of a view must not keep the view alive. ``default`` once the view has gone."""
+    ref = weakref.WeakMethod(method)
+
+    def call(arg: _T) -> _R:
+        bound = ref()
+        return default if bound is None else bound(arg)
+
+    return call
+
+
+class _Parts:
+    """What a started view must close, apart from the view itself (its finaliser holds this,
+    never the view)."""
+
+    def __init__(self, sink: feed.Sink, server: Any, channels: Sequence[Any], url: str) -> None:
+        self.sink = sink
+        self.server = server
+        self.channels = list(channels)
+        self.url = url
+        self.by_owner = False
+        """close() was called (else the collector or the interpreter's exit closes it)."""
+
+
+def _shut(parts: _Parts) -> None:
+    """Detach the view's sink, close its channels and stop its WebSocket server (once)."""
+    if not parts.by_owner:
+        log.debug("live view on %s closed: its owner had not closed it", parts.url)
+    parts.sink.detach()
+    for channel in parts.channels:
+        channel.close()
+    parts.server.stop()
 
 
 def viewer_urls(host: str, port: int) -> dict[str, str]:
@@ -102,7 +147,6 @@ class LiveView:
             "name": "liveview",
             "topics": _TOPICS,
             "frame": frame,
-            "wants": self._wanted,
             "status_period_s": status_period_s,
             "batch_s": batch_s,
             "sweep_period_s": sweep_period_s,
@@ -122,6 +166,9 @@ class LiveView:
         """The fault the sensor is in, as the feed last met it; None outside a fault."""
         self.faults_met = 0
         """Asks for data that met a fault (the feed pauses after each: :data:`FAULT_POLL_S`)."""
+        self._parts: _Parts | None = None
+        self._closer: weakref.finalize[[_Parts], LiveView] | None = None
+        """Closes the view's parts once: :meth:`close`, the garbage collector or the exit."""
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> LiveView:
@@ -140,10 +187,19 @@ class LiveView:
                 topic, schema=schema, message_encoding="cdr", context=self._context
             )
         try:
-            self._sink = feed.attach(self.source, self._batch, **self._options)
+            self._sink = feed.attach(
+                self.source,
+                _weakly(self._batch, None),
+                wants=_weakly(self._wanted, False),
+                **self._options,
+            )
         except BaseException:
             self._server.stop()
             raise
+        self._parts = _Parts(
+            self._sink, self._server, tuple(self._channels.values()), self.urls["websocket"]
+        )
+        self._closer = weakref.finalize(self, _shut, self._parts)
         return self
 
     @property
@@ -170,13 +226,11 @@ class LiveView:
     def close(self) -> None:
         """Stop reading (the last acquisitions handed over are published) and publishing,
         close the server. Idempotent."""
-        if self._sink is not None:
-            self._sink.detach()
-        if self._server is not None:
-            for channel in self._channels.values():
-                channel.close()
-            self._server.stop()
-            self._server = None
+        if self._parts is not None:
+            self._parts.by_owner = True
+        if self._closer is not None:
+            self._closer()
+        self._server = None
 
     def __enter__(self) -> LiveView:
         return self.start()

@@ -46,7 +46,8 @@ class VmUsbLine(FdLine):
     ``wait()`` returns the number of events since the previous wait (coalesced, as an eventfd);
     :meth:`prefetched` the values the stack read for the newest of them. ``close()`` clears the
     ISV entry (data taking stops when no line is left) and wakes waiters with ``LineClosed``;
-    if the bridge goes away the line closes itself the same way (a ``bus`` fault upstream).
+    while the bridge is lost (unplugged), ``wait()`` raises its ``BusError`` (a ``bus`` fault
+    upstream) and the line stays open, until a reset re-links the bridge and re-arms the stack.
     """
 
     kind = "vmusb"

@@ -59,17 +59,42 @@ The reader does not read the ring while idle, so it counts them when it next loo
 
 So nothing is counted as the ring goes live (the frames before the first sweep are counted when
 it opens). The reader numbers the frames of a ring's life continuously (frame k sits in slot
-``k % ring``), and what it learns at each look is a slot; the frames passed since the previous
-look are the slot advance plus whole laps, and the laps come from the hardware clock: see
-:func:`frames_between`. Counts found where the reader cannot post (a sweep opening, the ring
-stopping) are handed over with the next drain, which follows at once: the sweep's first data
-interrupt, or the command notifier's drain after the stop.
+``k % ring``), and what it learns at each look is a slot. Counts found where the reader cannot
+post (a sweep opening, the ring stopping) are handed over with the next drain, which follows at
+once: the sweep's first data interrupt, or the command notifier's drain after the stop.
+
+**Laps, on evidence.** The frames begun between two looks are the slot advance plus whole laps,
+and only the hardware clock can tell the laps (:func:`frames_between`) -- on the assumption that
+BIRIS acquired at its data rate all the while. A BIRIS that hung (and perhaps resumed) made
+fewer; the clock would book a lap of frames BIRIS never made for every 34 s of hang. So laps
+are booked from the clock only where the evidence bears the assumption out
+(:meth:`AcquisitionReader._begun_since`): the clock's count agrees with the time that passed
+to within the looks' jitter, and no look since the previous one found the ring standing still.
+Otherwise the slot advance alone is booked: no frame is accounted for that BIRIS is not known
+to have made. Between looks less than half a lap apart the slot advance is the count whatever
+happened, so the laps are only ever in doubt over a long unwatched stretch, and a live ring is
+watched:
+
+**The ring must progress.** While the ring is live and no sweep reads it, nothing else looks at
+it: data interrupts are off. The administrator counts the ring's progress as something BIRIS
+owes, so the BIRIS timeout runs for it as for a command (when the timeout is enabled), and each
+time it runs out the level-2 routine looks (:meth:`AcquisitionReader.watch_ring`, called by
+:class:`~biris_hw.server.tasks.BirisRecheck`). A look that finds no frame begun since a look at
+least the tolerance earlier (:meth:`AcquisitionReader.tolerance_s`) has found the ring standing
+still: BIRIS is hung, which is the ``timeout`` fault, and the ring is marked *stalled*, so that
+no later look books laps across the hang. Any other look keeps the laps resolvable, since it
+comes a BIRIS timeout (4 s, 120 frames) after the previous one.
+
+**CURRENT_FRAME after a stop** names the last slot the stopped ring completed, -1 when it
+completed none (stopped in its start-up or during its first exposure). A slot left there by an
+earlier ring would otherwise read as frames of this one.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import enum
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -91,6 +116,19 @@ __all__ = [
     "frames_between",
     "ring_length",
 ]
+
+log = logging.getLogger(__name__)
+
+LOOK_JITTER_FRAMES = 2.0
+"""How far (acquisition periods) the clock's count of frames between two looks may stray from
+the slots they saw while BIRIS acquires at its data rate: each look falls somewhere within the
+period of the frame it sees, under one period either way."""
+
+LOOK_SLACK_REAL_S = 0.1
+"""Real seconds a busy host may take between reading ACQ_LINE and reading the clock (the BIRIS
+timeout's own real slack), added to :data:`LOOK_JITTER_FRAMES`
+(:meth:`AcquisitionReader.tolerance_s`): scaled to hardware time by the time base, so nothing
+on virtual time, where a look takes no time."""
 
 STARTUP_S = 0.240
 """The report's start-up of an acquisition sequence: BIRIS acquires nothing for this long after
@@ -180,10 +218,15 @@ class AcquisitionReader:
         link: BirisLink,
         clock: Callable[[], float],
         max_range: int,
+        *,
+        look_slack_real_s: float = LOOK_SLACK_REAL_S,
     ) -> None:
+        self._look_slack_real_s = look_slack_real_s
+        """:data:`LOOK_SLACK_REAL_S` unless told (a test's scripted clock is no busy host)."""
         # a lock on the time base: a drain holds it across bus reads, which a simulator may slow
         # by sleeping in hardware time (on virtual time, a waiter for a plain lock holds time)
-        self.lock = timebase_of(clock).Lock()
+        self._timebase = timebase_of(clock)
+        self.lock = self._timebase.Lock()
         self._window = window
         self._link = link
         self._clock = clock
@@ -218,6 +261,13 @@ class AcquisitionReader:
         self._primed_at = -math.inf
         self._halted = False
         """BIRIS was seen to have stopped the ring and every frame it made is accounted for."""
+        self._moved_at = -math.inf
+        """When a look last found a frame begun since the look before (or the ring live)."""
+        self._stalled = False
+        """A look found the ring standing still, and none has seen it move since: the clock
+        cannot tell the laps from then on (module notes, "Laps, on evidence")."""
+        self._stop_written_at = math.inf
+        """When BI_STOP_CONTINUOUS was last written to this ring (:meth:`stop_written`)."""
         # accounted for, not handed over yet (module notes)
         self._owed_acqs: list[Acquisition] = []
         self._owed_lost = 0
@@ -393,10 +443,12 @@ class AcquisitionReader:
             self._ring = 0
             self._followable = False
             self._halted = False
+            self._stalled = False
             self._exposing = self._next = 0  # a new ring: its frames are numbered from 0
             self._end = None
             self._t0 = math.inf
-            self._primed_at = self._seen = self._clock()
+            self._primed_at = self._seen = self._moved_at = self._clock()
+            self._stop_written_at = math.inf
             self._link.set_flags(data_int=True)
 
     def ring_started(self, ring: int) -> None:
@@ -426,6 +478,13 @@ class AcquisitionReader:
                 self._followable = False
             self._link.set_flags(data_int=True)  # single sequences announce every frame
 
+    def stop_written(self) -> None:
+        """BI_STOP_CONTINUOUS is about to be written (by biris_cmd_transfer): BIRIS stops the
+        ring no sooner than now, which bounds when it stopped (:meth:`_frames_done`)."""
+        now = self._clock()  # before the lock, as written() does
+        with self.lock:
+            self._stop_written_at = min(self._stop_written_at, now)
+
     def open_sweep(self, seq_id: int, follows: bool = False) -> None:
         """The motor scan of sweep ``seq_id`` starts now: turn data interrupts back on and
         collect from the frame in exposure -- or, when the sweep ``follows`` the one just
@@ -443,12 +502,13 @@ class AcquisitionReader:
             now = self._clock()
             ring = self._ring
             seen = 0 <= line < ring
-            if seen and follows and self._followable:
-                following = now - self._seen < (ring - 1) * self._period
-            else:
-                following = False
             if seen:
                 self._exposing = self._advance(line, now)
+            # the previous sweep's frames after its last are still in the ring while less than
+            # a lap has begun since (counted in frames: idle looks keep the count)
+            following = (
+                seen and follows and self._followable and self._exposing - self._next < ring - 1
+            )
             if not following:
                 self._owed_idle += max(0, self._exposing - self._next)
                 self._next = self._exposing
@@ -502,18 +562,80 @@ class AcquisitionReader:
         self._ring_state = RingState.IDLE
         self._link.set_flags(data_int=False)
         begun = (now - self._primed_at - STARTUP_S) / self._period if self._period > 0 else 0.0
-        self._exposing = max(line, frames_between(line, begun, self._ring))
-        self._seen = now
+        self._exposing = max(line, self._begun_since(line, begun))
+        self._seen = self._moved_at = now
         self._next = 0
+
+    def tolerance_s(self) -> float:
+        """How far (hardware seconds) two looks may disagree with the clock while BIRIS
+        acquires at its data rate: :data:`LOOK_JITTER_FRAMES` periods, plus the host's own
+        delay (:data:`LOOK_SLACK_REAL_S` unless told) scaled to hardware time."""
+        slack = self._timebase.hw_from_real(self._look_slack_real_s)
+        return LOOK_JITTER_FRAMES * self._period + slack
+
+    def _begun_since(self, advance: int, elapsed: float, earliest: float | None = None) -> int:
+        """Frames begun since the last look, the slot having moved ``advance`` in ``elapsed``
+        periods: the clock's count (:func:`frames_between`) where the evidence bears out that
+        BIRIS acquired all the while, else the slot advance alone (module notes, "Laps, on
+        evidence"). Never negative (the ring never goes back).
+
+        ``earliest`` (periods, at most ``elapsed``): BIRIS stopped acquiring somewhere between
+        then and ``elapsed`` by design (a stop), so a count anywhere in that span is borne out.
+        """
+        frames = max(0, frames_between(advance, elapsed, self._ring))
+        if frames <= advance:
+            return frames  # within the lap the slot shows: no lap to doubt
+        tolerance = self.tolerance_s() / self._period if self._period > 0 else 0.0
+        low = elapsed if earliest is None else min(earliest, elapsed)
+        borne_out = low - tolerance <= frames <= elapsed + tolerance
+        if self._stalled or not borne_out:
+            log.warning(
+                "continuous acquisition: the ring went %.1f s unwatched while BIRIS was %s; "
+                "%d frame(s) booked, not the %d the clock would give: BIRIS is not known to "
+                "have made them",
+                elapsed * self._period,
+                "seen standing still" if self._stalled else "not acquiring at its data rate",
+                advance,
+                frames,
+            )
+            return advance
+        return frames
 
     def _advance(self, line: int, now: float) -> int:
         """The ring frame in exposure now, seen as slot ``line``: the frame seen last, plus
-        the frames begun since (:func:`frames_between`; the ring never goes back)."""
+        the frames begun since (:meth:`_begun_since`; the ring never goes back).
+
+        A frame begun since is the ring moving (``_moved_at``); none begun for longer than the
+        tolerance since one was is the ring standing still (``_stalled``)."""
         ring = self._ring
         advance = (line - self._exposing) % ring
         elapsed = (now - self._seen) / self._period if self._period > 0 else float(advance)
         self._halted = False  # BIRIS is acquiring into the ring
-        return self._exposing + max(0, frames_between(advance, elapsed, ring))
+        exposing = self._exposing + self._begun_since(advance, elapsed)
+        if exposing > self._exposing:
+            self._moved_at, self._stalled = now, False
+        elif now - self._moved_at > self.tolerance_s():
+            self._stalled = True
+        return exposing
+
+    def watch_ring(self) -> bool:
+        """Look at a ring no sweep reads (module notes, "The ring must progress"); True when
+        the ring is seen moving, False when it stands still or there is nothing to watch (no
+        idle ring; ACQ_LINE not a slot). Hold ``self.lock``.
+
+        The look keeps the frame in exposure, so that the laps stay resolvable however long
+        the ring idles; the frames begun are counted idle when the next sweep opens or the
+        ring stops, as ever."""
+        ring = self._ring
+        if self._ring_state is not RingState.IDLE or ring <= 0:
+            return False
+        line = self._link.acq_line()
+        now = self._clock()
+        if not 0 <= line < ring:
+            return False  # BIRIS stopped the ring: a completion, if any, speaks for it
+        self._exposing = self._advance(line, now)
+        self._seen = now
+        return not self._stalled
 
     def _read_ring_to(self, line: int, now: float) -> tuple[list[Acquisition], int]:
         """Read every frame completed before slot ``line`` (now in exposure)."""
@@ -593,12 +715,12 @@ class AcquisitionReader:
     def _frames_done(self, now: float) -> int:
         """How many frames the stopped ring completed in its life.
 
-        CURRENT_FRAME names the last completed slot; the frames after the one last seen in
-        exposure resolve into laps as :func:`frames_between` says, ``now`` standing for the stop
-        (it came before, by the command's completion). Before the report's start-up and one
-        period have passed since priming, no frame can have completed. Within the ring's first
-        period after that, CURRENT_FRAME cannot tell "frame 0 abandoned" (it still names the
-        slot set when frame 0 began) from "frame 0 completed": counted as completed.
+        CURRENT_FRAME names the last completed slot (-1: none); the frames after the one last
+        seen in exposure resolve into laps on evidence (:meth:`_begun_since`). BIRIS stopped
+        between BI_STOP_CONTINUOUS's write (:meth:`stop_written`) and ``now`` (the command's
+        completion came after), so the clock's count is borne out anywhere in that span: a
+        stop noticed late is no stall. Before the report's start-up and one period have
+        passed since priming, no frame can have completed.
         """
         ring, period = self._ring, self._period
         if ring <= 0 or period <= 0:
@@ -607,18 +729,23 @@ class AcquisitionReader:
         if since_first < 1:
             return self._next
         if self._ring_state is RingState.PRIMING:
-            index, elapsed = 0, since_first  # never seen live: from frame 0's earliest start
+            # never seen live: from frame 0's earliest start
+            index, origin = 0, self._primed_at + STARTUP_S
         else:
-            index, elapsed = self._exposing, (now - self._seen) / period
+            index, origin = self._exposing, self._seen
+        elapsed = (now - origin) / period
+        earliest = min(elapsed, (self._stop_written_at - origin) / period)
         last = self._current_frame()
         if not 0 <= last < ring:
             return max(self._next, index)  # unreadable: nothing beyond what was seen
-        return max(self._next, index + frames_between((last + 1 - index) % ring, elapsed, ring))
+        advance = (last + 1 - index) % ring
+        return max(self._next, index + self._begun_since(advance, elapsed, earliest))
 
     def _current_frame(self) -> int:
         """CURRENT_FRAME, signed: once BIRIS has stopped a ring, the slot of the last frame it
-        completed (Appendix D: BIEXEC_COM "would be used to point to the most recent
-        acquisition"). Read through the link's window: BirisLink has no accessor for it."""
+        completed, -1 when it completed none (Appendix D: BIEXEC_COM "would be used to point to
+        the most recent acquisition"). Read through the link's window: BirisLink has no
+        accessor for it."""
         link = self._link
         raw = link.window.read16(link.base + OFF_CURRENT_FRAME)
         return raw - 0x10000 if raw & 0x8000 else raw

@@ -730,12 +730,30 @@ class Administrator:
 
     # -- _Biris_timeout ----------------------------------------------------------------------
     def _biris_owed(self) -> bool:
-        """BIRIS owes a completion, a continuous-mode sweep's data, or its ring's start."""
+        """BIRIS owes a completion, a continuous-mode sweep's data, its ring's start, or the
+        progress of its live ring (:meth:`_watching_ring`)."""
         scan = self.scans.scan
         return (
             self.commands.current is not None
             or (scan is not None and scan.ring and not scan.cmd_done)
             or self.ring.starting
+            or (self.ring.live and self.life.fault is None)
+        )
+
+    def _watching_ring(self) -> bool:
+        """BIRIS owes nothing but the progress of its live ring: no command, no sweep reads it.
+
+        A live ring must advance at the data rate whether or not a sweep wants its frames, so
+        the BIRIS timeout runs for it too, and each time it runs out the level-2 routine looks
+        at the ring (:mod:`biris_hw.server.acquisition`, "The ring must progress"): a ring
+        standing still is a hung BIRIS (``timeout``), which nothing else would notice while the
+        head stands idle. These looks are routine, so they are not logged."""
+        scan = self.scans.scan
+        return (
+            self.ring.live
+            and self.life.fault is None
+            and self.commands.current is None
+            and not (scan is not None and scan.ring and not scan.cmd_done)
         )
 
     def _rearm_timeout(self) -> None:
@@ -756,7 +774,7 @@ class Administrator:
         if self._recheck_biris is None:
             self._biris_timed_out()
             return
-        if not self.commands.rechecking:
+        if not self.commands.rechecking and not self._watching_ring():
             log.info("BIRIS timeout ran out; reading BIRIS afresh before calling it hung")
         self.commands.begin_recheck()
         self._recheck_biris()
@@ -772,11 +790,18 @@ class Administrator:
             self._rearm_timeout()
 
     def _biris_timed_out(self) -> None:
+        timeout_s = self.commands.timeout_s
+        if self._watching_ring():
+            self._fault(
+                "timeout",
+                "BIRIS stopped acquiring: its continuous-acquisition ring did not advance for "
+                f"{timeout_s:g} s of hardware time",
+            )
+            return
         cmd = self.commands.current
         waiting = f" to {command_name(cmd.code)}" if cmd is not None else ""
         self._fault(
-            "timeout",
-            f"BIRIS did not respond{waiting} for {self.commands.timeout_s:g} s of hardware time",
+            "timeout", f"BIRIS did not respond{waiting} for {timeout_s:g} s of hardware time"
         )
 
     def _on_timeout_enable(self, env: Envelope, msg: p.TimeoutEnable) -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import enum
 import logging
 
-from biris_hw.errors import FaultKind, HardwareFault, RequestError
+from biris_hw.errors import FaultKind, HardwareFault, Initialising, RequestError
 from biris_hw.ipc import Envelope
 
 __all__ = ["Lifecycle", "Phase", "fail_quietly", "log"]
@@ -49,11 +49,11 @@ class Lifecycle:
         return self.phase is Phase.INITIALISING
 
     def check_usable(self) -> None:
-        """Raise the fault, or RequestError while initialising: what every request checks."""
+        """Raise the fault, or Initialising (a RequestError): what every request checks."""
         if self.fault is not None:
             raise self.fault
         if self.phase is Phase.INITIALISING:
-            raise RequestError("the server is initialising")
+            raise Initialising("the server is initialising")
 
     def begin_reset(self, env: Envelope) -> None:
         """RESET_REQUEST: the fault is forgotten and initialisation (re)starts."""

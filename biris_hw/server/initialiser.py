@@ -42,6 +42,17 @@ commands go through the administrator (InitMove, InitCommand) so that they use t
 and notifiers as scans. Every step is bounded: no index where it may be, a command BIRIS never
 completes, or a move that never ends is a HardwareFault, never a hang.
 
+**Lost links first.** Before anything is touched, the hardware bundle re-links whatever link to
+the target was lost and can come back (:meth:`BirisHardware.relink <biris_hw.hardware.
+BirisHardware.relink>`: a VM-USB found again by its serial number, a restarted ``biris sim``
+reconnected, a CiA 402 drive whose heartbeat came back set up again), keeping the objects the
+server holds; a link still missing fails the reset at once with a ``bus`` fault that says what to
+restore. Only then are the server's failed tasks run again (``restart_tasks``, the supervisor's
+reset): an interrupt routine restarted on a line still lost would fail again at once, and fail
+this initialisation with it. When the re-link fails they stay down until a reset whose re-link
+succeeds: run again, they would only fail again, and a routine whose failure the supervisor
+records after the next reset has begun would sit out that reset too (it waits for the one after).
+
 The registers are reached through the hardware bundle's one set of drivers
 (``BirisHardware.devices``), the same objects the server's tasks use, and only through the axis
 interface (:class:`~biris_hw.axes.base.MotionAxis`, :class:`~biris_hw.axes.base.
@@ -126,8 +137,12 @@ class Initialiser:
         record: BirisInitRecord,
         admin: Mailbox,
         stop: StopEvent,
+        restart_tasks: Callable[[], None] | None = None,
     ) -> None:
         self.hw = hw
+        self.restart_tasks = restart_tasks
+        """The supervisor's reset (every failed task run again), called once the links are
+        back (:meth:`relink`); None when the server restarted them before this initialiser."""
         self.record = record
         self.admin = admin
         self.stop = stop
@@ -144,6 +159,7 @@ class Initialiser:
 
     # -- steps ---------------------------------------------------------------------------------
     def run(self) -> InitResult:
+        self.relink()
         self.coupler.clear_errors()
         self.coupler.enable_interrupts(LEVEL2_VECTOR)
         progress.info("stopping the motors")
@@ -155,6 +171,17 @@ class Initialiser:
         self.find_zero_index(Axis.ELEVATION)
         progress.info("booting BIRIS (BI_BOOT %s)", self.record.boot_file)
         return self.boot_biris()
+
+    def relink(self) -> None:
+        """Re-link what was lost (see the module notes), then run the failed tasks again.
+
+        Raises:
+            HardwareFault: ``bus``, naming what is still missing; the failed tasks then stay
+                down (see the module notes).
+        """
+        self.hw.relink()
+        if self.restart_tasks is not None:
+            self.restart_tasks()
 
     def stop_acquisition(self) -> None:
         """Quiet BIRIS before anything moves: interrupts as the server wants them, wait for a

@@ -225,12 +225,15 @@ class BirisServer:
     def _start_initialiser(self) -> None:
         """Called by the administrator (on reset): never blocks, the work runs in a thread.
 
-        First every task that failed since the last reset runs again
-        (:meth:`~biris_hw.server.tasks.Supervisor.reset`), so the initialiser's moves and
-        commands find live workers and notifiers.
+        The initialiser first re-links what was lost (the hardware bundle's ``relink``), then
+        runs every task that failed since the last reset again
+        (:meth:`~biris_hw.server.tasks.Supervisor.reset`, handed to it as ``restart_tasks``),
+        so that an interrupt routine is never restarted on a line still lost, and the
+        initialiser's moves and commands find live workers and notifiers.
         """
-        self.supervisor.reset()
-        init = Initialiser(self.hardware, self.record, self.inbox, self._stop)
+        init = Initialiser(
+            self.hardware, self.record, self.inbox, self._stop, restart_tasks=self.supervisor.reset
+        )
 
         def report(result: InitResult | BaseException) -> None:
             if isinstance(result, InitResult):

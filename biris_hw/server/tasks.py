@@ -498,10 +498,12 @@ class BirisRecheck:
     attach_recheck`.)
 
     It drains the reader as a data interrupt would (posting NEW_POINT for whatever BIRIS made
-    meanwhile, which is life), reads COMMAND for a completion not yet serviced, and posts
-    BIRIS_RECHECKED after them (one-way, FIFO: the administrator sees the evidence first).
-    Returns True when BIRIS has completed the outstanding command, so the routine wakes the
-    command notifier. A BusError propagates: a BIRIS that cannot be read is a ``bus`` fault.
+    meanwhile, which is life), looks at a continuous-acquisition ring that no sweep reads
+    (:meth:`AcquisitionReader.watch_ring`: a ring that moves is life, one standing still is
+    not), reads COMMAND for a completion not yet serviced, and posts BIRIS_RECHECKED after them
+    (one-way, FIFO: the administrator sees the evidence first). Returns True when BIRIS has
+    completed the outstanding command, so the routine wakes the command notifier. A BusError
+    propagates: a BIRIS that cannot be read is a ``bus`` fault.
     """
 
     def __init__(
@@ -515,8 +517,10 @@ class BirisRecheck:
     def __call__(self) -> bool:
         with self._reader.lock:
             drained = self._reader.drain()
+            moving = self._reader.watch_ring()
             progressed = bool(
-                drained.acquisitions
+                moving
+                or drained.acquisitions
                 or drained.lost
                 or drained.idle
                 or drained.live
@@ -637,7 +641,9 @@ def biris_cmd_transfer(
     """CMD_TRANSFER_RDY, then write whatever command the reply carries; forever.
 
     Before BI_START_CONTINUOUS the continuous-mode flag goes up, so that the demultiplexer
-    classifies the first data interrupt right.
+    classifies the first data interrupt right. Before BI_STOP_CONTINUOUS the reader notes the
+    time: BIRIS stops its ring no sooner, which bounds the frames it made (a late completion
+    books no lap it did not make, nor drops one it did).
 
     A command that cannot be written (BusError: the target is gone) propagates to the
     supervisor, which reports a ``bus`` fault. It used to be only logged, and the command then
@@ -658,6 +664,8 @@ def biris_cmd_transfer(
         elif order.code == BiCommand.BI_START_CONTINUOUS:
             set_continuous(True)
             reader.prime_ring()
+        elif order.code == BiCommand.BI_STOP_CONTINUOUS:
+            reader.stop_written()  # the soonest BIRIS can stop its ring
         with ledger.lock:
             ledger.outstanding = order
             try:

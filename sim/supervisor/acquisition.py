@@ -22,7 +22,8 @@ during these interrupts, the driver needs its own continuous-mode flag to demult
 the report foresees. BI_STOP_CONTINUOUS ceases at the field it is seen: the frame being exposed
 is abandoned and *restored* to what it held before its exposure, so no ring slot is left
 poisoned and every slot holds a complete acquisition (of this lap or the previous one) with
-its matching azimuth entry; CURRENT_FRAME names the last completed slot, ACQ_LINE = -128, no
+its matching azimuth entry; CURRENT_FRAME names the last slot this ring completed (-1 when it
+completed none: stopped in its start-up or during its first exposure), ACQ_LINE = -128, no
 further data interrupt. A stop while not continuous just completes.
 
 **Audit.** At each acquisition start, ``tilting()`` true is ``ACQUIRE_WHILE_TILTING`` and a
@@ -137,8 +138,11 @@ class Acquisition(SupervisorState):
         if self._continuous and seq is not None:
             if seq.exposing is not None:
                 self._restore_slot(seq)
-            if self._last_slot is not None:
-                self._set(OFF_CURRENT_FRAME, self._last_slot)
+            # the last slot this ring completed, -1 when it completed none (the exposure
+            # under way was its first): a slot left there by an earlier ring, or by the
+            # abandoned frame's start, would name a frame this ring never made
+            last = self._last_slot
+            self._set(OFF_CURRENT_FRAME, last if last is not None else -1)
             self._set(OFF_ACQ_LINE, ACQ_LINE_END)
             self._seq = None
             self._continuous = False

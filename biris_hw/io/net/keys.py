@@ -18,6 +18,7 @@ from biris_hw.errors import (
     BirisError,
     ConnectionClosed,
     HardwareFault,
+    Initialising,
     RequestError,
 )
 
@@ -30,6 +31,8 @@ __all__ = [
     "READ_OPS",
     "RESET_WAIT_S",
     "Keys",
+    "ServiceClosing",
+    "UnknownConnection",
     "check_token",
     "error_payload",
     "raise_error",
@@ -214,6 +217,17 @@ class Busy(RequestError):
     nothing was done; asking again later may succeed."""
 
 
+class UnknownConnection(ConnectionClosed):
+    """The service holds no connection of that token (released when its client's liveliness
+    token went, or issued by an instance of the service that has restarted since): refused
+    unread. A client that did not close it may open a new one (the remote client does so)."""
+
+
+class ServiceClosing(ConnectionClosed):
+    """The service is stopping: the request was not served. Its liveliness token goes a moment
+    later; a remote client waits for the service to come back."""
+
+
 def raise_error(payload: bytes, op: str) -> None:
     """Raise the exception an error reply describes (RequestError for anything unreadable)."""
     try:
@@ -233,4 +247,6 @@ def raise_error(payload: bytes, op: str) -> None:
         raise BadRequest(message)
     if name == "Busy":
         raise Busy(message)
+    if name == "RequestError" and body.get("class") == "Initialising":
+        raise Initialising(message)  # transient: a reset under way
     raise _ERRORS.get(name, RequestError)(message)

@@ -13,12 +13,27 @@ waits for the service's status publications (published when the status changes),
 asks nothing while nothing changes; ``clock()`` is the newest hardware time seen in a status
 reply or a datum's stamp.
 
-**A service that goes away** is noticed through its liveliness token: every call waiting for a
-reply is woken and raises :class:`~biris_hw.errors.ConnectionClosed`, as soon as Zenoh notices
-the link is gone (the kernel closing a dead process's socket: well under a second), and at the
-latest after :data:`~biris_hw.io.net.keys.MAX_WAIT_S` plus :data:`REPLY_MARGIN_S`. Blocking
-calls (``ready_for_data``, ``wait_idle``) wait in slices of at most ``MAX_WAIT_S`` for this
-reason, however long the caller's timeout.
+**A service that cannot be reached** -- it stopped, a router in between restarted, the network
+is partitioned -- is a :class:`~biris_hw.errors.ConnectionLost`, never a RequestError: the
+service's liveliness token is withdrawn (every call waiting for a reply is woken at once), Zenoh
+answers a request itself (its ``Timeout``), or a request reaches no service. The client expects
+the service back until it is closed: Zenoh reconnects to its endpoints, the token returns, and
+each connection is reopened the first time it is used afterwards (same kind, policy and depth;
+a controller's with the same credentials), so the user's connection objects carry on and a loop
+that catches ConnectionLost and asks again picks up where it stopped. While the service is
+lost, a call waits up to :data:`~biris_hw.io.net.reconnect.LOST_PAUSE_S` (never longer than its
+own timeout) for it to return before it raises, which paces such a loop. What a connection of
+scans missed meanwhile is counted from the scans' numbers (:attr:`RemoteConnection.missed`)
+and logged; :attr:`RemoteSensor.outages` says when and for how long. ConnectionClosed is final:
+this object or the connection was closed here, or the service refused a connection and would
+not reopen it. ``connect(..., reconnect=False)`` makes a service that goes final too (the
+behaviour before reconnection existed). Blocking calls (``ready_for_data``, ``wait_idle``) wait
+in slices of at most :data:`~biris_hw.io.net.keys.MAX_WAIT_S` on the service, so that a service
+that stops answering is noticed whatever the caller's timeout.
+
+A client that is not closed is closed when it is garbage-collected and when the interpreter
+exits, before the interpreter waits for threads (:mod:`biris_hw.io.net.lifetime`): Zenoh's
+handler threads would otherwise keep the process alive.
 """
 
 from __future__ import annotations
@@ -26,29 +41,33 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import logging
 import struct
 import threading
 import time
 import uuid
 from collections.abc import Callable, Sequence
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Literal, cast, overload
+from typing import TYPE_CHECKING, Any, Literal, NoReturn, cast, overload
 
 import zenoh
 
 from biris_hw.angles import RealLike, counts_to_deg, destination_counts
 from biris_hw.client import POLL, D, checked_timeout
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
-from biris_hw.errors import BirisError, ConnectionClosed, RequestError
+from biris_hw.errors import BirisError, ConnectionClosed, ConnectionLost, RequestError
 from biris_hw.io import codec
 from biris_hw.io.net.keys import (
     CONTROL_OPS,
     MAX_WAIT_S,
     RESET_WAIT_S,
+    Busy,
     Keys,
     check_name,
     raise_error,
 )
+from biris_hw.io.net.lifetime import SessionLife, close_at_exit, weak_callback
+from biris_hw.io.net.reconnect import LOST_PAUSE_S, LinkWatch, Missed, Outage
 from biris_hw.io.net.warm import warm
 from biris_hw.io.net.zconfig import make_config
 from biris_hw.records import BirisInitRecord, MotorParams
@@ -60,10 +79,53 @@ if TYPE_CHECKING:
 
 __all__ = ["RemoteConnection", "RemoteSensor", "Subscription", "connect"]
 
+log = logging.getLogger(__name__)
+
 REPLY_MARGIN_S = 5.0
 """How much longer than the service's own bound a call waits for a reply before it gives up."""
 
+CLOSE_REPLY_S = 1.0
+"""How long a close waits for the service's answer: the service releases whatever a client
+leaves behind when the client's token goes, so a close never waits long for a lost one."""
+
 CONNECT_TIMEOUT_S = 10.0
+
+MAX_REOPENS = 3
+"""Reopens one call may make before it gives up: a service that refuses each new connection as
+unknown at once is not going to keep one."""
+
+_RESEND_FIRST_S = 0.02
+"""First pause before a request that reached no service is sent again (then doubled): what
+follows a token's return by a moment, until the service's queryable is routed again."""
+
+_SETTLE_S = 2.0
+"""How long after the service's return a request answered by nobody is sent again (its
+queryable is routed a moment after its token returns); at other times such a request is a
+TimeoutError (nothing serves it here: an access-control rule dropped it, say)."""
+
+_GRACE_S = 0.1
+"""How long a request answered by nobody waits for the service's token to go (a service that
+stops withdraws its queryable first): ConnectionLost then, rather than TimeoutError."""
+
+_CLOSING = ("the service is closing",)
+"""Its words for a request that came as it stops (its token goes a moment later)."""
+
+_UNKNOWN = ("that connection is closed (or was never opened)",)
+"""Its words for a request naming a connection it does not hold, refused unread."""
+
+
+class _Released(ConnectionClosed):
+    """The service answered ConnectionClosed for a connection this client has not closed:
+    it does not hold it (released when the client's token went, or issued by an instance of
+    the service that has restarted since), it closed it under a request as it stopped, or it
+    released the client while this ``open`` ran. The connection is reopened; a call fails with
+    ConnectionClosed only when the service will not reopen it."""
+
+    def __init__(self, message: str, unread: bool) -> None:
+        super().__init__(message)
+        self.unread = unread
+        """Refused before anything was done (the service does not hold the connection), so
+        the request may be sent again on the reopened one."""
 
 
 class Subscription:
@@ -78,6 +140,7 @@ class Subscription:
         self.dropped = 0
         self._last: dict[str, int] = {}
         self._subscriber: Any = None
+        self._life: SessionLife | None = None
 
     def _count(self, key: str, attachment: zenoh.ZBytes | None) -> None:
         self.received += 1
@@ -97,6 +160,8 @@ class Subscription:
         if self._subscriber is not None:
             with contextlib.suppress(Exception):
                 self._subscriber.undeclare()
+            if self._life is not None:
+                self._life.untrack(self._subscriber)
             self._subscriber = None
 
     def __enter__(self) -> Subscription:
@@ -120,6 +185,7 @@ class RemoteSensor:
         options: dict[str, Any] | None = None,
         timeout: float = CONNECT_TIMEOUT_S,
         reader_credentials: bool = False,
+        reconnect: bool = True,
     ) -> None:
         self.name = check_name(name, "name")
         self.keys = Keys(self.name)
@@ -133,9 +199,21 @@ class RemoteSensor:
             if not isinstance(user, str) or not isinstance(password, str):
                 raise RequestError("user and password go together, both strings")
             self._credentials = {"user": user, "password": password}
+        self.reconnect = bool(reconnect)
+        """Expect a service that cannot be reached to come back (ConnectionLost, and the
+        connections reopened), rather than take it as gone for good (ConnectionClosed)."""
         self._closed = False
+        self._closing = threading.Event()
         self._alive = threading.Event()
         self._gone = threading.Event()
+        self._link = LinkWatch(self.name)
+        self._missed = 0
+        self._reopened = 0
+        self._instance: str | None = None
+        """The Zenoh session id of the service that answered last."""
+        self.restarts = 0
+        """Times a new instance of the service answered (it was restarted meanwhile): what its
+        sensor made before is numbered afresh, so gaps across a restart are not counted."""
         self._waiters: set[_Waiter] = set()
         self._lock = threading.Lock()
         self._connections: list[RemoteConnection[Any]] = []
@@ -163,10 +241,13 @@ class RemoteSensor:
             self._session = zenoh.open(config)
         except Exception as exc:  # zenoh.ZError: a malformed endpoint, a TLS file missing...
             raise RequestError(f"cannot start the Zenoh session: {exc}") from exc
+        self._life = SessionLife(self._session, f"the remote sensor {self.name!r}")
         try:
+            # held weakly by Zenoh's threads: an unclosed client can be collected, and closed
             self._service_sub = self._session.liveliness().declare_subscriber(
-                self.keys.service_token, self._on_service_token, history=True
+                self.keys.service_token, weak_callback(self._on_service_token), history=True
             )
+            self._life.track(self._service_sub)
             self._token = self._session.liveliness().declare_token(
                 self.keys.client_token(self.client)
             )
@@ -176,12 +257,15 @@ class RemoteSensor:
                     f"no BIRIS service {self.name!r} answered within {timeout:g} s ({where})"
                 )
             self._status_sub = self._session.declare_subscriber(
-                self.keys.status, self._on_status_sample
+                self.keys.status, weak_callback(self._on_status_sample)
             )
+            self._life.track(self._status_sub)
             self._learn()
         except BaseException:
-            self._session.close()  # type: ignore[no-untyped-call]
+            self._life.close()
             raise
+        self._finalizer = self._life.collect_with(self)
+        close_at_exit(self)
 
     def _learn(self) -> None:
         """Ask the service what it serves (a recording? paced? its init record) and take its
@@ -189,7 +273,7 @@ class RemoteSensor:
         the kind (an older one) serves a live sensor whose record is unknown."""
         try:
             payload, _, attachment = self._query("status", {"info": True})
-        except (BirisError, TimeoutError):  # a service that wants reader credentials we do not
+        except (BirisError, TimeoutError, ConnectionLost):  # reader credentials we do not
             return  # send, a sensor closed behind it: the calls that need them will say so
         info = self._attachment(attachment)
         playback, paced = info.get("playback"), info.get("paced")
@@ -248,11 +332,15 @@ class RemoteSensor:
             self._news.notify_all()
 
     def _on_service_token(self, sample: zenoh.Sample) -> None:
+        """The service's liveliness token came or went (Zenoh's thread)."""
         if sample.kind == zenoh.SampleKind.PUT:
             self._gone.clear()
             self._alive.set()
+            self._link.back("its liveliness token returned")
+            self._wake()
             return
         self._gone.set()
+        self._link.lost("its liveliness token was withdrawn")
         with self._lock:
             waiters = list(self._waiters)
         for waiter in waiters:
@@ -261,21 +349,138 @@ class RemoteSensor:
 
     @property
     def gone(self) -> bool:
-        """The service has gone (its liveliness token was withdrawn)."""
+        """The service's liveliness token is withdrawn (it stopped, or the network between is
+        down); it may come back (see :attr:`lost`)."""
         return self._gone.is_set()
+
+    @property
+    def lost(self) -> bool:
+        """The service cannot be reached now: calls raise ConnectionLost until it is back."""
+        return self._link.is_lost
+
+    def lost_for(self) -> float:
+        """Seconds since the service was lost (0.0 while it can be reached)."""
+        return self._link.lost_for()
+
+    @property
+    def outages(self) -> tuple[Outage, ...]:
+        """The spans during which the service could not be reached (the last 100), the one
+        under way last with ``back_at`` None."""
+        return self._link.outages
+
+    @property
+    def missed(self) -> int:
+        """Scans the service's sensor made that this client's connections never got because
+        the service was lost meanwhile (each connection's :attr:`RemoteConnection.missed`,
+        closed ones included)."""
+        with self._lock:
+            return self._missed
+
+    @property
+    def reopened(self) -> int:
+        """Connections reopened so far after the service had released them (or restarted)."""
+        with self._lock:
+            return self._reopened
+
+    def _note_reopen(self, conn: RemoteConnection[Any], old_ident: int) -> None:
+        with self._lock:
+            self._reopened += 1
+        log.info("connection %d to %r reopened as %d (%s)", old_ident, self.name, conn.ident, conn)
+
+    def _note_missed(self, conn: RemoteConnection[Any], count: int, words: str) -> None:
+        with self._lock:
+            self._missed += count
+        log.warning(
+            "connection %d to %r missed %s while the service was lost", conn.ident, self.name, words
+        )
 
     # -- requests --------------------------------------------------------------------------------
     def _query(
-        self, op: str, body: dict[str, Any], wait_s: float = 0.0
+        self,
+        op: str,
+        body: dict[str, Any],
+        wait_s: float = 0.0,
+        *,
+        pause_s: float | None = None,
+        reply_s: float | None = None,
     ) -> tuple[bytes, str, bytes | None]:
-        """One request; (payload, encoding, attachment) of the reply, or its error raised."""
-        if self._closed:
-            raise ConnectionClosed(f"the connection to service {self.name!r} is closed")
-        if self._gone.is_set():
-            raise ConnectionClosed(f"service {self.name!r} has gone")
+        """One request; (payload, encoding, attachment) of the reply, or its error raised.
+
+        ``wait_s`` is how long the service may hold it (a blocking read); ``reply_s`` how much
+        longer the reply is waited for (default :data:`REPLY_MARGIN_S`); ``pause_s`` how long
+        to wait for a lost service to come back before raising ConnectionLost (default
+        :data:`LOST_PAUSE_S`; a request that reached no service is sent again meanwhile:
+        nothing was done).
+
+        Raises:
+            ConnectionClosed: this object is closed (or, with ``reconnect=False``, the service
+                has gone).
+            ConnectionLost: the service cannot be reached (see the module).
+            TimeoutError: nobody answered, with the service's token there (an access-control
+                rule dropped the request, say).
+        """
         request: dict[str, Any] = {**body, "client": self.client}
         if op in CONTROL_OPS or self.reader_credentials:
             request.update(self._credentials)
+        payload = json.dumps(request).encode()
+        give_up = time.monotonic() + (LOST_PAUSE_S if pause_s is None else pause_s)
+        resend = _RESEND_FIRST_S
+        sent = False
+        while True:
+            # the pause is for a call made while the service is lost; one that was under way
+            # when it went raises at once (the first sign of the loss reaches the caller)
+            self._usable(op, time.monotonic() if sent else give_up)
+            sent = True
+            waiter = self._ask(op, payload, wait_s, REPLY_MARGIN_S if reply_s is None else reply_s)
+            reply = waiter.answer
+            if reply is None:
+                if self._closed:
+                    raise ConnectionClosed(f"the connection to service {self.name!r} is closed")
+                if self._gone.is_set() and not self.reconnect:
+                    raise ConnectionClosed(f"service {self.name!r} has gone ({op} not answered)")
+                if waiter.finished and not self._gone.is_set():
+                    # over, and answered by nobody: nothing was done. Just after the service's
+                    # return its queryable may not be routed yet: ask again, within the pause.
+                    left = give_up - time.monotonic()
+                    if self._link.back_within(_SETTLE_S) and left > 0:
+                        self._closing.wait(min(resend, left))
+                        resend *= 2
+                        continue
+                    # a service that stops withdraws its token a moment after its queryable
+                    if not self._gone.wait(_GRACE_S):
+                        raise TimeoutError(f"{op}: no reply from service {self.name!r}")
+                if not self._gone.is_set():
+                    self._link.lost(f"{op} was not answered")
+                raise self._link.error(op)
+            ok = reply.ok
+            if ok is None:
+                err = reply.err
+                self._raise_error(op, err.payload.to_bytes() if err is not None else b"", reply)
+            self._answered(reply)
+            attachment = ok.attachment
+            return (
+                ok.payload.to_bytes(),
+                str(ok.encoding),
+                attachment.to_bytes() if attachment is not None else None,
+            )
+
+    def _usable(self, op: str, give_up: float) -> None:
+        """Return when a request may be sent: this object is open and the service's token is
+        there (waited for until ``give_up``), or raise what the caller is to see."""
+        if self._closed:
+            raise ConnectionClosed(f"the connection to service {self.name!r} is closed")
+        if not self._gone.is_set():
+            return
+        if not self.reconnect:
+            raise ConnectionClosed(f"service {self.name!r} has gone")
+        self._link.wait_back(give_up - time.monotonic())
+        if self._closed:
+            raise ConnectionClosed(f"the connection to service {self.name!r} is closed")
+        if self._gone.is_set():
+            raise self._link.error(op)
+
+    def _ask(self, op: str, payload: bytes, wait_s: float, reply_s: float) -> _Waiter:
+        """Send one query and wait for its reply, its end, or a wake (gone, closed)."""
         waiter = _Waiter()
         with self._lock:
             self._waiters.add(waiter)
@@ -283,32 +488,77 @@ class RemoteSensor:
             self._session.get(
                 self.keys.rpc(op),
                 zenoh.handlers.Callback(waiter.reply, waiter.done),
-                payload=json.dumps(request).encode(),
+                payload=payload,
                 encoding=zenoh.Encoding.APPLICATION_JSON,
-                timeout=wait_s + REPLY_MARGIN_S,
+                timeout=wait_s + reply_s,
             )
-            reply = waiter.wait(wait_s + 2 * REPLY_MARGIN_S)
+            waiter.wait(wait_s + 2 * reply_s)
+        except zenoh.ZError as exc:  # the session closed under us (by close(), or at exit)
+            if not self._closed:
+                raise self._link.error(f"{op} ({exc})") from None
         finally:
             with self._lock:
                 self._waiters.discard(waiter)
-        if reply is None:
-            if self._gone.is_set() or self._closed:
-                raise ConnectionClosed(f"service {self.name!r} has gone ({op} not answered)")
-            raise TimeoutError(f"{op}: no reply from service {self.name!r}")
-        ok = reply.ok
-        if ok is None:
-            err = reply.err
-            raise_error(err.payload.to_bytes() if err is not None else b"", op)
-            raise AssertionError("unreachable")  # raise_error always raises
-        attachment = ok.attachment
-        return (
-            ok.payload.to_bytes(),
-            str(ok.encoding),
-            attachment.to_bytes() if attachment is not None else None,
-        )
+        return waiter
 
-    def _json(self, op: str, body: dict[str, Any], wait_s: float = 0.0) -> Any:
-        payload, _, _ = self._query(op, body, wait_s)
+    def _answered(self, reply: zenoh.Reply) -> None:
+        """The service answered (whatever it said): an outage under way is over, and a reply
+        from another Zenoh session than before means the service has restarted."""
+        if self._link.is_lost:
+            self._link.back("it answered")
+        try:
+            replier = reply.replier_id
+        except Exception:  # an unstable Zenoh API: without it, restarts go unnoticed
+            return
+        if replier is None:
+            return
+        instance = str(replier.zid)
+        with self._lock:
+            if instance == self._instance:
+                return
+            known, self._instance = self._instance, instance
+            if known is not None:
+                self.restarts += 1
+        if known is not None:
+            log.info("BIRIS service %r has restarted (a new Zenoh session answers)", self.name)
+
+    def _raise_error(self, op: str, payload: bytes, reply: zenoh.Reply) -> NoReturn:
+        """Raise the exception an error reply stands for. The service's errors are JSON
+        objects; anything else is Zenoh's own reply (``Timeout``: the service did not answer
+        in time), so the service is lost, not refusing."""
+        try:
+            body = json.loads(payload)
+        except (ValueError, UnicodeDecodeError):
+            body = None
+        if not isinstance(body, dict) or "error" not in body:
+            text = payload[:80].decode("utf-8", "replace") or "an empty error"
+            self._link.lost(f"{op}: Zenoh replied {text!r}")
+            raise self._link.error(op)
+        self._answered(reply)
+        if body["error"] == "ConnectionClosed":
+            message = str(body.get("message", ""))
+            kind = str(body.get("class", "ConnectionClosed"))
+            if message in _CLOSING or kind == "ServiceClosing":
+                self._link.lost("the service is closing")
+                raise self._link.error(op)
+            if kind in ("ConnectionClosed", "UnknownConnection"):
+                # closed by the service, not by us: unknown to it, released with our token,
+                # or closed under a request as the service stops. A refinement (EndOfRecording:
+                # a recording played to its end) is final and raised as it is.
+                unread = kind == "UnknownConnection" or message in _UNKNOWN
+                raise _Released(f"{op}: {message}", unread)
+        raise_error(payload, op)
+        raise AssertionError("unreachable")  # raise_error always raises
+
+    def _json(
+        self,
+        op: str,
+        body: dict[str, Any],
+        wait_s: float = 0.0,
+        reply_s: float | None = None,
+        pause_s: float | None = None,
+    ) -> Any:
+        payload, _, _ = self._query(op, body, wait_s, pause_s=pause_s, reply_s=reply_s)
         try:
             return json.loads(payload)
         except ValueError:
@@ -353,7 +603,8 @@ class RemoteSensor:
 
         Raises:
             RequestError: a kind, policy or depth the server refuses.
-            ConnectionClosed: the service has gone, or this object is closed.
+            ConnectionLost: the service cannot be reached now.
+            ConnectionClosed: this object is closed.
             AccessDenied: the service requires reader credentials and has none from us.
         """
         try:
@@ -361,21 +612,32 @@ class RemoteSensor:
             policy = DeliveryPolicy(policy)
         except ValueError:
             raise RequestError(f"open: no kind {kind!r} or policy {policy!r}") from None
-        answer = self._json("open", {"kind": kind.name, "policy": policy.value, "depth": depth})
+        token, ident, depth_used = self._open_token(kind, policy, depth)
         if kind is ConnectionKind.DATA:  # the codec's first use here, not on the first item
             warm("point" if policy is DeliveryPolicy.EVERY_ACQUISITION else "scan")
-        try:
-            token, ident, depth_used = (
-                str(answer["conn"]),
-                int(answer["ident"]),
-                int(answer["depth"]),
-            )
-        except (KeyError, TypeError, ValueError):
-            raise RequestError("open: unreadable reply from the service") from None
         conn: RemoteConnection[Any] = RemoteConnection(self, ident, kind, policy, depth_used, token)
         with self._lock:
             self._connections.append(conn)
         return conn
+
+    def _open_token(
+        self, kind: ConnectionKind, policy: DeliveryPolicy, depth: int | None
+    ) -> tuple[str, int, int]:
+        """``open`` on the service: (token, ident, depth used). An open that met the release
+        of this client's earlier connections (the service saw our token go and come back) is
+        asked again."""
+        body = {"kind": kind.name, "policy": policy.value, "depth": depth}
+        for attempt in range(MAX_REOPENS):
+            try:
+                answer = self._json("open", body)
+                break
+            except _Released as exc:  # it released this client meanwhile: nothing was done
+                if attempt == MAX_REOPENS - 1:
+                    raise ConnectionClosed(str(exc)) from None
+        try:
+            return str(answer["conn"]), int(answer["ident"]), int(answer["depth"])
+        except (KeyError, TypeError, ValueError):
+            raise RequestError("open: unreadable reply from the service") from None
 
     def status(
         self, *, newer_than: int | None = None, timeout: RealLike | None = None
@@ -391,7 +653,10 @@ class RemoteSensor:
         the status was asked for (a wake to be read as "look again", as a condition's is).
 
         Raises:
-            ConnectionClosed: the service has gone, or this object is closed.
+            ConnectionLost: the service cannot be reached (a wait for a newer status raises it
+                once the service's token has been gone for :data:`LOST_PAUSE_S`, or its
+                ``timeout`` if shorter).
+            ConnectionClosed: this object is closed.
             RequestError: a ``newer_than`` that is not a whole number, or a bad timeout.
             TimeoutError: no newer status within ``timeout``.
         """
@@ -410,21 +675,35 @@ class RemoteSensor:
             with self._news:
                 return dataclasses.replace(status, change=self._changes.change)
         deadline = None if seconds is None else time.monotonic() + seconds
+        give_up: float | None = None  # while the service is gone: when to say it is lost
         with self._news:
             while True:
                 if self._closed:
                     raise ConnectionClosed(f"the connection to service {self.name!r} is closed")
-                if self._gone.is_set():
-                    raise ConnectionClosed(f"service {self.name!r} has gone")
                 if conn is not None and conn.closed:
                     raise ConnectionClosed(f"connection {conn.ident} is closed")
-                latest = self._latest
-                if latest is not None and self._changes.change > after:
-                    return latest
-                left = None if deadline is None else deadline - time.monotonic()
-                if seconds == POLL or (left is not None and left <= 0):
-                    raise TimeoutError(f"the status of {self.name!r} has not changed since {after}")
-                self._news.wait(left)
+                now = time.monotonic()
+                left = None if deadline is None else deadline - now
+                wait = left
+                if self._gone.is_set():
+                    if not self.reconnect:
+                        raise ConnectionClosed(f"service {self.name!r} has gone")
+                    if give_up is None:
+                        pause = LOST_PAUSE_S if left is None else min(LOST_PAUSE_S, left)
+                        give_up = now + max(0.0, pause)
+                    if now >= give_up:
+                        raise self._link.error("status")
+                    wait = give_up - now
+                else:
+                    give_up = None
+                    latest = self._latest
+                    if latest is not None and self._changes.change > after:
+                        return latest
+                    if seconds == POLL or (left is not None and left <= 0):
+                        raise TimeoutError(
+                            f"the status of {self.name!r} has not changed since {after}"
+                        )
+                self._news.wait(wait)
 
     def clock(self) -> float:
         """The newest hardware time the service's sensor has been seen at (in a status reply
@@ -473,29 +752,34 @@ class RemoteSensor:
             callback(value)
 
         subscription._subscriber = self._session.declare_subscriber(key, on_sample)
+        subscription._life = self._life  # undeclared with the session, if not before
+        self._life.track(subscription._subscriber)
         return subscription
 
     def close(self) -> None:
-        """Close every connection opened here, then leave (idempotent)."""
+        """Close every connection opened here, then leave (idempotent). Bounded: a service that
+        cannot be reached is not waited for (it releases what we leave once our token goes),
+        and Zenoh's close at most :data:`~biris_hw.io.net.lifetime.CLOSE_WAIT_S`."""
         if self._closed:
             return
         with self._lock:
             connections = list(self._connections)
-        if not self._gone.is_set():
-            for conn in connections:
-                with contextlib.suppress(BirisError, TimeoutError):
-                    conn.close()
+        for conn in connections:
+            if self._gone.is_set() or self._link.is_lost:
+                conn._forget()  # nobody to tell
+                continue
+            with contextlib.suppress(BirisError, TimeoutError, ConnectionLost):
+                conn.close()
         self._closed = True
+        self._closing.set()
+        self._link.stop()
         with self._lock:
             waiters = list(self._waiters)
         for waiter in waiters:
             waiter.wake()
         self._wake()
-        if self._status_sub is not None:
-            with contextlib.suppress(Exception):
-                self._status_sub.undeclare()
-            self._status_sub = None
-        self._session.close()  # type: ignore[no-untyped-call]
+        self._finalizer.detach()
+        self._life.close()  # its subscribers first (their threads end), then the session
 
     def __enter__(self) -> RemoteSensor:
         return self
@@ -514,31 +798,44 @@ class _Waiter:
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
-        self._reply: zenoh.Reply | None = None
-        self._over = False
+        self.answer: zenoh.Reply | None = None
+        self.finished = False
+        """Zenoh said the query is over (its replies, or none: nobody answered)."""
+        self._woken = False
 
     def reply(self, reply: zenoh.Reply) -> None:
         with self._cond:
-            if self._reply is None:
-                self._reply = reply
+            if self.answer is None:
+                self.answer = reply
             self._cond.notify_all()
 
     def done(self) -> None:
-        self.wake()
-
-    def wake(self) -> None:
         with self._cond:
-            self._over = True
+            self.finished = True
             self._cond.notify_all()
 
-    def wait(self, timeout: float) -> zenoh.Reply | None:
+    def wake(self) -> None:
+        """Stop waiting (the service went, or the client is closing)."""
         with self._cond:
-            self._cond.wait_for(lambda: self._reply is not None or self._over, timeout)
-            return self._reply
+            self._woken = True
+            self._cond.notify_all()
+
+    def wait(self, timeout: float) -> None:
+        with self._cond:
+            self._cond.wait_for(
+                lambda: self.answer is not None or self.finished or self._woken, timeout
+            )
 
 
 class RemoteConnection(ConnectionBase[D]):
-    """A connection through the service: the methods, results and errors of a local one."""
+    """A connection through the service: the methods, results and errors of a local one.
+
+    It outlives the service's side of it: when the service has released it (the client's
+    token went during an outage) or no longer knows it (the service restarted), the next call
+    reopens it -- same kind, policy and depth -- and goes on; :attr:`ident` is then the new
+    connection's, :attr:`reopened` counts the reopens and :attr:`missed` the scans made in
+    between that it never got.
+    """
 
     def __init__(
         self,
@@ -553,26 +850,108 @@ class RemoteConnection(ConnectionBase[D]):
         self._sensor = sensor
         self._token = token
         """What names it to the service: only its holder may use or close it."""
+        self._reopen_lock = threading.Lock()
+        self._dropped_before = 0
+        """What the connections it replaced had dropped (``dropped`` goes on from there)."""
+        self._gaps = Missed()
+        self._instance = sensor._instance
+        """The service instance its token came from (see :attr:`RemoteSensor.restarts`)."""
+        self.reopened = 0
+        """Times the service's side of it was opened again (see the class)."""
+
+    @property
+    def missed(self) -> int:
+        """Scans the sensor made while the service was lost that this connection never got:
+        the gaps in ``seq`` across its reopens (a DATA connection of scans; see
+        :class:`~biris_hw.io.net.reconnect.Missed`). Besides :attr:`dropped`, which the server
+        counts."""
+        return self._gaps.count
 
     def _where(self) -> str:
         return f"{self._sensor.name}:"
 
-    def _call(self, op: str, body: dict[str, Any] | None = None, wait_s: float = 0.0) -> Any:
+    def _request(
+        self, op: str, body: dict[str, Any], wait_s: float = 0.0, pause_s: float | None = None
+    ) -> tuple[bytes, str, bytes | None]:
+        """One request on this connection, reopened first if the service no longer holds it.
+        A request it refused unread is sent again on the reopened connection; a read it
+        closed the connection under is too (nothing was taken); a control operation it closed
+        the connection under is not (whether it was done is unknown): ConnectionLost, and
+        the next call reopens."""
         self._check_open()
-        return self._sensor._json(op, {"conn": self._token, **(body or {})}, wait_s)
+        for attempt in range(MAX_REOPENS + 1):
+            token = self._token
+            try:
+                return self._sensor._query(op, {"conn": token, **body}, wait_s, pause_s=pause_s)
+            except _Released as exc:
+                self._check_open()
+                if not self._sensor.reconnect or attempt == MAX_REOPENS:
+                    raise ConnectionClosed(
+                        f"connection {self.ident}: the service no longer holds it ({exc})"
+                    ) from None
+                if op in CONTROL_OPS and not exc.unread:
+                    raise ConnectionLost(
+                        f"{op}: service {self._sensor.name!r} closed connection {self.ident} "
+                        "under the request (is it stopping?): whether it was done is unknown"
+                    ) from None
+                self._reopen(token)
+        raise AssertionError("unreachable")
 
-    def _data(self, op: str, body: dict[str, Any], wait_s: float = 0.0) -> Any:
-        self._check_open()
-        payload, encoding, attachment = self._sensor._query(
-            op, {"conn": self._token, **body}, wait_s
-        )
+    def _reopen(self, old: str) -> None:
+        """Open the service's side again in place of ``old`` (once, whoever asks first)."""
+        sensor = self._sensor
+        with self._reopen_lock:
+            if self._token != old:
+                return  # another thread has reopened it meanwhile
+            try:
+                token, ident, _ = sensor._open_token(self.kind, self.policy, self.depth)
+            except (ConnectionLost, ConnectionClosed, Busy):
+                raise  # Busy: nothing was done, the next call tries again
+            except BirisError as exc:  # AccessDenied, RequestError: it will not come back
+                raise ConnectionClosed(
+                    f"connection {self.ident} was released by service {sensor.name!r} and "
+                    f"could not be reopened: {exc}"
+                ) from exc
+            old_ident = self.ident
+            self._token, self.ident = token, ident
+            self._dropped_before = self.dropped
+            if sensor._instance != self._instance:  # a restarted service numbers afresh
+                self._gaps.forget()
+                self._instance = sensor._instance
+            else:
+                self._gaps.mark(self.dropped)
+            self.reopened += 1
+        sensor._note_reopen(self, old_ident)
+        if self._closed:  # closed by its user while it reopened: the new one goes too
+            with contextlib.suppress(BirisError, TimeoutError, ConnectionLost):
+                sensor._json("close", {"conn": token}, reply_s=CLOSE_REPLY_S, pause_s=0.0)
+
+    def _call(self, op: str, body: dict[str, Any] | None = None, wait_s: float = 0.0) -> Any:
+        payload, _, _ = self._request(op, body or {}, wait_s)
+        try:
+            return json.loads(payload)
+        except ValueError:
+            raise RequestError(f"{op}: unreadable reply from the service") from None
+
+    def _data(
+        self, op: str, body: dict[str, Any], wait_s: float = 0.0, pause_s: float | None = None
+    ) -> Any:
+        try:
+            payload, encoding, attachment = self._request(op, body, wait_s, pause_s)
+        except ConnectionLost:
+            if op == "ready_for_data":  # its reply, an item taken from the queue, may be lost
+                self._gaps.mark(self.dropped)
+            raise
         if attachment is not None:
             with contextlib.suppress(ValueError, KeyError, TypeError):
-                self.dropped = int(json.loads(attachment)["dropped"])
+                self.dropped = self._dropped_before + int(json.loads(attachment)["dropped"])
         if encoding.endswith(codec.SCAN):
             scan = codec.decode_scan(payload)
             if scan.n_acq:
                 self._sensor._saw(float(scan.t[-1]))
+            gap = self._gaps.saw(scan, self.dropped)
+            if gap is not None:
+                self._sensor._note_missed(self, *gap)
             return scan
         if encoding.endswith(codec.POINT):
             point = codec.decode_point(payload)
@@ -595,15 +974,23 @@ class RemoteConnection(ConnectionBase[D]):
     def ready_for_data(self, timeout: RealLike | None = None) -> D:
         """READY_FOR_DATA (see :meth:`biris_hw.client.Connection.ready_for_data`).
 
-        Waits in slices of at most MAX_WAIT_S on the service, so that a service that dies is
-        noticed whatever ``timeout`` is.
+        Waits in slices of at most MAX_WAIT_S on the service, so that a service that stops
+        answering is noticed whatever ``timeout`` is.
+
+        Raises:
+            ConnectionLost: the service cannot be reached (see the module); asking again once
+                it is back carries on, on a reopened connection if the service released this
+                one (:attr:`missed` counts the scans made in between).
+            ConnectionClosed: this connection or its sensor was closed here, or the service
+                would not reopen it.
+            TimeoutError: nothing within ``timeout``.
         """
         return cast(D, self._blocking("ready_for_data", timeout))
 
     def _blocking(self, op: str, timeout: RealLike | None) -> Any:
         seconds = checked_timeout(timeout)
         if seconds == POLL:
-            return self._data(op, {"timeout": 0})
+            return self._data(op, {"timeout": 0}, pause_s=0.0)
         deadline = None if seconds is None else time.monotonic() + seconds
         while True:
             left = MAX_WAIT_S if deadline is None else deadline - time.monotonic()
@@ -611,7 +998,7 @@ class RemoteConnection(ConnectionBase[D]):
                 raise TimeoutError(f"{op}: nothing within {seconds:g} s")
             wait = min(left, MAX_WAIT_S)
             try:
-                return self._data(op, {"timeout": wait}, wait)
+                return self._data(op, {"timeout": wait}, wait, pause_s=min(LOST_PAUSE_S, left))
             except TimeoutError:
                 if deadline is not None and time.monotonic() >= deadline:
                     raise
@@ -673,7 +1060,8 @@ class RemoteConnection(ConnectionBase[D]):
         Waits as long as an initialisation may take (:data:`~biris_hw.io.net.keys.
         RESET_WAIT_S`), not a blocking read's slice: the reset carries on in the server
         whatever the caller does, and one that fails raises its HardwareFault here. A service
-        that goes away meanwhile still raises ConnectionClosed at once.
+        whose token goes meanwhile still raises ConnectionLost at once (whether the reset ran
+        is then unknown: its status says).
         """
         self._call("reset", wait_s=RESET_WAIT_S)
 
@@ -692,9 +1080,13 @@ class RemoteConnection(ConnectionBase[D]):
         self._closed = True
         self._sensor._wake()
         try:
-            self._sensor._json("close", {"conn": self._token})
-        except (ConnectionClosed, TimeoutError):
-            pass
+            self._sensor._json("close", {"conn": self._token}, reply_s=CLOSE_REPLY_S, pause_s=0.0)
+        except (ConnectionClosed, TimeoutError, ConnectionLost):
+            pass  # gone already, or the service releases it when our token goes
+
+    def _forget(self) -> None:
+        """Closed here without telling the service (it cannot be reached)."""
+        self._closed = True
 
 
 if TYPE_CHECKING:
@@ -725,6 +1117,9 @@ def connect(
         reader_credentials: (keyword) send the credentials with every request, reads included:
             for a service that requires reader credentials (default False: a password goes to
             the service only when it is needed, with a control operation).
+        reconnect: (keyword) expect a service that cannot be reached to come back (default
+            True): calls raise ConnectionLost meanwhile and the connections are reopened when
+            it is back. False: its going is final, ConnectionClosed.
 
     Raises:
         ConnectionClosed: no such service answered in time.

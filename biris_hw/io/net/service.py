@@ -34,6 +34,16 @@ Threads and why:
 * The same sink publishes the status when it changes and, unchanged, every ``status_period``
   seconds, and a fault when the sensor enters one: the feed's status thread waits for the
   sensor to push a change (``status(newer_than=...)``), asking nothing while nothing changes.
+
+What a supervisor reads in the log (logger ``biris_hw.io.net.service``): the service up (name,
+endpoints, who may do what) and down at INFO; each client's first request ("connected"), the
+first control operation it is granted (with the controller's name), a reset it asks for, and
+its leaving (its token withdrawn, its connections released) at INFO; refusals -- access
+refused, Busy -- at WARNING, at most one line per :data:`REFUSAL_LOG_S` for each kind (a
+flood of wrong passwords does not flood the log: the lines count what they left out); and
+acquisitions or scans that could not be published, at WARNING, once per status period at most.
+The sensor's own faults, resets and recoveries are its watcher's to say
+(:class:`biris_hw.commands.reset.AutoReset` in ``biris serve``).
 """
 
 from __future__ import annotations
@@ -43,6 +53,7 @@ import contextlib
 import hmac
 import json
 import logging
+import math
 import queue
 import secrets
 import struct
@@ -72,6 +83,8 @@ from biris_hw.io.net.keys import (
     BadRequest,
     Busy,
     Keys,
+    ServiceClosing,
+    UnknownConnection,
     check_name,
     check_token,
     error_payload,
@@ -81,7 +94,7 @@ from biris_hw.io.net.zconfig import make_config
 from biris_hw.records import MotorParams
 from biris_hw.sensor import Connection, Sensor
 
-__all__ = ["Sensor", "Service", "serve"]
+__all__ = ["Quieter", "Sensor", "Service", "serve"]
 
 log = logging.getLogger(__name__)
 
@@ -131,6 +144,10 @@ CONTROL_WORKERS = 4
 
 CONTROL_QUEUE = 32
 """Control requests waiting for a control worker; beyond, Busy."""
+
+REFUSAL_LOG_S = 10.0
+"""At most one log line per this many seconds for each kind of refusal (access refused, Busy):
+the next says how many were left out meanwhile."""
 
 RELEASE_CHECK_S = 1.0
 """How long the janitor asks Zenoh whether a client's token is still declared somewhere."""
@@ -185,6 +202,27 @@ class _Client:
         self.tokens -= 1.0
         self.inflight += 1
         return True
+
+
+class Quieter:
+    """Says whether a log line about ``kind`` may be written now: at most one per ``period_s``
+    for each kind, so that a flood (of wrong passwords, of requests) does not flood the log;
+    the line that may be written is told how many were left out since the last. Not
+    thread-safe: its owner holds a lock."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self._kinds: dict[str, tuple[float, int]] = {}
+        """Per kind: until when the log stays quiet about it, and how many it left out."""
+
+    def allow(self, kind: str, now: float) -> int | None:
+        """None: stay quiet (counted); else the number left out since the last line."""
+        quiet_until, unsaid = self._kinds.get(kind, (-math.inf, 0))
+        if now < quiet_until:
+            self._kinds[kind] = (quiet_until, unsaid + 1)
+            return None
+        self._kinds[kind] = (now + self.period_s, 0)
+        return unsaid
 
 
 def _credentials(table: Mapping[str, str] | None, what: str) -> dict[str, str] | None:
@@ -290,6 +328,14 @@ class Service:
         self.requests = 0
         self.refused_busy = 0
         self.refused_bad = 0
+        self.refused_access = 0
+        """Requests refused for want of the right credentials (AccessDenied)."""
+        self.listen = list(listen)
+        """The endpoints given to listen on (what the log says)."""
+        self._refusals = Quieter(REFUSAL_LOG_S)
+        """How often a refusal is logged (:meth:`_say_refused`)."""
+        self._dropped_said = (0, 0)
+        """Acquisitions and scans not published, as the log last said them."""
         self.released_clients = 0
         self.token_checks = 0
         """Withdrawn client tokens the janitor has looked into."""
@@ -359,7 +405,18 @@ class Service:
         except BirisError as exc:  # a sensor already closed: the service answers all the same
             log.warning("the service publishes nothing: the sensor cannot be read (%s)", exc)
         self._token = session.liveliness().declare_token(keys.service_token)
-        log.info("BIRIS service %r up", self.name)
+        if self.playback:
+            who = "a recording: nobody may move or configure it"
+        else:
+            who = f"{len(self.controllers)} controller(s)" if self.controllers else "read-only"
+        reading = "free" if self.readers is None else "with credentials"
+        log.info(
+            "service %r up on %s (%s; reading %s)",
+            self.name,
+            " ".join(self.listen) or "Zenoh's default endpoints",
+            who,
+            reading,
+        )
 
     def close(self) -> None:
         """Stop serving: clients' connections closed, threads joined, the session closed."""
@@ -388,7 +445,7 @@ class Service:
         self._pool.shutdown()
         self._control.shutdown()
         session.close()  # type: ignore[no-untyped-call]
-        log.info("BIRIS service %r down", self.name)
+        log.info("service %r down", self.name)
 
     # -- publications ----------------------------------------------------------------------------
     def _publish(self, publisher: Any, kind: str, payload: bytes, schema: str) -> None:
@@ -412,7 +469,10 @@ class Service:
     def _publish_batch(self, batch: feed.Batch) -> None:
         """Publish what the feed encoded for the service (its sink's thread): each payload on
         its key, a scan on its direction's. A publication that fails is said and skipped: the
-        next one is tried all the same."""
+        next one is tried all the same. With a status reading (at most once a status period),
+        what could not be published since the last is said."""
+        if batch.status is not None:
+            self._say_dropped()
         for message in batch.messages:
             try:
                 if message.topic == codec.RAW_POINT_TOPIC:
@@ -428,6 +488,31 @@ class Service:
                     self._publish(self._pub_fault, "fault", message.data, message.msgtype)
             except Exception:
                 log.exception("publishing %s failed", message.topic)
+
+    def _say_dropped(self) -> None:
+        """Log the acquisitions and scans that could not be published since the last line."""
+        now = (self.dropped_points, self.dropped_scans)
+        said, self._dropped_said = self._dropped_said, now
+        points, scans = now[0] - said[0], now[1] - said[1]
+        if points > 0 or scans > 0:
+            log.warning(
+                "%d acquisition(s) and %d scan(s) could not be published (the service's queue "
+                "was full, or the sensor dropped them for it); %d and %d in all",
+                points,
+                scans,
+                now[0],
+                now[1],
+            )
+
+    def _say_refused(self, kind: str, text: str) -> None:
+        """A refusal's log line, at most one per :data:`REFUSAL_LOG_S` for each ``kind``; the
+        next says how many were left out (a flood must not flood the log)."""
+        with self._lock:
+            unsaid = self._refusals.allow(kind, time.monotonic())
+        if unsaid is None:
+            return
+        more = f" ({unsaid} more refused since the last line)" if unsaid else ""
+        log.warning("%s: %s%s", kind, text, more)
 
     # -- clients ---------------------------------------------------------------------------------
     def _on_client_token(self, sample: zenoh.Sample) -> None:
@@ -481,7 +566,8 @@ class Service:
                 self._conns.pop(token, None)
             controllers_left = any(c.controller for c in self._clients.values())
         self.released_clients += 1
-        log.info("client %s vanished: releasing %d connection(s)", ident, len(client.connections))
+        held = len(client.connections)
+        log.info("client %s left%s", ident, f": closing its {held} connection(s)" if held else "")
         self._close_all(client)
         if client.controller and not controllers_left and self.stop_when_controllers_leave:
             self._dead_man(ident)
@@ -503,6 +589,8 @@ class Service:
             idle = [k for k, c in self._clients.items() if c.idle(now, older_than)]
             for ident in idle:
                 del self._clients[ident]
+        for ident in idle:
+            log.debug("client %s forgotten: quiet for %.0f s, holding nothing", ident, older_than)
         return len(idle)
 
     @staticmethod
@@ -545,8 +633,14 @@ class Service:
     def _on_query(self, query: zenoh.Query) -> None:
         """Admit a query on Zenoh's thread (cheap checks only), or answer it at once."""
         self.requests += 1
+        ident = "?"
+        op = "?"
+        user = ""
+        granted: str | None = None
+        new = False
         try:
             op, request = self._read(query)
+            user = str(request.get("user"))[:64]  # for the log: a refusal names whom it refused
             try:
                 ident = check_name(str(request.get("client")), "client")
             except RequestError as exc:
@@ -558,14 +652,15 @@ class Service:
             now = time.monotonic()
             with self._lock:
                 if self._stop.is_set():
-                    raise ConnectionClosed("the service is closing")
+                    raise ServiceClosing("the service is closing")
                 conn: Connection[Any] | None = None
                 if token is None:
+                    new = ident not in self._clients
                     client = self._client(ident, now)
                 else:  # the token names the connection, and so its owner, whoever asks
                     found = self._conns.get(token)
                     if found is None:
-                        raise ConnectionClosed("that connection is closed (or was never opened)")
+                        raise UnknownConnection("that connection is closed (or was never opened)")
                     client, conn = found
                 client.seen = now
                 if not client.admit(now):
@@ -579,26 +674,38 @@ class Service:
                 if blocking:
                     self._blocking += 1
                 if control and not self.playback:
+                    if not client.controller:
+                        granted = user
                     client.controller = True
         except BirisError as exc:
             if isinstance(exc, Busy):
                 self.refused_busy += 1
+                self._say_refused("busy", f"client {ident}, {op}: {exc}")
             elif isinstance(exc, BadRequest):
                 self.refused_bad += 1
+            elif isinstance(exc, AccessDenied):
+                self.refused_access += 1
+                self._say_refused("access refused", f"client {ident} (user {user}): {exc}")
             self._reply_err(query, exc)
             return
+        if new:
+            log.info("client %s connected (%s)", ident, op)
+        if granted is not None:
+            log.info("client %s controls the sensor as %r", ident, granted)
         pool = self._control if control else self._pool
         try:
             queued = pool.submit(self._work, query, op, request, client, conn, blocking)
         except RuntimeError:  # shut down meanwhile
             self._done(client, blocking)
-            self._reply_err(query, ConnectionClosed("the service is closing"))
+            self._reply_err(query, ServiceClosing("the service is closing"))
             return
         if not queued:
             self._done(client, blocking)
             self.refused_busy += 1
             what = "control" if control else "read"
-            self._reply_err(query, Busy(f"the service's {what} queue is full: not done"))
+            refusal = Busy(f"the service's {what} queue is full: not done")
+            self._say_refused("busy", f"client {ident}, {op}: {refusal}")
+            self._reply_err(query, refusal)
 
     def _done(self, client: _Client, blocking: bool) -> None:
         with self._lock:
@@ -735,6 +842,8 @@ class Service:
         # timeout_enable, timeout_disable, reset (answered when the initialisation ends)
         if op not in _SIMPLE:
             raise BadRequest(f"unknown operation {op!r}")
+        if op == "reset":
+            log.info("client %s (%r) asks for a reset", client.ident, request.get("user"))
         action: Callable[[], None] = getattr(conn, op)
         action()
         return _json(None)

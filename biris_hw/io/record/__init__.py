@@ -6,13 +6,15 @@ and Lichtblick open as they are, and lossless ``biris_msgs`` channels that
 :class:`biris_hw.io.record.ReplayServer` turns back into equal :class:`~biris_hw.Scan` and
 :class:`~biris_hw.Point` objects. :func:`write_scans` writes a list of scans (``biris scan --save
 x.mcap``). Topics and frames: :mod:`biris_hw.io.codec`; the file's failure modes:
-:mod:`biris_hw.io.record.mcapfile`.
+:mod:`biris_hw.io.record.mcapfile`; a file whose writer was killed, played up to its last
+complete chunk: :mod:`biris_hw.io.record.cutfile`.
 """
 
 from __future__ import annotations
 
 from biris_hw.io.record.mcapfile import RecordError
 from biris_hw.io.record.recorder import (
+    CLOSE_TIMEOUT_S,
     RAW_POINT_TOPIC,
     RAW_SCAN_TOPIC,
     RAW_STATUS_TOPIC,
@@ -23,6 +25,7 @@ from biris_hw.io.record.recorder import (
 from biris_hw.io.record.replay import EndOfRecording, ReplayServer
 
 __all__ = [
+    "CLOSE_TIMEOUT_S",
     "RAW_POINT_TOPIC",
     "RAW_SCAN_TOPIC",
     "RAW_STATUS_TOPIC",

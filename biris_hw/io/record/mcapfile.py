@@ -64,9 +64,13 @@ def _tail() -> bytes:
 class McapFile:
     """An MCAP file open for writing: ROS 2 profile, CDR messages, ros2msg schemas.
 
+    ``overwrite=False`` refuses a file that exists (created exclusively, so a file that appears
+    between a caller's own check and this one is refused too).
+
     Raises:
         RecordError: the file cannot be created (a folder that does not exist or is not
-            writable, a name that is a folder); nothing is left behind.
+            writable, a name that is a folder, a file that exists and ``overwrite`` is False);
+            nothing is left behind, and an existing file is untouched.
     """
 
     def __init__(
@@ -75,11 +79,23 @@ class McapFile:
         *,
         chunk_size: int = CHUNK_SIZE,
         compression: CompressionType = CompressionType.ZSTD,
+        overwrite: bool = True,
     ) -> None:
         self.path = Path(path)
+        made = False
         try:
+            if not overwrite:
+                os.close(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+                made = True
             self._stream = _open_stream(self.path)
+        except FileExistsError as exc:
+            raise RecordError(
+                f"{self.path} exists: not overwritten (a recording is never replaced unasked)",
+                errno.EEXIST,
+            ) from exc
         except OSError as exc:
+            if made:
+                self.path.unlink(missing_ok=True)
             raise RecordError(
                 f"cannot write {self.path}: {exc.strerror or exc}", exc.errno or errno.EIO
             ) from exc

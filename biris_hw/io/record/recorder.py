@@ -10,21 +10,31 @@ So the recorder adds almost nothing to the moment an acquisition reaches the oth
 a file being slow to write holds up neither the sensor's other clients nor the feed's other
 sinks. Metadata records say what was recorded and how: ``biris`` at the start (software
 version, init record, frame, whatever the caller adds: target description, scene),
-``biris.recording`` at the end (counts and drops).
+``biris.recording`` at the end (counts and drops, what close() had no time to write, the spans
+without the network).
 
 Nothing is dropped silently: what the recorder was too slow for is counted (by the sensor on
-the feed's connections, and by the recorder's queue in the feed) and written in the file (every
-``biris: recorder`` diagnostic and the end record) and in :class:`RecordSummary`. The file is
-valid however the run ends (see :mod:`biris_hw.io.record.mcapfile`).
+the feed's connections, by the recorder's queue in the feed, and what was left in that queue
+when :meth:`Recorder.close` could wait no longer) and written in the file (every ``biris:
+recorder`` diagnostic and the end record) and in :class:`RecordSummary`; a span without the
+network to a remote sensor is named in both. The file is valid however the run ends (see
+:mod:`biris_hw.io.record.mcapfile`); a recorder killed outright leaves a file without a footer,
+which :class:`~biris_hw.io.record.ReplayServer` plays up to its last complete chunk (at most
+:data:`FLUSH_S` of data, or a chunk, lost). ``close()`` returns within :data:`CLOSE_TIMEOUT_S`
+whatever the backlog, and an unclosed Recorder is closed when it is collected or at exit.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
+import logging
+import math
 import os
 import threading
 import time
+import weakref
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -39,6 +49,7 @@ from biris_hw.io.record.mcapfile import CHUNK_SIZE, McapFile, RecordError
 from biris_hw.sensor import Sensor
 
 __all__ = [
+    "CLOSE_TIMEOUT_S",
     "RAW_POINT_TOPIC",
     "RAW_SCAN_TOPIC",
     "RAW_STATUS_TOPIC",
@@ -50,6 +61,13 @@ __all__ = [
 RAW_SCAN_TOPIC = codec.RAW_SCAN_TOPIC
 RAW_POINT_TOPIC = codec.RAW_POINT_TOPIC
 RAW_STATUS_TOPIC = codec.RAW_STATUS_TOPIC
+
+log = logging.getLogger(__name__)
+
+CLOSE_TIMEOUT_S = 10.0
+"""Real seconds :meth:`Recorder.close` takes at most, whatever the backlog: the first half
+writes what waits for the recorder (the rest is dropped and counted), the second finishes the
+file."""
 
 FLUSH_S = 2.0
 """Real seconds between chunk flushes, so a crash (not Ctrl-C: that closes properly) loses at
@@ -93,13 +111,16 @@ class RecordSummary:
 
     path: Path
     complete: bool
-    """The MCAP summary was written (False after a write failure: still a valid file)."""
+    """The MCAP summary was written (False after a write failure: still a valid file; or when
+    :meth:`Recorder.close` could not finish the file within its bound: ``error`` says so)."""
     messages: int
     points: int
     scans: int
     statuses: int
     dropped_points: int
-    """Acquisitions the recorder's connection missed (server-counted: too slow, or lost)."""
+    """Acquisitions the recorder missed: counted by the sensor on the recorder's connection (too
+    slow, or lost), by its queue in the feed, and left in that queue at close
+    (``unwritten_points``)."""
     dropped_scans: int
     lost_messages: int
     """Messages handed to the file that never reached the disk (a write failure)."""
@@ -110,26 +131,243 @@ class RecordSummary:
     """The partial scans recorded, each named with its reason when it has one (``"CW #1
     (partial: ended 312 counts (27.4 deg) short of its destination -2048)"``): a recording of
     short sweeps says so where the person who made it looks."""
+    unwritten_points: int = 0
+    """Acquisitions still waiting to be written when close() had no more time for them (a disk
+    slower than the sensor): dropped, counted in ``dropped_points`` too."""
+    unwritten_scans: int = 0
+    lost_spans: tuple[str, ...] = ()
+    """Each span without the network to a remote sensor (``from 14:02:11.3 to 14:02:14.5 (3.2
+    s; ...)``): what the sensor made then is not in the file, and is in the drops only as far
+    as the sensor counted it."""
+    lost_seconds: float = 0.0
+    """How long those spans lasted, together."""
+    finished: bool = True
+    """False when close() returned before a blocked write did: the file has no footer yet (it
+    is finished if that write returns while the process lives; else it plays up to its last
+    complete chunk)."""
 
     @property
     def dropped(self) -> int:
-        """Everything that is not in the file: drops and lost messages."""
+        """Everything that is not in the file and was counted: drops and lost messages (a span
+        without the network is not a count: see ``lost_spans``)."""
         return self.dropped_points + self.dropped_scans + self.lost_messages
 
     def __str__(self) -> str:
         text = (
             f"{self.path}: {self.scans} scans, {self.points} acquisitions, {self.statuses} "
-            f"status records in {self.seconds:.1f} s, {self.bytes / 1e6:.2f} MB; dropped "
-            f"{self.dropped_points} acquisitions and {self.dropped_scans} scans"
+            f"status records in {self.seconds:.1f} s, {self.bytes / 1e6:.2f} MB; "
         )
+        counted = f"{self.dropped_points} acquisitions and {self.dropped_scans} scans"
+        if self.lost_spans:  # never "dropped 0" when the network took a span away
+            n = len(self.lost_spans)
+            text += (
+                f"missed everything for {self.lost_seconds:.1f} s without the network "
+                f"({n} span{'s' if n > 1 else ''}: {'; '.join(self.lost_spans)}), plus "
+                f"{counted} counted as dropped"
+            )
+        else:
+            text += f"dropped {counted}"
+        if self.unwritten_points or self.unwritten_scans:
+            text += (
+                f" ({self.unwritten_points} acquisitions and {self.unwritten_scans} scans of "
+                f"them still waiting to be written at close)"
+            )
         if self.lost_messages:
             text += f", {self.lost_messages} messages lost"
         if self.partial_scans:
             n = len(self.partial_scans)
             text += f"; {n} partial scan{'s' if n > 1 else ''}: " + ", ".join(self.partial_scans)
-        if not self.complete:
+        if not self.finished:
+            text += " (not finished at close: a write was still under way)"
+        elif not self.complete:
             text += " (no summary: file cut short, still valid)"
         return text
+
+
+class _Writing:
+    """One recording under way: the file, what was written, the feed's sink.
+
+    The sink calls this object, never the :class:`Recorder`, so a Recorder its program forgot
+    to close can be collected, and its finaliser closes this.
+    """
+
+    def __init__(self, file: McapFile, close_timeout_s: float) -> None:
+        self.file = file
+        self.close_timeout_s = close_timeout_s
+        self.sink: feed.Sink | None = None
+        self.failed = threading.Event()
+        """Set when the sink could not be attached; the sink's own afterwards."""
+        self.now = 0.0
+        self.static_written = False
+        self.last_flush = time.monotonic()
+        self.started = 0.0
+        self.stopped: float | None = None
+        self.points = 0
+        self.scans = 0
+        self.statuses = 0
+        self.partial_scans: list[str] = []
+        self.summary: RecordSummary | None = None
+        self.unfinished: RecordError | None = None
+        """close() could not finish the file within its bound (a write that blocks)."""
+        self._finish_lock = threading.Lock()
+        self._finished = False
+
+    # -- counts ----------------------------------------------------------------------------------
+    @property
+    def error(self) -> BaseException | None:
+        sink_error = self.sink.error if self.sink is not None else None
+        return self.file.error or sink_error or self.unfinished
+
+    @property
+    def dropped_points(self) -> int:
+        return self.sink.dropped_points if self.sink is not None else 0
+
+    @property
+    def dropped_scans(self) -> int:
+        return self.sink.dropped_scans if self.sink is not None else 0
+
+    @property
+    def lost_spans(self) -> tuple[feed.LostSpan, ...]:
+        return self.sink.lost_spans if self.sink is not None else ()
+
+    def counts(self) -> dict[str, object]:
+        """The counts the diagnostics and the end record carry."""
+        counts: dict[str, object] = {
+            "points": self.points,
+            "scans": self.scans,
+            "statuses": self.statuses,
+            "dropped_points": self.dropped_points,
+            "dropped_scans": self.dropped_scans,
+            "lost_messages": self.file.lost,
+        }
+        spans = self.lost_spans
+        if spans:
+            counts["dropped_network_s"] = f"{sum(span.seconds for span in spans):.1f}"
+        return counts
+
+    def end_record(self) -> dict[str, object]:
+        """``biris.recording``: the counts, what close() had no time to write, the spans
+        without the network."""
+        sink = self.sink
+        record = self.counts()
+        record["unwritten_points"] = sink.unhandled_points if sink is not None else 0
+        record["unwritten_scans"] = sink.unhandled_scans if sink is not None else 0
+        record["lost_spans"] = [str(span) for span in self.lost_spans]
+        record["stopped_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        return record
+
+    # -- what the feed hands over (the sink's thread, in batches) --------------------------------
+    def static(self, mount: Mount | None, t: float) -> None:
+        if not self.static_written:
+            self.static_written = True
+            _write(self.file, codec.static_transforms(mount, t))
+
+    def batch(self, batch: feed.Batch) -> None:
+        """Write one batch: the data's messages as the feed encoded them, then the status; the
+        last one ends the file."""
+        if batch.points:
+            self.now = max(self.now, batch.points[-1].t)
+            self.static(batch.points[0].mount, batch.points[0].t)
+        for scan in batch.scans:
+            self.now = max(self.now, codec.scan_time(scan))
+            self.static(scan.mount, codec.scan_time(scan))
+        status_messages = []
+        for message in batch.messages:
+            if message.topic == codec.RAW_STATUS_TOPIC:
+                status_messages.append(message)  # after its diagnostics, as it was read
+            else:
+                _write(self.file, message)
+        self.points += len(batch.points)
+        for scan in batch.scans:
+            self.scans += 1
+            if scan.partial:
+                self.partial_scans.append(_partial_name(scan))
+        reading = batch.status
+        if reading is not None:
+            extra = {"recorder": self.counts()}
+            status = reading.status
+            _write(
+                self.file, codec.diagnostics(status, reading.t, extra=extra, error=reading.error)
+            )
+            for message in status_messages:
+                _write(self.file, message)
+            self.statuses += 1
+        if batch.final:
+            self.finish()
+        elif time.monotonic() - self.last_flush > FLUSH_S:
+            self.last_flush = time.monotonic()
+            if not self.file.flush():
+                raise self.file.error or RecordError(f"cannot write {self.file.path}")
+
+    def finish(self) -> None:
+        """Write the end record and the summary, close the file (once)."""
+        with self._finish_lock:
+            if self._finished:
+                return
+            self._finished = True
+            self.file.metadata("biris.recording", _metadata_strings(self.end_record()))
+            self.file.close()
+
+    # -- closing ---------------------------------------------------------------------------------
+    def close(self, timeout: float) -> RecordSummary:
+        """Detach within ``timeout`` and finish the file (see :meth:`Recorder.close`)."""
+        if self.summary is not None and self.unfinished is None:
+            return self.summary
+        begun = time.monotonic()
+        if self.stopped is None:
+            self.stopped = begun  # the recording's length: until close() was called
+        sink = self.sink
+        done = True
+        if sink is not None:
+            sink.detach(timeout)
+            in_sink = threading.current_thread() is sink._thread  # a finaliser run there
+            left = 0.0 if in_sink else max(0.0, begun + timeout - time.monotonic())
+            done = sink.done.wait(left)
+        if done:  # nothing is written any more: the file can be ended here (idempotent)
+            self.finish()
+            self.unfinished = None
+        else:
+            self.unfinished = RecordError(
+                f"{self.file.path} not finished within {timeout:g} s of close(): a write "
+                f"still under way (a slow or hung disk). It is finished when that write "
+                f"returns if the process goes on, else it is left as a killed recording is: "
+                f"biris replay plays it up to its last complete chunk",
+                errno.ETIMEDOUT,
+            )
+            log.error("%s", self.unfinished)
+        error = self.error
+        path = self.file.path
+        spans = self.lost_spans
+        self.summary = RecordSummary(
+            path=path,
+            complete=self.file.complete and self.unfinished is None,
+            messages=self.file.messages - self.file.lost,
+            points=self.points,
+            scans=self.scans,
+            statuses=self.statuses,
+            dropped_points=self.dropped_points,
+            dropped_scans=self.dropped_scans,
+            lost_messages=self.file.lost,
+            bytes=path.stat().st_size if path.exists() else 0,
+            seconds=self.stopped - self.started if self.started else 0.0,
+            error=None if error is None else str(error),
+            partial_scans=tuple(self.partial_scans),
+            unwritten_points=sink.unhandled_points if sink is not None else 0,
+            unwritten_scans=sink.unhandled_scans if sink is not None else 0,
+            lost_spans=tuple(str(span) for span in spans),
+            lost_seconds=sum(span.seconds for span in spans),
+            finished=self.unfinished is None,
+        )
+        return self.summary
+
+    def close_unclosed(self, path: Path) -> None:
+        """The finaliser of a Recorder that was never closed: at interpreter exit, or when
+        it is collected. Closes within the bound; never raises."""
+        log.warning("a Recorder of %s was not closed: closing it", path)
+        try:
+            self.close(self.close_timeout_s)
+        except Exception:
+            log.exception("closing an unclosed Recorder of %s failed", path)
 
 
 class Recorder:
@@ -143,12 +381,24 @@ class Recorder:
     ``batch_s`` is how often what the sensor queued is collected (at most: the feed collects as
     often as its most demanding sink asks); ``point_depth`` and ``scan_depth`` how much may wait
     for the recorder in the feed before it is dropped and counted (:mod:`biris_hw.io.feed`).
+    ``overwrite=False`` refuses a file that exists (``biris record`` without ``--force``).
+    ``close_timeout_s`` bounds :meth:`close` (:data:`CLOSE_TIMEOUT_S`); ``lost_limit_s`` is how
+    long a lost network to a remote sensor is waited for (None:
+    :data:`biris_hw.io.feed.LOST_LIMIT_S`, 30 s) before recording stops with a
+    :class:`~biris_hw.errors.ConnectionLost` naming the span.
     The recorder does not command the sensor: it records whatever is done meanwhile.
+
+    A Recorder that is never closed is closed when it is collected, or at the latest when the
+    interpreter exits (within the same bound): a script that forgets ``close()`` ends with a
+    complete file, and its process is not kept alive.
 
     Raises:
         RecordError: the file cannot be written (before anything is read from the sensor); on
-            leaving the block, writing failed during the run (the file stays valid).
+            leaving the block, writing failed during the run (the file stays valid) or could
+            not be finished within the close bound.
         ConnectionClosed: the source has stopped.
+        ConnectionLost: on leaving the block, the network to a remote sensor was lost for
+            longer than ``lost_limit_s``; the message names the span.
     """
 
     def __init__(
@@ -164,13 +414,21 @@ class Recorder:
         point_depth: int = feed.POINT_DEPTH,
         scan_depth: int = feed.SCAN_DEPTH,
         chunk_size: int = CHUNK_SIZE,
+        overwrite: bool = True,
+        close_timeout_s: float = CLOSE_TIMEOUT_S,
+        lost_limit_s: float | None = None,
     ) -> None:
         codec.cloud_frame_id(frame)  # ValueError for a frame that is neither
+        if not (close_timeout_s > 0 and math.isfinite(close_timeout_s)):
+            raise ValueError(f"close_timeout_s must be a positive number, not {close_timeout_s!r}")
         self.source = source
         self.frame: Frame = frame
         self.profiles = profiles
-        self._file = McapFile(path, chunk_size=chunk_size)
-        self.path = self._file.path
+        self.close_timeout_s = close_timeout_s
+        file = McapFile(path, chunk_size=chunk_size, overwrite=overwrite)
+        self.path = file.path
+        self._writing = _Writing(file, close_timeout_s)
+        self._finalizer = weakref.finalize(self, self._writing.close_unclosed, file.path)
         self._extra = dict(metadata or {})
         topics = {
             codec.TF_TOPIC,
@@ -189,24 +447,13 @@ class Recorder:
             "batch_s": batch_s,
             "point_depth": point_depth,
             "scan_depth": scan_depth,
+            "lost_limit_s": lost_limit_s,
         }
-        self._sink: feed.Sink | None = None
-        self._failed = threading.Event()
-        self._now = 0.0
-        self._static_written = False
-        self._last_flush = time.monotonic()
-        self._started = 0.0
-        self._stopped: float | None = None
-        self.points = 0
-        self.scans = 0
-        self.statuses = 0
-        self.partial_scans: list[str] = []
-        """Each partial scan recorded so far, named with its reason (see RecordSummary)."""
-        self._summary: RecordSummary | None = None
 
     # -- the run ---------------------------------------------------------------------------------
     def start(self) -> Recorder:
         """Write the start metadata and begin reading (``with`` does this)."""
+        writing = self._writing
         record = self.source.record
         header: dict[str, object] = {
             "software": f"biris-hw {__version__}",
@@ -219,68 +466,86 @@ class Recorder:
             header["init_record"] = record.to_dict()
         header.update(self._extra)
         _warm()
-        if not self._file.metadata("biris", _metadata_strings(header)):
-            raise self._file.error or RecordError(f"cannot write {self.path}")
-        self._started = time.monotonic()
+        if not writing.file.metadata("biris", _metadata_strings(header)):
+            raise writing.file.error or RecordError(f"cannot write {self.path}")
+        writing.started = time.monotonic()
         try:
-            self._sink = feed.attach(self.source, self._batch, **self._options)
+            writing.sink = feed.attach(self.source, writing.batch, **self._options)
         except BaseException:
-            self._file.close()
+            writing.file.close()
+            self._finalizer.detach()
             raise
         return self
 
     @property
     def failed(self) -> threading.Event:
-        """Set when recording stopped on its own (a write failure, a damaged source):
-        :attr:`error` says why."""
-        return self._sink.failed if self._sink is not None else self._failed
+        """Set when recording stopped on its own (a write failure, a damaged source, a network
+        lost for too long): :attr:`error` says why."""
+        sink = self._writing.sink
+        return sink.failed if sink is not None else self._writing.failed
 
     @property
     def error(self) -> BaseException | None:
-        """Why recording stopped early, or None."""
-        return self._file.error or (self._sink.error if self._sink is not None else None)
+        """Why recording stopped early, or the file could not be finished; None."""
+        return self._writing.error
+
+    @property
+    def points(self) -> int:
+        """Acquisitions written so far."""
+        return self._writing.points
+
+    @property
+    def scans(self) -> int:
+        return self._writing.scans
+
+    @property
+    def statuses(self) -> int:
+        return self._writing.statuses
+
+    @property
+    def partial_scans(self) -> list[str]:
+        """Each partial scan recorded so far, named with its reason (see RecordSummary)."""
+        return self._writing.partial_scans
 
     @property
     def dropped_points(self) -> int:
         """Acquisitions the recording misses so far (the sensor's drops and the feed's)."""
-        return self._sink.dropped_points if self._sink is not None else 0
+        return self._writing.dropped_points
 
     @property
     def dropped_scans(self) -> int:
-        return self._sink.dropped_scans if self._sink is not None else 0
+        return self._writing.dropped_scans
 
-    def close(self) -> RecordSummary:
-        """Stop reading (what is queued is written first), write the end metadata and the
-        summary, close the file; returns the summary. Idempotent."""
-        if self._summary is not None:
-            return self._summary
-        if self._sink is not None:
-            self._sink.detach()
-        self._stopped = time.monotonic()
-        self._file.metadata("biris.recording", _metadata_strings(self._counts()))
-        self._file.close()
-        error = self.error
-        self._summary = RecordSummary(
-            path=self.path,
-            complete=self._file.complete,
-            messages=self._file.messages - self._file.lost,
-            points=self.points,
-            scans=self.scans,
-            statuses=self.statuses,
-            dropped_points=self.dropped_points,
-            dropped_scans=self.dropped_scans,
-            lost_messages=self._file.lost,
-            bytes=self.path.stat().st_size if self.path.exists() else 0,
-            seconds=self._stopped - self._started if self._started else 0.0,
-            error=None if error is None else str(error),
-            partial_scans=tuple(self.partial_scans),
-        )
-        return self._summary
+    @property
+    def lost_spans(self) -> tuple[feed.LostSpan, ...]:
+        """The spans without the network to a remote sensor so far (see RecordSummary)."""
+        return self._writing.lost_spans
+
+    def close(self, timeout: float | None = None) -> RecordSummary:
+        """Stop reading, write what waits, the end record and the summary, close the file;
+        returns the summary.
+
+        Returns within ``timeout`` real seconds (``close_timeout_s``, :data:`CLOSE_TIMEOUT_S`
+        by default) whatever the backlog -- a slow disk, a head still scanning, a recorder
+        slower than the sensor: a shutdown that waits for a backlog of unknown size is a
+        process that does not stop when asked to. What waits for the recorder is written for
+        the first half of it; what is left then is dropped and counted (``unwritten_points``,
+        in the drops, in the summary and in the file's ``biris.recording`` record); the second
+        half is for the file's last chunk and its summary. If a write blocks past the bound (a
+        hung disk), close() returns all the same with ``complete`` and ``finished`` False and
+        :attr:`error` saying so, and the file is finished in the background when the write
+        returns. Calling it again waits again; once the file is finished it returns the same
+        summary at once.
+        """
+        summary = self._writing.close(self.close_timeout_s if timeout is None else timeout)
+        if self._writing.unfinished is None:
+            self._finalizer.detach()
+        return summary
 
     @property
     def summary(self) -> RecordSummary | None:
         """The summary, once closed."""
-        return self._summary
+        return self._writing.summary
 
     def __enter__(self) -> Recorder:
         return self.start()
@@ -295,56 +560,6 @@ class Recorder:
         error = self.error
         if exc is None and error is not None:
             raise error
-
-    # -- what the feed hands over (the recorder's own thread, in batches) ----------------------
-    def _counts(self) -> dict[str, object]:
-        return {
-            "points": self.points,
-            "scans": self.scans,
-            "statuses": self.statuses,
-            "dropped_points": self.dropped_points,
-            "dropped_scans": self.dropped_scans,
-            "lost_messages": self._file.lost,
-        }
-
-    def _static(self, mount: Mount | None, t: float) -> None:
-        if not self._static_written:
-            self._static_written = True
-            _write(self._file, codec.static_transforms(mount, t))
-
-    def _batch(self, batch: feed.Batch) -> None:
-        """Write one batch: the data's messages as the feed encoded them, then the status."""
-        if batch.points:
-            self._now = max(self._now, batch.points[-1].t)
-            self._static(batch.points[0].mount, batch.points[0].t)
-        for scan in batch.scans:
-            self._now = max(self._now, codec.scan_time(scan))
-            self._static(scan.mount, codec.scan_time(scan))
-        status_messages = []
-        for message in batch.messages:
-            if message.topic == codec.RAW_STATUS_TOPIC:
-                status_messages.append(message)  # after its diagnostics, as it was read
-            else:
-                _write(self._file, message)
-        self.points += len(batch.points)
-        for scan in batch.scans:
-            self.scans += 1
-            if scan.partial:
-                self.partial_scans.append(_partial_name(scan))
-        reading = batch.status
-        if reading is not None:
-            extra = {"recorder": self._counts()}
-            status = reading.status
-            _write(
-                self._file, codec.diagnostics(status, reading.t, extra=extra, error=reading.error)
-            )
-            for message in status_messages:
-                _write(self._file, message)
-            self.statuses += 1
-        if time.monotonic() - self._last_flush > FLUSH_S:
-            self._last_flush = time.monotonic()
-            if not self._file.flush():
-                raise self._file.error or RecordError(f"cannot write {self.path}")
 
 
 def _partial_name(scan: Scan) -> str:

@@ -25,27 +25,35 @@ and configuration requests raise :class:`ReplayRefused` (a :class:`~biris_hw.err
 and change nothing. When the recording is over, READY_FOR_DATA with nothing left raises
 :class:`EndOfRecording` (a :class:`~biris_hw.errors.ConnectionClosed`, so a loop that stops on a
 closed server stops here too) and ``wait_idle`` returns. A file damaged part way (a corrupt
-chunk, a cut) is played up to the damage; then READY_FOR_DATA, once what was read has been
+chunk) is played up to the damage; then READY_FOR_DATA, once what was read has been
 delivered, and ``wait_idle`` raise :class:`ReplayError` from what the reader met, never
 EndOfRecording: a damaged recording does not pass for a complete one.
+
+A file without a footer -- its writer was killed, or the machine went down, before it closed
+the file -- is played up to its last complete chunk (:mod:`biris_hw.io.record.cutfile`), and
+then ends as a complete one does (EndOfRecording); the replay says so:
+:attr:`ReplayServer.recovered` holds the sentence, logged as a warning when the replay is made.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import os
+import struct
 import threading
 import time
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Literal, overload
+from typing import TYPE_CHECKING, Any, BinaryIO, Literal, overload
 
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap.records import Channel, Metadata
 
 from biris_hw.client import POLL
 from biris_hw.client import checked_timeout as _seconds
@@ -53,6 +61,7 @@ from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
 from biris_hw.errors import BirisError, ConnectionClosed, RequestError
 from biris_hw.io import codec
 from biris_hw.io.codec import RAW_POINT_TOPIC, RAW_SCAN_TOPIC, RAW_STATUS_TOPIC
+from biris_hw.io.record import cutfile
 from biris_hw.protocol import check_policy
 from biris_hw.records import BirisInitRecord
 from biris_hw.sensor import ConnectionBase, D
@@ -68,6 +77,10 @@ from biris_hw.status import (
 )
 
 __all__ = ["EndOfRecording", "ReplayConnection", "ReplayError", "ReplayRefused", "ReplayServer"]
+
+log = logging.getLogger(__name__)
+
+_RAW = (RAW_SCAN_TOPIC, RAW_POINT_TOPIC, RAW_STATUS_TOPIC)
 
 
 class ReplayError(BirisError, OSError):
@@ -261,7 +274,15 @@ class ReplayServer:
         self.speed = speed
         self._autostart = autostart
         self.metadata: dict[str, str] = {}
-        self._topics = self._inspect()
+        self._topics, self._cut = self._inspect()
+        """The raw topics to play; where a file without a footer is read to (None: a closed
+        file, read whole)."""
+        self.recovered: str | None = None
+        """Why only part of the file is played, or None: a file without a footer (its writer
+        was killed) is played up to its last complete chunk, and this sentence says so."""
+        if self._cut is not None:
+            self.recovered = self._cut.describe(self.path)
+            log.warning("%s", self.recovered)
         self.record: BirisInitRecord | None = None
         if "init_record" in self.metadata:
             try:
@@ -299,32 +320,68 @@ class ReplayServer:
         with self._cond:
             return self._clock_s
 
-    def _inspect(self) -> list[str]:
-        """Read the summary and metadata; the raw topics present."""
+    def _inspect(self) -> tuple[list[str], cutfile.Cut | None]:
+        """Read the summary and metadata; the raw topics present. A file without a footer is
+        read from its start, up to its last complete record (:mod:`~biris_hw.io.record.cutfile`):
+        where is returned too."""
+        cut = None
         try:
             with open(self.path, "rb") as f:
-                reader = make_reader(f)
-                for record in reader.iter_metadata():
-                    if record.name == "biris":
-                        self.metadata = dict(record.metadata)
-                summary = reader.get_summary()
-                raw = {RAW_SCAN_TOPIC, RAW_POINT_TOPIC, RAW_STATUS_TOPIC}
-                if summary is not None and summary.channels:
-                    topics = {c.topic for c in summary.channels.values()} & raw
-                else:  # a file cut short (a full disk) has no summary: look at the messages
-                    f.seek(0)
-                    found = make_reader(f).iter_messages(topics=sorted(raw))
-                    topics = {channel.topic for _s, channel, _m in found}
+                if cutfile.ends_with_footer(f):
+                    topics = self._inspect_closed(f)
+                else:
+                    cut = cutfile.cut_of(f)
+                    if cut is None:
+                        raise ReplayError(
+                            f"{self.path} is not a readable MCAP file: it does not begin "
+                            "with the MCAP magic"
+                        )
+                    topics = self._inspect_cut(f, cut)
+        except ReplayError:
+            raise
         except OSError as exc:
             raise ReplayError(f"cannot read {self.path}: {exc.strerror or exc}") from exc
         except (McapError, ValueError, EOFError) as exc:
             raise ReplayError(f"{self.path} is not a readable MCAP file: {exc}") from exc
         if not topics:
+            if cut is not None:
+                raise ReplayError(
+                    f"{self.path} ends without a footer before any BIRIS data: nothing to play "
+                    f"(its writer was stopped {cut.size:,} bytes in)"
+                )
             raise ReplayError(
                 f"{self.path} has no lossless BIRIS channels ({RAW_SCAN_TOPIC}, "
                 f"{RAW_POINT_TOPIC}): not a biris recording"
             )
-        return sorted(topics)
+        return sorted(topics), cut
+
+    def _inspect_closed(self, f: BinaryIO) -> set[str]:
+        f.seek(0)
+        reader = make_reader(f)
+        for record in reader.iter_metadata():
+            if record.name == "biris":
+                self.metadata = dict(record.metadata)
+        summary = reader.get_summary()
+        if summary is not None and summary.channels:
+            return {c.topic for c in summary.channels.values()} & set(_RAW)
+        # a file cut short (a full disk) has no summary: look at the messages
+        f.seek(0)
+        found = make_reader(f).iter_messages(topics=list(_RAW))
+        return {channel.topic for _s, channel, _m in found}
+
+    def _inspect_cut(self, f: BinaryIO, cut: cutfile.Cut) -> set[str]:
+        """The metadata and the raw topics of a file without a footer, read up to its cut; a
+        damaged part stops the look (playing will stop there too, and say so)."""
+        topics: set[str] = set()
+        try:
+            for record in cutfile.records(f, cut):
+                if isinstance(record, Metadata) and record.name == "biris":
+                    self.metadata = dict(record.metadata)
+                elif isinstance(record, Channel) and record.topic in _RAW:
+                    topics.add(record.topic)
+        except (McapError, ValueError, EOFError, struct.error) as exc:
+            log.debug("%s: looked at up to a damaged part (%s)", self.path, exc)
+        return topics
 
     # -- playing -----------------------------------------------------------------------------
     def start(self) -> ReplayServer:
@@ -341,10 +398,12 @@ class ReplayServer:
 
     def _messages(self) -> Iterator[tuple[str, int, bytes]]:
         with open(self.path, "rb") as f:
-            reader = make_reader(f, validate_crcs=True)  # a damaged chunk is an error, not data
-            for _schema, channel, message in reader.iter_messages(
-                topics=self._topics, log_time_order=True
-            ):
+            if self._cut is not None:  # no footer: from the start, up to the cut
+                found = cutfile.time_ordered(cutfile.messages(f, self._cut, self._topics))
+            else:  # a damaged chunk is an error, not data
+                reader = make_reader(f, validate_crcs=True)
+                found = reader.iter_messages(topics=self._topics, log_time_order=True)
+            for _schema, channel, message in found:
                 yield channel.topic, message.log_time, message.data
 
     def _play(self) -> None:
