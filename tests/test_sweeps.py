@@ -8,8 +8,9 @@ import math
 import pytest
 
 from biris_hw import BirisServer, Direction, deg_to_counts
-from biris_hw.errors import RequestError
-from biris_hw.io.sweeps import sweeping
+from biris_hw.errors import ConnectionLost, Initialising, RequestError
+from biris_hw.io import sweeps as sweeps_module
+from biris_hw.io.sweeps import Sweeps, sweeping
 
 WAIT_S = 30.0
 
@@ -84,3 +85,43 @@ def test_a_bad_request_moves_nothing_and_leaves_nothing_open(server: BirisServer
         pytest.fail("the block must not run")  # pragma: no cover
     assert _open_idents(server) == before
     assert server.status()["azimuth"] == azimuth and server.status()["state"] == "idle"
+
+
+class _Scripted:
+    """A DATA connection that answers READY_FOR_DATA from a script: an exception is raised,
+    anything else handed out."""
+
+    def __init__(self, script: list[object]) -> None:
+        self.script = script
+        self.dropped = 0
+
+    def ready_for_data(self, timeout: float | None = None) -> object:
+        item = self.script.pop(0)
+        if isinstance(item, BaseException):
+            raise item
+        return item
+
+
+def _scripted(script: list[object]) -> Sweeps:
+    return Sweeps(None, None, _Scripted(script), (0, 0), 1.0, 0)  # type: ignore[arg-type]
+
+
+def test_next_rides_out_a_reset_and_a_short_loss_of_the_network() -> None:
+    scan = object()
+    sweeps = _scripted(
+        [Initialising("the server is initialising"), ConnectionLost("lost"), scan, TimeoutError()]
+    )
+    assert [sweeps.next(), sweeps.next(), sweeps.next(), sweeps.next()] == [None, None, scan, None]
+    assert sweeps.received == 1
+
+
+def test_next_raises_a_loss_longer_than_the_ride_out_naming_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(sweeps_module, "RIDE_OUT_S", 0.0)  # any loss is too long
+    sweeps = _scripted([ConnectionLost("lost"), ConnectionLost("still lost"), RequestError("no")])
+    assert sweeps.next() is None  # the first sign starts the span
+    with pytest.raises(ConnectionLost, match=r"still lost \(no sweep for .* s, more than the 0 s"):
+        sweeps.next()
+    with pytest.raises(RequestError):  # a refusal is never ridden out
+        sweeps.next()

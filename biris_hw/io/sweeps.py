@@ -27,11 +27,12 @@ and the server, closed next, stops the head in any case.
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Iterator
 from typing import TypeAlias
 
 from biris_hw.data import ConnectionKind, Scan
-from biris_hw.errors import BirisError
+from biris_hw.errors import RIDE_OUT_S, BirisError, ConnectionLost, Initialising
 from biris_hw.sensor import Connection, Sensor
 
 __all__ = ["DEFAULT_TIMEOUT_S", "SweepSource", "Sweeps", "sweeping"]
@@ -72,6 +73,8 @@ class Sweeps:
         self.received = 0
         self._scans_before = scans_before
         self._stopped = False
+        self._lost_since: float | None = None
+        """When the network to a remote sensor was lost (monotonic), while it is."""
 
     @property
     def dropped(self) -> int:
@@ -90,11 +93,30 @@ class Sweeps:
 
     def next(self, timeout: float | None = None) -> Scan | None:
         """The next completed sweep, or None if none completes within ``timeout`` seconds
-        (default :attr:`timeout`): for a loop that has other things to do meanwhile."""
+        (default :attr:`timeout`): for a loop that has other things to do meanwhile.
+
+        What passes is None too: a reset under way (:class:`~biris_hw.errors.Initialising`),
+        and a lost network to a remote sensor (:class:`~biris_hw.errors.ConnectionLost`; the
+        service sweeps on meanwhile, and the connection reopens itself) for up to
+        :data:`~biris_hw.errors.RIDE_OUT_S`, after which the ConnectionLost is raised, naming
+        how long it lasted. A loop around ``next`` thus rides out what a long-running consumer
+        should, and hears of what it should not."""
         try:
-            return self._take(self.timeout if timeout is None else timeout)
-        except TimeoutError:
+            scan = self._take(self.timeout if timeout is None else timeout)
+        except (TimeoutError, Initialising):
             return None
+        except ConnectionLost as exc:
+            now = time.monotonic()
+            if self._lost_since is None:
+                self._lost_since = now
+            if now - self._lost_since > RIDE_OUT_S:
+                raise ConnectionLost(
+                    f"{exc} (no sweep for {now - self._lost_since:.1f} s, more than the"
+                    f" {RIDE_OUT_S:g} s ridden out)"
+                ) from exc
+            return None
+        self._lost_since = None
+        return scan
 
     def stop(self) -> list[Scan]:
         """BIRIS_STOP_SCAN_RQST, then wait until the sweep under way has completed and the head
