@@ -280,15 +280,20 @@ def _soak(seconds: float, period: float, log: Callable[[str], None]) -> _Run:
             run.made = rig.supervisor.acquisitions_made
             run.accounted = status.accounts().accounted
             run.faults = status.counters.get("faults", 0)
-            run.published_points = service.published["point"]
-            run.published_scans = service.published["scan/cw"] + service.published["scan/ccw"]
-            run.unpublished = service.dropped_points + service.dropped_scans
+            completed = server.status().counters.get("scans", 0)
             deadline = time.monotonic() + SETTLE_S
-            while time.monotonic() < deadline and (
-                points.received + point_sub.dropped < run.published_points
-                or scans.received + scan_sub.dropped < run.published_scans
-            ):
-                stop.wait(0.1)  # Zenoh delivers on its own threads: look until all came
+            while True:  # the feed publishes within a batch or two, Zenoh on its own threads
+                run.published_points = service.published["point"]
+                run.published_scans = service.published["scan/cw"] + service.published["scan/ccw"]
+                settled = (
+                    run.published_scans + service.dropped_scans >= completed
+                    and points.received + point_sub.dropped >= run.published_points
+                    and scans.received + scan_sub.dropped >= run.published_scans
+                )
+                if settled or time.monotonic() > deadline:
+                    break
+                stop.wait(0.1)  # a look: what is compared is read again after it
+            run.unpublished = service.dropped_points + service.dropped_scans
             stop.set()
             reader.join(timeout=10)
             run.point_sub = (points.received, point_sub.dropped)
