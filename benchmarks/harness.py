@@ -58,6 +58,7 @@ SECTIONS: tuple[str, ...] = (
     "idle",
     "cli_startup_ms",
     "moving",
+    "grid",
 )
 """The report's sections, in report order; each is present in report.json whether it ran or not."""
 

@@ -135,6 +135,14 @@ COMMANDS: tuple[Command, ...] = (
         "or --check them against the scan invariants (a .npz scan file too).",
     ),
     Command(
+        "grid",
+        "biris_hw.commands.grid",
+        "the certainty grid from a recording or a simulated drive",
+        "Build the 2-D certainty grid (occupancy in the odom frame) from a recording's scans and "
+        "poses, or from the simulator (--sim, with --drive: its default drive through the room, "
+        "scored against the scene's truth); print what went in and came out, --plot draws it.",
+    ),
+    Command(
         "view",
         "biris_hw.commands.view",
         "live view in Foxglove or Lichtblick (WebSocket)",
