@@ -12,6 +12,15 @@ it writes three pictures and the data behind them to ``--out``:
   and in 3-D;
 * ``latest-scans.npz`` / ``.csv``: those two sweeps (see ``biris scan --save``).
 
+With ``--drive`` the vehicle drives the simulator's default path through the room
+(:func:`sim.drives.default_drive`) while the head sweeps, and every sweep is placed in ``odom``
+with the vehicle's pose at each acquisition's own time (:func:`biris_hw.io.deskew.deskewed`, the
+poses from the simulated base's odometry) and fed to the certainty grid
+(:class:`biris_hw.io.grid.CertaintyGrid`). The pictures are then ``demo-grid.png`` (the grid over
+the true walls and the vehicle's path), and ``demo-top.png`` / ``demo-3d.png`` of every sweep's
+deskewed profiles; the polar picture is left out, since the report's 2-D data are drawn from a
+head standing at the origin.
+
 The run ends with a summary line; the exit status is 1 if the server reported a hardware fault or
 the simulator's audit caught the driver breaking a hardware rule, since a demo that shows either
 has found a bug.
@@ -24,9 +33,10 @@ a full run, the command says so, and the exit status is 130.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -51,6 +61,10 @@ from biris_hw.commands.session import LagWatch, make_scene, quiet_collector
 from biris_hw.data import Direction, Scan
 
 if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
+    from biris_hw.io.pose import PoseBuffer
     from biris_hw.sensor import Sensor
     from sim import SimulatedBiris
 
@@ -86,6 +100,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"pictures go here ({DEFAULT_OUT})",
     )
     add_continuous_argument(parser)
+    parser.add_argument(
+        "--drive",
+        action="store_true",
+        help="the vehicle drives its default path through the room meanwhile: the sweeps are "
+        "deskewed with its odometry and build the certainty grid (demo-grid.png)",
+    )
     sim = parser.add_argument_group("simulator")
     add_simulator_arguments(sim, default_time_scale=DEFAULT_TIME_SCALE)
     add_quiet_argument(parser)
@@ -103,6 +123,7 @@ class DemoConfig:
     time_scale: float = DEFAULT_TIME_SCALE
     seed: int = 0
     continuous: bool = False
+    drive: bool = False
 
 
 @dataclass
@@ -145,6 +166,7 @@ class DemoResult:
     latest: dict[Direction, Scan]
     pictures: list[Path]
     data_files: tuple[Path, Path] | None
+    drive: _Drive | None = None
 
     @property
     def ok(self) -> bool:
@@ -165,6 +187,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         time_scale=args.time_scale,
         seed=args.seed,
         continuous=args.continuous,
+        drive=args.drive,
     )
     stream = out or sys.stdout
     result = run_demo(config, stream)
@@ -197,36 +220,134 @@ def run_demo(config: DemoConfig, out: TextIO) -> DemoResult:
     from sim import SimulatedBiris
 
     scene = make_scene(config.scene)
+    trajectory = _trajectory(scene) if config.drive else None
     status = DemoStatus(config)
     latest: dict[Direction, Scan] = {}
     view = _make_view(out, status)
+    drive: _Drive | None = None
     with (
         view,
         SimulatedBiris(
-            scene=scene, samples=config.samples, time_scale=config.time_scale, seed=config.seed
+            scene=scene,
+            samples=config.samples,
+            time_scale=config.time_scale,
+            seed=config.seed,
+            trajectory=trajectory,
         ) as rig,
     ):
         watch = LagWatch(rig, "biris demo").start()
         try:
             # homes and boots first
-            with open_sensor(sim=rig, continuous=config.continuous) as server:
+            with (
+                open_sensor(sim=rig, continuous=config.continuous) as server,
+                _poses(rig, config.drive) as poses,
+            ):
                 quiet_collector()
+                drive = None if poses is None else _Drive(poses)
                 started = time.monotonic()
-                _sweep(server, rig, status, latest, view, started)
+                _sweep(server, rig, status, latest, view, started, drive)
         finally:
             watch.stop()
         _refresh(status, None, rig, started)
         view.update(final=True)
     pictures: list[Path] = []
     data_files = None
-    if latest:
+    if drive is not None and trajectory is not None:
+        pictures = drive.draw(config, scene.outline_2d(), trajectory)
+    elif latest:
         pictures = _draw(config, latest, scene.outline_2d())
+    if latest:
         ordered = [latest[d] for d in Direction if d in latest]
         data_files = (
             scanfile.save_scans(config.out / "latest-scans.npz", ordered),
             scanfile.export_csv(config.out / "latest-scans.csv", ordered),
         )
-    return DemoResult(status, latest, pictures, data_files)
+    return DemoResult(status, latest, pictures, data_files, drive)
+
+
+def _trajectory(scene: Any) -> Any:
+    """The simulator's default drive through ``scene``, or a SetupError saying why not."""
+    from sim.drives import default_drive
+
+    try:
+        return default_drive(scene)
+    except ValueError as exc:
+        raise SetupError(f"--drive: {exc}") from exc
+
+
+@contextlib.contextmanager
+def _poses(rig: SimulatedBiris, drive: bool) -> Iterator[PoseBuffer | None]:
+    """The simulated base's odometry in a pose buffer while the block runs (``--drive``)."""
+    if not drive:
+        yield None
+        return
+    from biris_hw.opening import open_poses
+
+    with open_poses(sim=rig) as poses:
+        yield poses
+
+
+class _Drive:
+    """``--drive``: each completed sweep deskewed with the vehicle's poses and fed to the grid."""
+
+    POSE_WAIT_HW_S = 1.0
+    """Longest wait (hardware seconds) for the odometry to reach a sweep's last acquisition."""
+
+    def __init__(self, poses: PoseBuffer) -> None:
+        from biris_hw.io.grid import CertaintyGrid
+
+        self.poses = poses
+        self.grid = CertaintyGrid()
+        self.points: list[NDArray[np.float64]] = []
+        self.sweeps = 0
+        self.unplaced = 0
+        """Acquisitions left out for want of a pose (said in the summary, never placed)."""
+
+    def take(self, scan: Scan) -> None:
+        from biris_hw.io.deskew import deskewed
+
+        if scan.n_acq == 0:
+            return
+        self.poses.wait_for(float(scan.t[-1]), timeout_hw=self.POSE_WAIT_HW_S)
+        placed = deskewed(scan, self.poses)
+        self.points.append(placed.points())
+        self.unplaced += len(placed.unplaced)
+        self.grid.add_scan(scan, self.poses)
+        self.sweeps += 1
+
+    def draw(self, config: DemoConfig, outline: list[Any], trajectory: Any) -> list[Path]:
+        import numpy as np
+
+        from biris_hw.io.grid import save_grid
+        from biris_hw.io.plots import save_3d_view, save_top_view
+
+        t = np.linspace(0.0, trajectory.end_s, 2000)
+        x, y, _ = trajectory.poses(t)
+        pictures = [
+            save_grid(
+                config.out / "demo-grid.png",
+                self.grid,
+                outline,
+                path_xy=np.column_stack((x, y)),
+                title=f"Certainty grid after {self.sweeps} sweeps on the drive ({config.scene})",
+            )
+        ]
+        if self.points:
+            points = np.vstack(self.points)
+            pictures += [
+                save_top_view(
+                    config.out / "demo-top.png",
+                    points,
+                    outline,
+                    title=f"Every sweep deskewed into odom: {points.shape[0]} points",
+                ),
+                save_3d_view(
+                    config.out / "demo-3d.png",
+                    points,
+                    title=f"Every sweep deskewed into odom, in 3-D: {points.shape[0]} points",
+                ),
+            ]
+        return pictures
 
 
 def _make_folder(folder: Path) -> None:
@@ -243,6 +364,7 @@ def _sweep(
     latest: dict[Direction, Scan],
     view: _View,
     started: float,
+    drive: _Drive | None = None,
 ) -> None:
     """Sweep until the deadline, or until Ctrl-C (``status.interrupted``): caught outside
     :func:`sweeping`, so the sweep under way is abandoned, not waited for, and what completed
@@ -261,6 +383,8 @@ def _sweep(
                 status.latest = scan
                 status.sweeps[scan.direction] += 1
                 status.dropped_buffers = sweeps.dropped
+                if drive is not None:
+                    drive.take(scan)
                 if scan.partial:
                     why = f": {scan.partial_reason}" if scan.partial_reason else ""
                     status.partial.append(f"{scan.direction.name} #{scan.seq}{why}")
@@ -344,6 +468,15 @@ def _print_summary(result: DemoResult, out: TextIO) -> None:
     print(f"biris demo: {summary_line(s)}", file=out)
     for sweep in s.partial:
         print(f"  partial: {sweep}", file=out)
+    if result.drive is not None:
+        d = result.drive
+        occupied = int(d.grid.occupied().sum())
+        unplaced = f"; {d.unplaced} acquisitions left out without a pose" if d.unplaced else ""
+        print(
+            f"  drive:   {d.sweeps} sweeps deskewed into odom and in the grid"
+            f" ({occupied} occupied cells of {d.grid.resolution_m * 100:g} cm){unplaced}",
+            file=out,
+        )
     for picture in result.pictures:
         print(f"  picture: {picture}", file=out)
     if result.data_files is not None:
