@@ -11,6 +11,9 @@ in one run beside the local path.
   remote decoding are all in the figure, the sensor's own rate is not), rates stepped up until a
   subscriber in another process misses one. Target: at least 10 x the sensor's rate.
 * **fanout**: the latency measurement with 10 subscriber processes at once.
+* **flood_fairness**: a client's ``status()`` round trip while another peer floods the service,
+  against the same client's while nobody floods, in one run: what one flooding peer costs the
+  others (issue 25: the other clients' p50 within 2 x of quiet).
 
 Run: ``.venv/bin/python -m benchmarks --only net``.
 """
@@ -242,6 +245,7 @@ def net(ctx: BenchContext) -> list[Figure]:
             Target("<=", 1.0, on="p99_over_period"),
         )
     )
+    figures.append(_flood_fairness(ctx))
     return figures
 
 
@@ -370,6 +374,214 @@ def _throughput(ctx: BenchContext) -> Figure:
     )
 
 
+FLOOD_NAME = "flood"
+FLOOD_SWEEP_DEG = 45.0
+PROBE_PERIOD_S = 0.02
+"""How often the measuring client asks for the status (50 round trips a second)."""
+FLOOD_WINDOW = 1000
+"""Requests the flooder keeps outstanding: as fast as its Zenoh session sends them."""
+
+
+class _Helper:
+    """A helper process of this module (``python -m benchmarks.net ROLE ...``): its first line
+    says it is ready, its last one (after its stdin closes, or when it is done) is JSON."""
+
+    def __init__(self, *args: str) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "benchmarks.net", *args],
+            cwd=ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+
+    def line(self) -> str:
+        assert self.proc.stdout is not None
+        return self.proc.stdout.readline().strip()
+
+    def finish(self, timeout: float = 120.0) -> dict[str, Any]:
+        out, _ = self.proc.communicate(timeout=timeout)
+        result: dict[str, Any] = json.loads(out.strip().splitlines()[-1])
+        return result
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def _flood_fairness(ctx: BenchContext) -> Figure:
+    """A prober process asks for the status every :data:`PROBE_PERIOD_S`; for ``seconds``
+    nobody else asks anything (quiet), then a flooder process floods ``status`` under one
+    client id for ``seconds`` (flood). Both windows are cut from the prober's one series by the
+    flooder's own start and end stamps (``perf_counter_ns``: one clock for the host)."""
+    from biris_hw.io.net import serve
+
+    seconds = float(ctx.pick(full=10, quick=3))
+    where = f"tcp/127.0.0.1:{_port()}"
+    prober = flooder = None
+    with (
+        running_server(samples=64, time_scale=TIME_SCALE) as bench,
+        serve(bench.server, name=FLOOD_NAME, listen=[where], multicast=False) as service,
+    ):
+        conn = bench.server.open()
+        conn.continuous_scan(-FLOOD_SWEEP_DEG, FLOOD_SWEEP_DEG)
+        try:
+            prober = _Helper("probe", where, FLOOD_NAME)
+            if prober.line() != "ready":
+                raise RuntimeError("the prober did not start")
+            threading.Event().wait(seconds)  # the quiet window
+            busy_before = service.refused_busy
+            flooder = _Helper("flood", where, FLOOD_NAME, str(seconds))
+            started = flooder.line()
+            if not started.startswith("flooding"):
+                raise RuntimeError(f"the flooder did not start: {started!r}")
+            flood = flooder.finish(timeout=seconds + 120.0)
+            refused = service.refused_busy - busy_before
+            threading.Event().wait(1.0)  # the prober's last round trips after the flood
+            probe = prober.finish()  # closes its stdin: it stops and reports
+        finally:
+            for helper in (prober, flooder):
+                if helper is not None:
+                    helper.kill()
+            conn.stop_scan()
+            conn.close()
+    t0, t1 = int(flood["started_ns"]), int(flood["ended_ns"])
+    quiet = [ms for t, ms in probe["rtt"] if t < t0]
+    flooded = [ms for t, ms in probe["rtt"] if t0 <= t < t1]
+    q, f = summarise(quiet), summarise(flooded)
+    values: dict[str, float] = {
+        **f,
+        "quiet_p50": q["p50"],
+        "quiet_p99": q["p99"],
+        "ratio_p50": f["p50"] / q["p50"] if q["p50"] else float("nan"),
+        "ratio_p99": f["p99"] / q["p99"] if q["p99"] else float("nan"),
+        "quiet_n": float(len(quiet)),
+        "flood_n": float(len(flooded)),
+        "probe_errors": float(probe["errors"]),
+        "flood_sent_per_s": flood["sent"] / max(1e-9, (t1 - t0) / 1e9),
+        "flood_ok": float(flood["replies"].get("ok", 0)),
+        "flood_busy": float(flood["replies"].get("Busy", 0)),
+        "flood_unanswered": float(flood["unanswered"]),
+        "service_refused_busy": float(refused),
+    }
+    ctx.log(
+        f"bench: net flood fairness: status p50 {q['p50']:.2f} ms quiet, {f['p50']:.2f} ms "
+        f"flooded ({values['flood_sent_per_s']:.0f} requests/s, {refused} Busy)"
+    )
+    return Figure(
+        "net.flood_fairness",
+        values,
+        "ms",
+        f"The service on the simulator (time_scale {TIME_SCALE:g}, 64 samples, continuous "
+        f"+-{FLOOD_SWEEP_DEG:g} deg sweeps) in this process; a client in another process asks "
+        f"for the status every {PROBE_PERIOD_S * 1000:g} ms (RemoteSensor.status(), round trip "
+        f"in ms) for {seconds:g} s alone (quiet_*), then for {seconds:g} s while a third "
+        f"process floods status queries under one client id, {FLOOD_WINDOW} outstanding at once "
+        "(raw Zenoh, as fast as its session sends: flood_sent_per_s); p50/p99 are the "
+        "client's round trips during the flood, ratio_* flooded / quiet. All on loopback TCP "
+        "and one host, so the flooder's own CPU is part of the cost.",
+        Target("<=", 2.0, on="ratio_p50"),
+    )
+
+
+def _probe(where: str, name: str) -> None:
+    """The measuring client: a status round trip every :data:`PROBE_PERIOD_S` until stdin
+    closes; prints ``ready``, then one JSON line of (start ns, round trip ms) and errors."""
+    from biris_hw.io.net import connect
+
+    rtt: list[tuple[int, float]] = []
+    errors = 0
+    stop = threading.Event()
+
+    def watch_stdin() -> None:
+        sys.stdin.read()
+        stop.set()
+
+    with connect(name, [where], multicast=False) as remote:
+        remote.status()
+        print("ready", flush=True)
+        threading.Thread(target=watch_stdin, daemon=True).start()
+        while not stop.is_set():
+            start = time.perf_counter_ns()
+            try:
+                remote.status()
+            except Exception:  # a refusal or a timeout is what the figure counts
+                errors += 1
+            else:
+                rtt.append((start, (time.perf_counter_ns() - start) / 1e6))
+            stop.wait(PROBE_PERIOD_S)
+    print(json.dumps({"rtt": rtt, "errors": errors}), flush=True)
+
+
+def _flood(where: str, name: str, seconds: float) -> None:
+    """The flooding peer: raw Zenoh status queries under one client id, :data:`FLOOD_WINDOW`
+    outstanding, for ``seconds``; prints ``flooding`` once its session sees the service, then
+    one JSON line: sent, replies by kind, unanswered, and its start and end stamps."""
+    import uuid
+
+    import zenoh
+
+    from biris_hw.io.net.keys import Keys
+    from biris_hw.io.net.zconfig import make_config
+
+    keys = Keys(name)
+    session = zenoh.open(make_config(connect=[where]))
+    try:
+        deadline = time.monotonic() + 30.0
+        while not list(session.liveliness().get(keys.service_token, timeout=1.0)):
+            if time.monotonic() > deadline:
+                raise SystemExit("no service")
+        payload = json.dumps({"client": uuid.uuid4().hex}).encode()
+        replies: dict[str, int] = {}
+        unanswered = 0
+        pending: list[Any] = []
+
+        def drain(handlers: list[Any]) -> None:
+            nonlocal unanswered
+            for handler in handlers:
+                got = list(handler)
+                if not got:
+                    unanswered += 1
+                for reply in got:
+                    if reply.ok is not None:
+                        kind = "ok"
+                    else:
+                        try:
+                            kind = str(json.loads(reply.err.payload.to_bytes())["error"])
+                        except (ValueError, KeyError, TypeError):
+                            kind = "zenoh"  # Zenoh's own reply (its timeout), not the service's
+
+                    replies[kind] = replies.get(kind, 0) + 1
+
+        print("flooding", flush=True)
+        started = time.perf_counter_ns()
+        end = started + int(seconds * 1e9)
+        sent = 0
+        while time.perf_counter_ns() < end:
+            pending.append(session.get(keys.rpc("status"), payload=payload, timeout=10.0))
+            sent += 1
+            if len(pending) >= 2 * FLOOD_WINDOW:
+                drain(pending[:FLOOD_WINDOW])
+                del pending[:FLOOD_WINDOW]
+        ended = time.perf_counter_ns()
+        drain(pending)
+    finally:
+        session.close()  # type: ignore[no-untyped-call]
+    print(
+        json.dumps(
+            {
+                "sent": sent,
+                "replies": replies,
+                "unanswered": unanswered,
+                "started_ns": started,
+                "ended_ns": ended,
+            }
+        ),
+        flush=True,
+    )
+
+
 # -- the subscriber process ----------------------------------------------------------------------
 
 
@@ -393,6 +605,10 @@ def _sub(where: str, name: str, wait_status: bool) -> None:
 
 
 if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
     if sys.argv[1:2] == ["sub"]:
-        os.environ.setdefault("PYTHONUNBUFFERED", "1")
         _sub(sys.argv[2], sys.argv[3], sys.argv[4:5] == ["status"])
+    elif sys.argv[1:2] == ["probe"]:
+        _probe(sys.argv[2], sys.argv[3])
+    elif sys.argv[1:2] == ["flood"]:
+        _flood(sys.argv[2], sys.argv[3], float(sys.argv[4]))

@@ -121,6 +121,14 @@ COMMANDS: tuple[Command, ...] = (
         "back from a fault), as one of its controllers; exit 0 once the sensor is back.",
     ),
     Command(
+        "list",
+        "biris_hw.commands.list_services",
+        "the services reachable, with name and state",
+        "List the BIRIS services reachable by multicast scouting or on --endpoint (or "
+        "$BIRIS_ENDPOINT, the profile's): name, state, whether a controller is connected, "
+        "clients, and whether each serves a sensor or a recording.",
+    ),
+    Command(
         "record",
         "biris_hw.commands.record",
         "record the sensor to MCAP (ROS 2 message types)",
@@ -146,8 +154,8 @@ COMMANDS: tuple[Command, ...] = (
         "view",
         "biris_hw.commands.view",
         "live view in Foxglove or Lichtblick (WebSocket)",
-        "Serve the sensor (or --replay FILE) as a Foxglove WebSocket on --port; open it in "
-        "Foxglove or Lichtblick with docs/foxglove-layout.json.",
+        "Serve the sensor (or --replay FILE) as a Foxglove WebSocket on --port; open the URL it "
+        "prints (Lichtblick 1.22.1 or later, or Foxglove).",
     ),
     Command(
         "sim",

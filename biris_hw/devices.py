@@ -10,13 +10,24 @@ drivers over the same window would each have their own lock, and their reads cou
 The administrator never touches a register. Every access is width-explicit
 (``read8``/``write16``...), because the HCTL-1000 latches on reads and BIRIS acts on the COMMAND
 write.
+
+**Checked, not assumed.** No Model 7600 manual survives and the HCTL-1000 is read from the
+HCTL-1100's datasheet (docs/registers.md), so what a register write is supposed to have done
+is read back wherever a wrong guess would move the head: the counter after an R13H clear
+(:meth:`AxisDriver.hold_here`) and after a chip reset (:meth:`MotionBoard.reset_chip`), the
+index latch after it is cleared (:meth:`MotionBoard.clear_index`). A board that differs falls
+back to the datasheet's own software reset (R05H = 00H) where there is one, and is otherwise
+refused with a ``protocol`` HardwareFault naming the register; a command position is only ever
+committed from a counter just read, so the head never jumps. The Bit 3 coupler's connection is
+checked the way Bit 3's own drivers do before anything crosses it (:meth:`Coupler.check_link`).
 """
 
 from __future__ import annotations
 
+import enum
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from biris_hw.angles import clamp_counts
@@ -30,12 +41,12 @@ from biris_hw.axes.base import (
 from biris_hw.axes.base import wait_settled as settle_poll
 from biris_hw.axes.base import wait_still as still_poll
 from biris_hw.bus.base import BusWindow
-from biris_hw.errors import HardwareFault
+from biris_hw.errors import FaultKind, HardwareFault
 from biris_hw.pan_reference import PanReference
 from biris_hw.records import MotorParams
 from biris_hw.timebase import StopEvent, timebase_of
 from regs import biexec
-from regs.bit3 import Bit3Reg, LocalCommand, LocalIntControl
+from regs.bit3 import ERROR_MASK, Bit3Reg, LocalCommand, LocalIntControl, LocalStatus
 from regs.hctl1000 import (
     Flag,
     ProgramCounter,
@@ -49,6 +60,7 @@ from regs.hctl1000 import (
 from regs.tech80 import AXIS_BASE, Axis, AxisBit, BoardReg
 
 __all__ = [
+    "CLEARED_COUNTS",
     "LEVEL2_PREFETCH",
     "LEVEL2_VECTOR",
     "LEVEL3_PREFETCH",
@@ -58,7 +70,9 @@ __all__ = [
     "BirisLink",
     "Coupler",
     "Devices",
+    "IndexKind",
     "MotionBoard",
+    "coupler_status_text",
     "prefetch_reads",
 ]
 
@@ -109,15 +123,91 @@ def prefetch_reads(
 
 _AXIS_BIT = {Axis.AZIMUTH: int(AxisBit.AZIMUTH), Axis.ELEVATION: int(AxisBit.ELEVATION)}
 
+CLEARED_COUNTS = 2
+"""How far from 0 a counter just cleared may read, with the head standing still: an encoder
+resting on an edge may flicker by a count. A counter that was not cleared reads where the head
+stood, which is further than this unless the head stood there too (and then the difference is
+taken into account, not guessed: the callers read the counter back and use what it says)."""
+
+
+class IndexKind(str, enum.Enum):
+    """What the board's INDEX_STATUS shows for an axis's zero index (the target file's
+    ``[homing] index``).
+
+    ``LATCH`` (our reading of the Model 7600, the default): set when the head crosses the index,
+    cleared by writing 1, so a fast coarse move can be looked at afterwards. ``LEVEL``: the
+    index's live level, true only while the encoder is on it (a pulse of ``index_width`` counts
+    once per revolution), which homing must poll during a slow sweep
+    (:mod:`biris_hw.server.initialiser`)."""
+
+    LATCH = "latch"
+    LEVEL = "level"
+
 
 class MotionBoard:
-    """The Model 7600's own registers: end-of-scan interrupt, chip resets, index latches."""
+    """The Model 7600's own registers: end-of-scan interrupt, chip resets, index latches.
 
-    def __init__(self, window: BusWindow) -> None:
+    ``drivers`` are the board's two :class:`AxisDriver`\\ s (their latched position reads and
+    the datasheet's software reset): with them :meth:`reset_chip` reads each chip's counter back;
+    without (a board made over the window alone, as the level-3 routine's may be) it writes
+    CHIP_RESET and trusts it. ``index_kind`` and ``index_width`` say what INDEX_STATUS shows
+    (:class:`IndexKind`; set from the target file by :meth:`set_index`).
+    """
+
+    def __init__(self, window: BusWindow, drivers: Mapping[Axis, AxisDriver] | None = None) -> None:
         self.window = window
+        self._drivers = dict(drivers) if drivers is not None else {}
+        self.index_kind = IndexKind.LATCH
+        self.index_width = 1
+
+    def set_index(self, kind: IndexKind | str, width: int = 1) -> None:
+        """Say what INDEX_STATUS shows (:class:`IndexKind`) and, for a live level, how many
+        counts it stays asserted. Homing chooses its search from these.
+
+        Raises:
+            ValueError: an unknown kind, or a width outside 1..256 counts.
+        """
+        index_kind = IndexKind(kind)
+        if isinstance(width, bool) or not isinstance(width, int) or not 1 <= width <= 256:
+            raise ValueError(f"index width must be 1..256 counts, not {width!r}")
+        self.index_kind = index_kind
+        self.index_width = width
 
     def reset_chip(self, axis: Axis) -> None:
+        """CHIP_RESET for ``axis``, then the chip's counter read back (with its driver, see the
+        class notes): a board whose CHIP_RESET left the counter counting gets the datasheet's
+        software reset (R05H = 00H) instead, logged as a warning.
+
+        The head must stand still (the initialiser idles it and waits first): a counter read
+        while it turns proves nothing.
+
+        Raises:
+            HardwareFault: ``protocol``, naming CHIP_RESET and R05H, when neither cleared the
+                counter; the chip is left in init/idle and nothing was commanded.
+        """
         self.window.write8(BoardReg.CHIP_RESET, _AXIS_BIT[axis])
+        driver = self._drivers.get(axis)
+        if driver is None:
+            return
+        counter = driver.actual_position()
+        if abs(counter) <= CLEARED_COUNTS:
+            return
+        log.warning(
+            "%s: the counter reads %d after CHIP_RESET (board register 0x%02X): resetting the "
+            "chip with the datasheet's software reset (R05H = 00H) instead",
+            axis.name.lower(),
+            counter,
+            int(BoardReg.CHIP_RESET),
+        )
+        after = driver.software_reset()
+        if abs(after) > CLEARED_COUNTS:
+            raise HardwareFault(
+                "protocol",
+                f"{axis.name.lower()}: the actual position counter (R12H..R14H) reads {counter} "
+                f"after CHIP_RESET (Model 7600 register 0x{int(BoardReg.CHIP_RESET):02X}) and "
+                f"{after} after the datasheet's software reset (R05H = 00H): this board resets "
+                f"neither, so the driver cannot tell where the head is; nothing was moved",
+            )
 
     def enable_end_of_scan(self, axis: Axis, vector: int, enabled: bool = True) -> None:
         self.window.write8(BoardReg.IRQ_VECTOR, vector)
@@ -128,11 +218,47 @@ class MotionBoard:
     def disable_all(self) -> None:
         self.window.write8(BoardReg.IRQ_ENABLE, 0)
 
+    def index_and_position(self, axis: Axis) -> tuple[bool, int]:
+        """INDEX_STATUS for ``axis`` and its counter, read together (one bus transaction where
+        the window can): a poll of a live index level, whose count must be known exactly.
+
+        Raises:
+            ValueError: a board made without its drivers (see the class notes).
+        """
+        driver = self._drivers.get(axis)
+        if driver is None:
+            raise ValueError("this board was made without its axis drivers")
+        status, counter = driver.position_with(int(BoardReg.INDEX_STATUS))
+        return bool(status & _AXIS_BIT[axis]), counter
+
     def index_seen(self, axis: Axis) -> bool:
+        """INDEX_STATUS for ``axis``: the latch (or, :attr:`IndexKind.LEVEL`, the live level)."""
         return bool(self.window.read8(BoardReg.INDEX_STATUS) & _AXIS_BIT[axis])
 
-    def clear_index(self, axis: Axis) -> None:
-        self.window.write8(BoardReg.INDEX_STATUS, _AXIS_BIT[axis])
+    def clear_index(self, axis: Axis, *, check: bool = False) -> None:
+        """Clear ``axis``'s index latch (write 1); with ``check``, read it back.
+
+        Checked only where the head stands away from the index (the coarse search's looks,
+        which found no index there): near it, a head at rest still dithers a count either way
+        and may set the latch again as it is read, which is no fault.
+
+        Raises:
+            HardwareFault: ``protocol`` (with ``check``), naming INDEX_STATUS, when it still shows
+                the index: the board's latch does not clear, or its index is a live level and the
+                head stands on it (homing must then be told so: ``[homing] index = "level"``). A
+                homing that went on would stop on the first look, at an index that is not there.
+        """
+        bit = _AXIS_BIT[axis]
+        self.window.write8(BoardReg.INDEX_STATUS, bit)
+        if check and self.window.read8(BoardReg.INDEX_STATUS) & bit:
+            raise HardwareFault(
+                "protocol",
+                f"{axis.name.lower()}: INDEX_STATUS (Model 7600 register "
+                f"0x{int(BoardReg.INDEX_STATUS):02X}) still shows the index after a write of 1 "
+                f"cleared it, with the head at rest: the board's index latch does not clear, or "
+                f"its index is a live level the head stands on (then say so in the target file: "
+                f'[homing] index = "level"); the axis is not homed',
+            )
 
     def ended_axes(self) -> int:
         """IRQ_STATUS: the axes (AxisBit) whose profile ended and is not acknowledged yet."""
@@ -176,6 +302,8 @@ class AxisDriver:
         self._clock = clock
         self._scale = time_scale
         self._latch = timebase_of(clock, time_scale).Lock()  # held across reads: TimeBase.Lock
+        self._params: MotorParams | None = None
+        """The parameters last loaded by :meth:`configure` (what a software reset must reload)."""
         self._prepared: tuple[int, int] | None = None
         """(start, destination) recorded ahead by :meth:`prepare_trapezoid`, until started."""
         """A position is three byte reads that must not interleave with another thread's: the
@@ -231,6 +359,21 @@ class AxisDriver:
             pos24_from_msb_first(cmd_msb[0], cmd_mid[0], cmd_lsb[0]),
         )
 
+    def position_with(self, offset: int) -> tuple[int, int]:
+        """The byte at board ``offset`` and the actual position, in one bus transaction where the
+        window can (the byte first): a board status read at the count it belongs to."""
+        base = self._base
+        with self._latch:
+            byte, lsb, mid, msb = self.window.read_many(
+                [
+                    (offset, 1),
+                    (base + Reg.ACT_POS_LSB, 1),
+                    (base + Reg.ACT_POS_MID, 1),
+                    (base + Reg.ACT_POS_MSB, 1),
+                ]
+            )
+        return byte[0], pos24_from_msb_first(msb[0], mid[0], lsb[0])
+
     def command_position(self) -> int:
         base = self._base
         with self._latch:
@@ -250,6 +393,7 @@ class AxisDriver:
         The pan chip's values are read back and reported to the reference: a chip that still
         holds them later has not been reset or power-cycled, so its count is still good.
         """
+        self._params = params
         with self._latch, self.window.transaction():
             self._wr(Reg.SAMPLE_TIMER, params.sample)
             self._wr(Reg.FILTER_ZERO, params.zero)
@@ -286,21 +430,36 @@ class AxisDriver:
         """Init/idle: motor command held at zero, filter history cleared."""
         self._wr(Reg.PROGRAM_COUNTER, ProgramCounter.INIT_IDLE)
 
+    def software_reset(self) -> int:
+        """The datasheet's own reset (R05H = 00H), then init/idle (R05H = 01H, so control can
+        be entered next whatever the chip does after a reset); returns the counter read back.
+
+        Every register goes back to its power-up value: the caller loads the parameters again
+        (:meth:`configure`). Called with the head at rest."""
+        with self.window.transaction():
+            self._wr(Reg.PROGRAM_COUNTER, ProgramCounter.RESET)
+            self._wr(Reg.PROGRAM_COUNTER, ProgramCounter.INIT_IDLE)
+        return self.actual_position()
+
     def hold_here(self, zero_counter: bool = False) -> None:
         """Enter position control holding the present position, so nothing jumps.
 
-        Called in init/idle only: the command position is made equal to the actual one (or both
-        zeroed, when ``zero_counter`` defines this spot as the origin) before control starts.
+        Called in init/idle only, with the head at rest: the command position is made equal to
+        the counter *as read back* before control starts. With ``zero_counter`` this spot is
+        first made the origin: R13H is written (any write clears the counter on the HCTL-1100)
+        and the counter read back; one that still counts is cleared by the datasheet's software
+        reset instead (logged as a warning; the parameters last configured are loaded again).
+
+        Raises:
+            HardwareFault: ``protocol``, naming R13H and R05H, when neither cleared the counter
+                (or no parameters were ever configured to reload after the reset): the chip is
+                left in init/idle, nothing committed.
         """
         with self.window.transaction():
             self._hold_here(zero_counter)
 
     def _hold_here(self, zero_counter: bool) -> None:
-        if zero_counter:
-            self._wr(Reg.ACT_POS_MID, 0)  # any write to R13H clears the counter
-            target = 0
-        else:
-            target = self.actual_position()
+        target = self._zero_counter() if zero_counter else self.actual_position()
         for reg, byte in zip(
             (Reg.CMD_POS_MSB, Reg.CMD_POS_MID, Reg.CMD_POS_LSB),
             pos24_msb_first(target),
@@ -310,6 +469,43 @@ class AxisDriver:
         for flag in (Flag.F0_TRAPEZOID, Flag.F3_PROPORTIONAL_VELOCITY, Flag.F5_INTEGRAL_VELOCITY):
             self._wr(Reg.FLAG, flag_write(flag, False))
         self._wr(Reg.PROGRAM_COUNTER, ProgramCounter.CONTROL)
+
+    def _zero_counter(self) -> int:
+        """Clear the counter (R13H; the software reset if that did not) and return what it reads
+        now: the command position to hold (see :meth:`hold_here`)."""
+        before = self.actual_position()
+        self._wr(Reg.ACT_POS_MID, 0)  # any write to R13H clears the counter (HCTL-1100)
+        after = self.actual_position()
+        if abs(after) <= CLEARED_COUNTS:
+            return after
+        params = self._params
+        name = self.axis.name.lower()
+        if params is None:
+            raise HardwareFault(
+                "protocol",
+                f"{name}: the actual position counter (R12H..R14H) reads {after} (from "
+                f"{before}) after the R13H write that clears it, and no parameters were "
+                f"configured to reload after a software reset; nothing was commanded",
+            )
+        log.warning(
+            "%s: the counter reads %d (from %d) after the R13H write that clears it: clearing "
+            "it with the datasheet's software reset (R05H = 00H) and loading the parameters "
+            "again",
+            name,
+            after,
+            before,
+        )
+        reset = self.software_reset()
+        self.configure(params)
+        if abs(reset) <= CLEARED_COUNTS:
+            return self.actual_position()
+        raise HardwareFault(
+            "protocol",
+            f"{name}: the actual position counter (R12H..R14H) reads {after} (from {before}) "
+            f"after the R13H write that clears it and {reset} after the datasheet's software "
+            f"reset (R05H = 00H): this chip clears it neither way, so it cannot be zeroed on "
+            f"the index; the axis is left idle, nothing was commanded",
+        )
 
     def prepare_trapezoid(self, destination: int) -> None:
         """Record the move :meth:`start_trapezoid` of ``destination`` will make in the pan
@@ -382,8 +578,24 @@ class AxisDriver:
         still_poll(self.actual_position, self._clock, self._scale, stop, limit_s, sample_s)
 
 
+_STATUS_NAMES = (
+    (int(LocalStatus.NO_CONNECT), "NO_CONNECT"),
+    (int(LocalStatus.TIMEOUT), "TIMEOUT"),
+    (int(LocalStatus.REMOTE_BUS_ERROR), "REMOTE_BUS_ERROR"),
+    (int(LocalStatus.PARITY_ERROR), "PARITY_ERROR"),
+    (int(LocalStatus.LRC_ERROR), "LRC_ERROR"),
+)
+
+
+def coupler_status_text(status: int) -> str:
+    """LOCAL_STATUS as a person reads it: ``0x05 (NO_CONNECT TIMEOUT)``."""
+    names = [name for bit, name in _STATUS_NAMES if status & bit]
+    return f"0x{status:02X} ({' '.join(names)})" if names else f"0x{status:02X}"
+
+
 class Coupler:
-    """The Bit 3 local node: error interrupts, sticky error bits, the level-2 vector."""
+    """The Bit 3 local node: error interrupts, sticky error bits, the level-2 vector, and the
+    connection to the BIRIS crate (NO_CONNECT, TIMEOUT)."""
 
     def __init__(self, window: BusWindow) -> None:
         self.window = window
@@ -393,6 +605,36 @@ class Coupler:
 
     def clear_errors(self) -> None:
         self.window.write8(Bit3Reg.LOCAL_COMMAND, LocalCommand.CLR_ERROR)
+
+    def check_link(self) -> None:
+        """Before anything crosses the coupler, as drivers of the Bit 3 adaptor family start
+        (NetBSD's btvmei): LOCAL_STATUS must not show NO_CONNECT; the sticky error bits are
+        cleared (CLR_ERROR) and must stay clear. Touches only the coupler's own node, which
+        answers whether or not the BIRIS crate has power.
+
+        Raises:
+            HardwareFault: ``bus`` when NO_CONNECT is set (the BIRIS crate's power is off or
+                the cable is out) or an error bit will not clear; ``parity`` for a parity error
+                that will not.
+        """
+        status = self.status()
+        if status & LocalStatus.NO_CONNECT:
+            raise HardwareFault(
+                "bus",
+                f"the Bit 3 coupler is not connected to the BIRIS crate (LOCAL_STATUS "
+                f"{coupler_status_text(status)}): its power is off or the cable is out; "
+                f"restore it, then reset",
+            )
+        self.clear_errors()
+        status = self.status()
+        if status & ERROR_MASK:
+            kind: FaultKind = "parity" if status & ERROR_MASK == LocalStatus.PARITY_ERROR else "bus"
+            raise HardwareFault(
+                kind,
+                f"the Bit 3 coupler's error bits do not clear (LOCAL_STATUS "
+                f"{coupler_status_text(status)} after CLR_ERROR): check the coupler and its "
+                f"cable, then reset",
+            )
 
     def enable_interrupts(self, vector: int) -> None:
         self.window.write8(Bit3Reg.LEVEL2_VECTOR, vector)
@@ -504,11 +746,13 @@ class Devices:
             )
         if motion is None:
             raise ValueError("no motion window and no axis set: the axes cannot be driven")
+        azimuth = AxisDriver(motion, Axis.AZIMUTH, clock, time_scale, pan_reference)
+        elevation = AxisDriver(motion, Axis.ELEVATION, clock, time_scale)
         return cls(
             link=BirisLink(biris, biexec_offset),
-            azimuth=AxisDriver(motion, Axis.AZIMUTH, clock, time_scale, pan_reference),
-            elevation=AxisDriver(motion, Axis.ELEVATION, clock, time_scale),
-            board=MotionBoard(motion),
+            azimuth=azimuth,
+            elevation=elevation,
+            board=MotionBoard(motion, {Axis.AZIMUTH: azimuth, Axis.ELEVATION: elevation}),
             coupler=Coupler(coupler),
         )
 

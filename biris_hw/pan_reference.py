@@ -349,28 +349,34 @@ class PanReference:
             )
         return Location(offset, how, why)
 
-    def chip_reset(self, counter_before: int) -> None:
-        """The chip was reset with the head standing still at ``counter_before``: its count
-        restarted there, and its parameters are the power-up ones until configured."""
-        self._rezero(counter_before, params_kept=False)
+    def chip_reset(self, counter_before: int, counter_after: int = 0) -> None:
+        """The chip was reset with the head standing still: its counter read ``counter_before``
+        just before and ``counter_after`` (as read back: a reset leaves 0, or close to it) just
+        after; its parameters are the power-up ones until configured."""
+        self._rezero(counter_before, counter_after, params_kept=False)
 
-    def rezeroed(self, counter_before: int) -> None:
-        """The counter was cleared (R13H) with the head standing still at ``counter_before``."""
-        self._rezero(counter_before, params_kept=True)
+    def rezeroed(self, counter_before: int, counter_after: int = 0) -> None:
+        """The counter was cleared (R13H, or the software reset that stands in for it) with the
+        head standing still: ``counter_before`` just before, ``counter_after`` read back after."""
+        self._rezero(counter_before, counter_after, params_kept=True)
 
-    def _rezero(self, counter_before: int, *, params_kept: bool) -> None:
+    def _rezero(self, counter_before: int, counter_after: int, *, params_kept: bool) -> None:
+        shift = counter_before - counter_after  # the same place, counted anew
         with self._lock:
             state = self._state
             offset = state.offset
             if offset is not None:
-                offset = (offset[0] + counter_before, offset[1] + counter_before)
-            self._state = PanState(offset, (0, 0), state.params if params_kept else None)
+                offset = (offset[0] + shift, offset[1] + shift)
+            here = (counter_after, counter_after)
+            self._state = PanState(offset, here, state.params if params_kept else None)
             self._write(durable=True)
 
-    def homed(self) -> None:
-        """The counter was cleared on true zero's index: referenced, offset 0."""
+    def homed(self, counter: int = 0) -> None:
+        """The counter was cleared on true zero's index and reads ``counter`` there (0, or
+        within a count of it, as read back): referenced, offset ``-counter``."""
         with self._lock:
-            self._state = PanState((0, 0), (0, 0), self._state.params)
+            offset = (-counter, -counter)
+            self._state = PanState(offset, (counter, counter), self._state.params)
             self._write(durable=True)
 
     def lose(self, reason: str) -> None:

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 from biris_hw.axes.base import AxisSet
 from biris_hw.bus.base import BusWindow
 from biris_hw.bus.registry import open_window
-from biris_hw.devices import LEVEL2_VECTOR, prefetch_reads
+from biris_hw.devices import LEVEL2_VECTOR, IndexKind, MotionBoard, prefetch_reads
 from biris_hw.errors import BusError, RequestError, UnknownKind
 from biris_hw.hardware import BirisHardware
 from biris_hw.irq.base import InterruptLine
@@ -58,6 +58,7 @@ __all__ = [
     "AXES_KINDS",
     "CLOCKS",
     "CRATE_KINDS",
+    "HOMING_KEY",
     "TARGET_KEYS",
     "WINDOW_MINIMUM",
     "load_target",
@@ -90,6 +91,7 @@ TARGET_KEYS = (
     "pan_journal",
     "axes",
     "crate",
+    "homing",
 )
 
 AXES_KINDS = ("cia402",)
@@ -98,7 +100,6 @@ AXES_KINDS = ("cia402",)
 _AXES_INTS = {
     "master_id": (0, 127),  # 0: no heartbeat of the host's own; else a node id
     "bitrate": (1, 8_000_000),
-    "params_index": (0x2000, 0x5FFF),
 }
 _AXES_RULED = ("pan_node", "tilt_node", "homing_method")
 """Keys whose rule is the driver's own (:mod:`biris_hw.axes.cia402`: ``check_node_id``,
@@ -111,7 +112,18 @@ _AXES_SECONDS = {
     "state_timeout": "state_timeout_s",
 }
 _AXES_STRINGS = ("interface", "channel", "context")
-_AXES_KEYS = frozenset({"kind", "can", *_AXES_INTS, *_AXES_RULED, *_AXES_SECONDS, *_AXES_STRINGS})
+_AXES_TABLES = ("can", "gains")
+"""Sub-tables of ``[axes]``: more ``can.Bus`` options, and the drive's own objects that take
+BIRIS_MOTOR_PARAMS' sample and filter values (``[axes.gains]``, the driver's ``gains``)."""
+_AXES_KEYS = frozenset(
+    {"kind", *_AXES_TABLES, *_AXES_INTS, *_AXES_RULED, *_AXES_SECONDS, *_AXES_STRINGS}
+)
+_AXES_GONE = {
+    "params_index": "the driver writes no 0x2000 record of its own any more: name the drive's "
+    "own objects for the filter values in [axes.gains] (docs/targets.md), or leave them to the "
+    "drive's tuning",
+}
+"""Keys a target file may still carry from an earlier release, and what to write instead."""
 
 CRATE_KINDS = ("wiener-can",)
 """What a ``[crate]`` table may name: a Wiener VME crate's monitor over CAN (python-can)."""
@@ -340,10 +352,16 @@ def _axes_options(spec: object) -> dict[str, Any]:
     checked and renamed, python-can's (``interface``, ``channel``, ``bitrate``, ``context``
     and the ``can`` sub-table's) passed to ``can.Bus`` as they are. Without ``interface`` and
     ``channel`` python-can takes them from its own configuration (``~/.canrc``, ``can.ini``,
-    ``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_BITRATE``; ``context`` picks a section)."""
+    ``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_BITRATE``; ``context`` picks a section). The
+    ``gains`` sub-table maps ``sample``/``zero``/``pole``/``gain`` to the drive's own objects
+    (``"0x2000:1"``, ``"0x2101:3:u32"``; :func:`~biris_hw.axes.cia402.check_gains`'s rule)."""
+    if isinstance(spec, Mapping):
+        for key, instead in _AXES_GONE.items():
+            if key in spec:
+                raise RequestError(f"axes.{key}: not an option: {instead}")
     table = _kind_table("axes", spec, AXES_KINDS, _AXES_KEYS)
     try:
-        from biris_hw.axes.cia402 import NODE_IDS, check_homing_method, check_node_id
+        from biris_hw.axes.cia402 import NODE_IDS, check_gains, check_homing_method, check_node_id
     except ImportError as exc:
         raise _no_canopen(exc) from None
     options: dict[str, Any] = {}
@@ -380,6 +398,11 @@ def _axes_options(spec: object) -> dict[str, Any]:
             if not isinstance(table[key], str):
                 raise RequestError(f"axes.{key}: must be a string, not {_type(table[key])}")
             options[key] = table[key]
+    if "gains" in table:
+        try:
+            options["gains"] = check_gains(_table("axes.gains", table["gains"]), "gains")
+        except ValueError as exc:
+            raise RequestError(f"axes.{exc}") from None
     extra = _table("axes.can", table.get("can", {}))
     for key, value in extra.items():
         if not isinstance(value, _SCALAR):
@@ -480,6 +503,34 @@ def _pan_journal(value: object, base: Path | None) -> Path | None:
     return path
 
 
+HOMING_KEY = "homing"
+"""The ``[homing]`` table: what the Model 7600's INDEX_STATUS shows, which decides how homing
+looks for the zero index (``index = "latch"``, the default, or ``"level"`` with
+``index_width`` counts; :class:`~biris_hw.devices.IndexKind`, docs/targets.md)."""
+
+
+def _homing(spec: object, with_axes: bool) -> tuple[IndexKind, int]:
+    """The ``[homing]`` table as (kind, width); refused beside ``[axes]`` (a CiA 402 drive's
+    touch probe latches its index)."""
+    table = _table(HOMING_KEY, spec)
+    if with_axes:
+        raise RequestError(
+            "homing: not with [axes] (a CiA 402 drive's touch probe latches the index)"
+        )
+    for key in table:
+        if key not in ("index", "index_width"):
+            raise RequestError(f"homing.{key}: not an option (index, index_width)")
+    kinds = ", ".join(repr(k.value) for k in IndexKind)
+    value = table.get("index", IndexKind.LATCH.value)
+    if not isinstance(value, str) or value not in {k.value for k in IndexKind}:
+        raise RequestError(f"homing.index: must be one of {kinds}, not {value!r}")
+    kind = IndexKind(value)
+    if "index_width" in table and kind is not IndexKind.LEVEL:
+        raise RequestError('homing.index_width: only with index = "level"')
+    width = _int("homing.index_width", table.get("index_width", 1), 1, 256)
+    return kind, width
+
+
 # -- the whole description -------------------------------------------------------------------------
 
 
@@ -494,7 +545,8 @@ def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> Biris
         raise RequestError(f"a target description must be a table, not {_type(data)}")
     for key in data:
         if key not in TARGET_KEYS:
-            raise RequestError(f"unknown key {key!r} (known: {', '.join(TARGET_KEYS)})")
+            known = ", ".join(TARGET_KEYS)
+            raise RequestError(f"unknown key {key!r} (known: {known})")
     with_axes = "axes" in data
     for key in TARGET_KEYS[:5]:
         if with_axes and key in ("motion", "level3"):
@@ -519,6 +571,7 @@ def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> Biris
     if clock_name not in CLOCKS:
         raise RequestError(f"clock: must be one of {', '.join(CLOCKS)}, not {clock_name!r}")
     pan_journal = _pan_journal(data.get("pan_journal"), base)
+    homing = _homing(data[HOMING_KEY], with_axes) if HOMING_KEY in data else None
     minimum = dict(WINDOW_MINIMUM, biris=biexec_offset + BIEXEC_COM_SIZE)
     with contextlib.ExitStack() as opened:
         windows: dict[str, BusWindow] = {}
@@ -557,6 +610,10 @@ def target_from_dict(data: Mapping[str, Any], base: Path | None = None) -> Biris
             crate=crate,
             crate_poll_s=poll,
         )
+        if homing is not None:
+            board = hardware.devices.board
+            assert isinstance(board, MotionBoard)  # [homing] with [axes] was refused
+            board.set_index(*homing)
         opened.pop_all()
     return hardware
 

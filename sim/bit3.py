@@ -27,12 +27,26 @@ keeps the node registers of :mod:`regs.bit3` and their side effects:
 - Writes to the read-only registers (LOCAL_STATUS, LOCAL_INT_STATUS, REMOTE_CARD_ID,
   REMOTE_IACK) are ignored and recorded as ``WRITE_TO_READ_ONLY``. Undocumented offsets read 0
   and ignore writes.
+- Remote power (:meth:`Bit3Coupler.remote_power_off`, ``rig.faults.remote_power_off()``): the
+  BIRIS crate, on the far side of the cable, loses power. LOCAL_STATUS shows NO_CONNECT (bit 0,
+  "remote power or cable off" in the Bit 3 family) until :meth:`Bit3Coupler.remote_power_on`;
+  it is a state, not an error bit, so it raises no interrupt and CLR_ERROR leaves it. Every
+  access across the cable meanwhile (BIRIS memory: the rig's window calls
+  :meth:`Bit3Coupler.remote_access`) times out: the sticky TIMEOUT error bit (bit 2) is set,
+  level 2 is raised if error interrupts are enabled (source "timeout") when the bit was clear
+  (so a stack that reads across the coupler at every interrupt, a VM-USB's, cannot turn one
+  lost crate into an interrupt storm), and the access fails
+  with :class:`~biris_hw.errors.BusError` (``ETIMEDOUT``), as the adaptor ends the host's cycle
+  with a bus error. The timeout costs no modelled time (a real adaptor's is microseconds).
+  The node registers themselves are on the host's side and keep working.
 """
 
 from __future__ import annotations
 
+import errno
 import threading
 
+from biris_hw.errors import BusError
 from regs.bit3 import (
     BIT3_SPACE,
     ERROR_MASK,
@@ -85,6 +99,8 @@ class Bit3Coupler:
         self._int_control = 0
         self._plain = dict.fromkeys(_PLAIN_RW, 0)
         self._error_irqs = 0
+        self._remote_powered = True
+        self._timeouts = 0
 
     # -- bus side (with side effects) ----------------------------------------------------------
     def bus_read(self, offset: int) -> int:
@@ -126,6 +142,41 @@ class Bit3Coupler:
         """A coupler cycle on the BIRIS bus got BERR: sticky REMOTE_BUS_ERROR, BIT3_BERR."""
         self._error(LocalStatus.REMOTE_BUS_ERROR, "berr")
 
+    def remote_power_off(self) -> None:
+        """The BIRIS crate loses power (or the cable comes out): NO_CONNECT, and every access
+        across the cable times out until :meth:`remote_power_on` (module notes)."""
+        with self._lock:
+            self._remote_powered = False
+            self._status |= int(LocalStatus.NO_CONNECT)
+
+    def remote_power_on(self) -> None:
+        """Power is back: NO_CONNECT clears; a TIMEOUT already set stays until CLR_ERROR."""
+        with self._lock:
+            self._remote_powered = True
+            self._status &= ~int(LocalStatus.NO_CONNECT)
+
+    def remote_access(self, op: str, offset: int, nbytes: int) -> None:
+        """Called before every access the driver makes across the cable (``op``, "read" or
+        "write", of ``nbytes`` at ``offset`` in BIRIS memory): nothing while the far side has
+        power; otherwise the access times out (module notes).
+
+        Raises:
+            BusError: ``ETIMEDOUT``; the access must not happen.
+        """
+        if self._remote_powered:  # a plain read: the hot path of every BIRIS memory access
+            return
+        with self._lock:  # (power back meanwhile: this access was under way as it came)
+            self._timeouts += 1
+            first = not self._status & LocalStatus.TIMEOUT
+        if first:
+            self._error(LocalStatus.TIMEOUT, "timeout")
+        raise BusError(
+            f"BIRIS memory {op} of {nbytes} byte(s) at 0x{offset:X} across the Bit 3 coupler "
+            f"timed out: the BIRIS crate does not answer "
+            f"(LOCAL_STATUS NO_CONNECT: its power is off or the cable is out)",
+            errno.ETIMEDOUT,
+        )
+
     def _error(self, bit: LocalStatus, source: str) -> None:
         with self._lock:
             self._status |= int(bit)
@@ -143,8 +194,20 @@ class Bit3Coupler:
             return self._status
 
     @property
+    def remote_powered(self) -> bool:
+        """The BIRIS crate has power (backdoor)."""
+        with self._lock:
+            return self._remote_powered
+
+    @property
+    def timeouts(self) -> int:
+        """Accesses across the cable that timed out (backdoor)."""
+        with self._lock:
+            return self._timeouts
+
+    @property
     def error_interrupts(self) -> int:
-        """Error interrupts the coupler has raised (PERR and BERR together)."""
+        """Error interrupts the coupler has raised (PERR, BERR and TIMEOUT together)."""
         with self._lock:
             return self._error_irqs
 

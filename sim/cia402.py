@@ -1,11 +1,18 @@
 """A simulated CiA 402 servo drive on a CANopen bus, closing its loop around :class:`MotorPlant`.
 
 :class:`SimulatedDrive` is a canopen :class:`~canopen.LocalNode` whose object dictionary is
-built here (0x1000, 0x1001, 0x1016, 0x1017, RPDO1/TPDO1 communication and mapping, the 0x2000
-record of BIRIS_MOTOR_PARAMS, and the CiA 402 objects :mod:`biris_hw.axes.cia402` uses). Its
-write callbacks run the drive; a thread steps it on the simulator's clock (and every SDO read
-catches up first, as :mod:`sim.hctl1000` does on access), so the end of a move is announced
-by itself, as a real drive's event TPDO is.
+built here. By default it is a *stock* drive: standard objects only (CiA 301's 0x1000, 0x1001,
+0x1016, 0x1017, RPDO1/TPDO1 communication and mapping; CiA 402's state machine, profile position,
+homing, touch probe, factor group and SI units), so that a driver writing anything else gets the
+SDO abort a stock drive answers (0x06020000, object does not exist). Its position loop runs the
+drive's own commissioned tuning (:attr:`DriveVariant.tuning`), which no object exposes, as on a
+stock drive. A :class:`DriveVariant` describes a drive that differs (the tests' way in): one with
+a manufacturer record of its own for its loop's sample period and filter (0x2000 sub 1-4,
+``gain_record``), other power-on values (its units), objects it lacks, one that keeps "homing
+attained" from an earlier homing, one that takes a new mode (and finishes homing) only at a later
+cycle. Its write callbacks run the drive; a thread steps it on the simulator's clock (and every
+SDO read catches up first, as :mod:`sim.hctl1000` does on access), so the end of a move is
+announced by itself, as a real drive's event TPDO is.
 
 What is modelled:
 
@@ -15,30 +22,44 @@ What is modelled:
   Reset communication (0x82) puts the communication objects (0x1000-0x1FFF) back to their
   power-on values, reset node (0x81) everything, as a power-up does; both end with the boot-up
   message and pre-operational.
-* PDOs honour whatever mapping the master wrote (CiA 301 rules: the mapping changes only while
-  the PDO is invalid and its count is 0; only mappable objects; 64 bits at most). An RPDO's
-  values are all stored before its controlword acts, so a frame's target is the one its
-  new-set-point edge takes. TPDO1 (type 254/255) is sent whenever the statusword changes.
+* PDOs honour whatever mapping the master wrote (CiA 301 rules: the mapping, and the inhibit
+  time, change only while the PDO is invalid and its count is 0; only mappable objects; 64 bits
+  at most). An RPDO's values are all stored before its controlword acts, so a frame's target is
+  the one its new-set-point edge takes. TPDO1 (type 254/255) is sent as drives send an
+  event-driven PDO: whenever any mapped object's value changes (with the position actual mapped,
+  a frame per sample in which the head moved), no sooner than the inhibit time (sub 3, 100 us
+  units) after the last one -- a change meanwhile goes out when it expires -- and, with an event
+  timer (sub 5, ms), at least that often. Its times are the drive's clock's.
 * The power state machine (SWITCH ON DISABLED -> READY TO SWITCH ON -> SWITCHED ON ->
   OPERATION ENABLED; quick stop; fault and fault reset on bit 7's rising edge). Enabling holds
   the head where it stands (a compliant drive).
+* Modes of operation: 0x6060 written takes effect at once (the display 0x6061 shows it), or, with
+  ``mode_at_cycle``, at the drive's next cycle, as a drive running its modes in its control loop
+  does; until then the drive acts in the mode its display shows.
 * Profile position: single set-point, absolute (bit 6 relative too); acknowledge (bit 12) on
   the new-set-point edge, dropped at the first cycle (sample) after bit 4 falls, and a rising
   edge while bit 12 is still set is not taken (CiA 402's handshake: the host waits for bit 12
-  to fall before it sets bit 4 again); a trapezoid from 0x6081/0x6083/0x6084 sampled at
-  the loop's sample period; target reached (bit 10) once the profile has ended and the head is
-  within 0x6067 for 0x6068 ms. A new set-point during a move re-plans from where the profile
-  is (and is audited). Halt (bit 8) is not modelled.
+  to fall before it sets bit 4 again); a trapezoid from 0x6081/0x6083/0x6084 (counts/s and
+  counts/s^2, whatever the unit objects say: they are only reported) sampled at the loop's sample
+  period; target reached (bit 10) once the profile has ended and the head is within 0x6067 for
+  0x6068 ms. A new set-point during a move re-plans from where the profile is (and is audited).
+  Halt (bit 8) is not modelled.
 * The position loop is the HCTL-1000's filter, ``MC = (K/4)(X - (A/256) X[n-1]) - (B/256)
-  MC[n-1]``, at its sample period 16 (T + 1) / 2 MHz, from the raw 0x2000 values: the mapping
-  a drive "with such gains" makes, so Appendix B's defaults give the loop sim.motor documents.
+  MC[n-1]``, at its sample period 16 (T + 1) / 2 MHz: from the drive's tuning (Appendix B's
+  values, so that the loop is the one sim.motor documents), or, with ``gain_record``, from the raw
+  0x2000 values the master wrote (the mapping a drive "with such gains" makes).
 * Following error: beyond 0x6065 for longer than 0x6066 ms -> FAULT, EMCY 0x8611 (a stalled
   shaft, :meth:`SimulatedDrive.stall`, ends that way as soon as a move pulls away from it).
-* Homing method 35/37 (mode 6, bit 4's edge): the position actual becomes the home offset
-  0x607C; homing attained (bit 12) and target reached (bit 10).
+* Homing methods 35/37 (mode 6, bit 4's rising edge starts it, its fall before the end interrupts
+  it, as does leaving the mode or OPERATION ENABLED): the position actual becomes the home offset
+  0x607C, at once or ``homing_s`` later; the statusword shows homing in progress (bits 12, 10
+  clear), attained (12 and 10), interrupted or not started (10), error (13). "Homing attained" is
+  cleared by a mode change or re-enabling, unless ``keeps_homing_attained`` (then only a new
+  homing or a power-on clears it).
 * Touch probe 1 on the zero impulse (0x60B8/0x60B9/0x60BA): the plant's index latch.
-* Power-on: the 0x2000 record holds the drive's own values (:data:`POWER_UP_PARAMS`, not
-  BIRIS's), the position actual starts at 0 where the head stands.
+* Power-on: the profile objects hold the drive's own values (not BIRIS's; with ``gain_record``
+  its record holds :data:`POWER_UP_PARAMS`' filter), the position actual starts at 0 where the
+  head stands.
 * The fault panel: :meth:`stall`, :meth:`lose_power` (no heartbeat, no answers, no torque) and
   :meth:`restore_power` (a power-on as above, the boot-up message included),
   :meth:`disconnect` and :meth:`reconnect` (the CAN cable: nothing heard or sent meanwhile, the
@@ -50,7 +71,7 @@ The drive's own audit (:attr:`SimulatedDrive.violations`, and the shared
 a target more than :data:`JUMP_COUNTS` from the position actual (POSITION_MODE_WHILE_MOVING:
 a drive that takes its target on enabling would jump), a new set-point while the previous move
 runs, a new set-point edge while bit 12 still acknowledges the previous one (ignored, as a
-drive does), a set-point before the motor parameters and profile were written
+drive does), a set-point before the profile (and, with ``gain_record``, the record) was written
 (MOTION_WHILE_UNINITIALISED), an RPDO while not OPERATIONAL.
 """
 
@@ -60,9 +81,11 @@ import collections
 import enum
 import logging
 import math
+import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import canopen
@@ -72,10 +95,10 @@ from canopen.sdo.exceptions import SdoAbortedError
 from biris_hw.axes.cia402 import (
     CIA402_PROFILE,
     NOTIFIER_CYCLE_S,
-    PARAM_KEYS,
+    SI_INCREMENT,
+    SI_SECOND,
     Cw,
     DriveState,
-    Obj,
     Sw,
     stop_periodic_task,
 )
@@ -84,7 +107,17 @@ from regs.hctl1000 import F_CLK_HZ, MOTION_LIMIT_COUNTS, SAMPLE_TIMER_MIN
 from sim.audit import Audit, Rule, Violation
 from sim.motor import MotorPlant
 
-__all__ = ["JUMP_COUNTS", "POWER_UP_PARAMS", "DriveRule", "SimulatedDrive", "build_dictionary"]
+__all__ = [
+    "DRIVE_TUNING",
+    "GAIN_RECORD",
+    "JUMP_COUNTS",
+    "POWER_UP_PARAMS",
+    "STOCK",
+    "DriveRule",
+    "DriveVariant",
+    "SimulatedDrive",
+    "build_dictionary",
+]
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +150,27 @@ _BASE = {
     DriveState.FAULT: 0x08,
 }
 """Statusword state bits (with voltage enabled, bit 4, where the power stage is on)."""
+
+_PACK = {
+    od.UNSIGNED8: "<B",
+    od.INTEGER8: "<b",
+    od.UNSIGNED16: "<H",
+    od.INTEGER16: "<h",
+    od.UNSIGNED32: "<I",
+    od.INTEGER32: "<i",
+}
+"""How a mapped object of each data type goes into a PDO (CiA 301: little-endian)."""
+
+_REMOTE = int(Sw.REMOTE)
+_TARGET_REACHED = int(Sw.TARGET_REACHED)
+_ACKNOWLEDGE = int(Sw.SET_POINT_ACKNOWLEDGE)
+_FOLLOWING_ERROR = int(Sw.FOLLOWING_ERROR)
+
+
+def _encoder(var: od.ODVariable, nbytes: int) -> Callable[[int], bytes]:
+    """canopen's own encoding of ``var``, cut to the mapped length."""
+    return lambda value: bytes(var.encode_raw(value)[:nbytes])
+
 
 _MAPPABLE_RX = frozenset({(0x6040, 0), (0x607A, 0), (0x6060, 0), (0x60B8, 0)})
 _MAPPABLE_TX = frozenset({(0x6041, 0), (0x6064, 0), (0x6061, 0), (0x6062, 0), (0x60B9, 0)})
@@ -164,13 +218,22 @@ def _record(name: str, index: int, members: list[tuple[str, int, int, str]]) -> 
     count = max(sub for _, sub, _, _ in members)
     record.add_member(_var(f"{name} entries", index, 0, od.UNSIGNED8, count, "ro"))
     for member, sub, default, access in members:
-        data_type = od.UNSIGNED16 if index == Obj.MOTOR_PARAMS else od.UNSIGNED32
+        data_type = od.UNSIGNED16 if index == GAIN_RECORD else od.UNSIGNED32
         if member in ("transmission type",):
             data_type = od.UNSIGNED8
         elif member in ("inhibit time", "event timer"):
             data_type = od.UNSIGNED16
         record.add_member(_var(member, index, sub, data_type, default, access))
     return record
+
+
+def _ratio(name: str, index: int, terms: tuple[int, int], names: tuple[str, str]) -> od.ODArray:
+    """A factor-group object: two UNSIGNED32 terms, sub 1 over sub 2 (CiA 402)."""
+    array = od.ODArray(name, index)
+    array.add_member(_var(f"{name} entries", index, 0, od.UNSIGNED8, 2, "ro"))
+    for sub, (term, what) in enumerate(zip(terms, names, strict=True), start=1):
+        array.add_member(_var(f"{name} {what}", index, sub, od.UNSIGNED32, term))
+    return array
 
 
 def _mapping(name: str, index: int) -> od.ODRecord:
@@ -182,15 +245,57 @@ def _mapping(name: str, index: int) -> od.ODRecord:
 
 
 POWER_UP_PARAMS = MotorParams(sample=0x40, zero=0xE5, pole=0x00, gain=0x40, max_vel=1, max_accel=1)
-"""The 0x2000 record a drive holds at power-on: its firmware's own values, not BIRIS's (the
-HCTL-1000 model's power-up filter, :data:`sim.hctl1000.POWER_UP`). The driver writes Appendix B's
-into RAM only, so a drive that lost power shows other parameters, as the board does: that is how
-the pan reference tells a power-cycled drive (its count restarted) from one that kept its count."""
+"""The filter a ``gain_record`` drive's record holds at power-on: its firmware's own values, not
+BIRIS's (the HCTL-1000 model's power-up filter, :data:`sim.hctl1000.POWER_UP`)."""
+
+GAIN_RECORD = 0x2000
+"""Where a ``gain_record`` drive keeps its loop's sample period and filter (U16 sub 1-4: sample,
+zero, pole, gain): a manufacturer object, so a stock drive has nothing there."""
+_GAIN_SUBS = {"sample": 1, "zero": 2, "pole": 3, "gain": 4}
+
+COUNTS_PER_REV = 4096
+"""Encoder increments per head revolution: the factor group's power-on values say so."""
 
 
-def build_dictionary(node_id: int, params: MotorParams = POWER_UP_PARAMS) -> od.ObjectDictionary:
-    """The simulated drive's object dictionary: what :mod:`biris_hw.axes.cia402` needs, with
-    a drive's power-up values (PDOs invalid, no heartbeat, ``params`` in the motor record)."""
+DRIVE_TUNING = MotorParams()
+"""A stock drive's loop, as its commissioning tuned it: Appendix B's sample period and filter."""
+
+
+@dataclass(frozen=True)
+class DriveVariant:
+    """How a simulated drive differs from the stock one (every field's default is stock)."""
+
+    gain_record: bool = False
+    """A manufacturer record :data:`GAIN_RECORD` for the loop's sample and filter, which the
+    loop then runs (power-on: :data:`POWER_UP_PARAMS`); the master maps BIRIS_MOTOR_PARAMS onto
+    it (the driver's ``gains``)."""
+    values: Mapping[tuple[int, int], int] = field(default_factory=dict)
+    """Power-on values replacing the dictionary's, by (index, sub-index): other units, say."""
+    absent: frozenset[int] = frozenset()
+    """Standard objects this drive does not have (e.g. the SI unit objects 0x60A8/0x60A9 of a
+    drive built to the older profile)."""
+    keeps_homing_attained: bool = False
+    """"Homing attained" (statusword bit 12 in homing mode) stays set from a finished homing
+    through mode changes and re-enabling, until the next homing starts or the power goes."""
+    homing_s: float = 0.0
+    """Hardware seconds a homing on the current position takes (0: done at bit 4's edge)."""
+    mode_at_cycle: bool = False
+    """0x6060 takes effect (and shows in 0x6061) at the drive's next cycle, not at once."""
+    tuning: MotorParams = DRIVE_TUNING
+    """The loop's sample and filter on a drive without ``gain_record``: its commissioning's,
+    which no object exposes (Appendix B's: the drive was tuned for this motor as the HCTL-1000
+    was)."""
+
+
+STOCK = DriveVariant()
+"""The stock drive: standard objects only (what :class:`SimulatedDrive` is by default)."""
+
+
+def build_dictionary(node_id: int, variant: DriveVariant = STOCK) -> od.ObjectDictionary:
+    """The simulated drive's object dictionary: standard objects (the CiA 402 set a driver in
+    profile position with homing, touch probe and unit objects needs), with a drive's power-up
+    values (PDOs invalid, no heartbeat, its own profile, units of encoder increments per second),
+    as ``variant`` changes them."""
     new_dictionary: Any = od.ObjectDictionary
     d: od.ObjectDictionary = new_dictionary()
     d.node_id = node_id
@@ -220,8 +325,18 @@ def build_dictionary(node_id: int, params: MotorParams = POWER_UP_PARAMS) -> od.
         _var("touch probe status", 0x60B9, 0, od.UNSIGNED16, 0, "ro"),
         _var("touch probe 1 positive edge", 0x60BA, 0, od.INTEGER32, 0, "ro"),
         _var("supported drive modes", 0x6502, 0, od.UNSIGNED32, 0x21, "ro"),
+        _var("SI unit position", 0x60A8, 0, od.UNSIGNED32, SI_INCREMENT << 16),
+        _var("SI unit velocity", 0x60A9, 0, od.UNSIGNED32, SI_INCREMENT << 16 | SI_SECOND << 8),
     ):
         d.add_object(var)
+    for array in (
+        _ratio("position encoder resolution", 0x608F, (COUNTS_PER_REV, 1), ("increments", "revs")),
+        _ratio("gear ratio", 0x6091, (1, 1), ("motor revs", "shaft revs")),
+        _ratio("feed constant", 0x6092, (COUNTS_PER_REV, 1), ("feed", "shaft revs")),
+        _ratio("velocity encoder factor", 0x6094, (1, 1), ("numerator", "divisor")),
+        _ratio("acceleration factor", 0x6097, (1, 1), ("numerator", "divisor")),
+    ):
+        d.add_object(array)
     consumer = od.ODArray("consumer heartbeat time", 0x1016)
     consumer.add_member(_var("consumer heartbeat entries", 0x1016, 0, od.UNSIGNED8, 1, "ro"))
     consumer.add_member(_var("consumer heartbeat time 1", 0x1016, 1, od.UNSIGNED32, 0))
@@ -239,14 +354,18 @@ def build_dictionary(node_id: int, params: MotorParams = POWER_UP_PARAMS) -> od.
     ]
     d.add_object(_record("TPDO1 communication", 0x1800, tx))
     d.add_object(_mapping("TPDO1 mapping", 0x1A00))
-    values = params.to_dict()
-    d.add_object(
-        _record(
-            "BIRIS motor parameters",
-            Obj.MOTOR_PARAMS,
-            [(key, sub, values[key], "rw") for sub, key in enumerate(PARAM_KEYS, start=1)],
-        )
-    )
+    if variant.gain_record:
+        filter_values = POWER_UP_PARAMS.to_dict()
+        members = [(key, sub, filter_values[key], "rw") for key, sub in _GAIN_SUBS.items()]
+        d.add_object(_record("loop gains", GAIN_RECORD, members))
+    for index in variant.absent:
+        if index in d:
+            del d[index]
+    for (index, subindex), value in variant.values.items():
+        target = d.get_variable(index, subindex)
+        if target is None:
+            raise ValueError(f"the drive has no object 0x{index:04X}:{subindex:02X} to set")
+        target.default = value
     return d
 
 
@@ -296,7 +415,8 @@ class SimulatedDrive:
     ``network_or_channel`` is a connected :class:`canopen.Network` (shared by several drives)
     or the name of a python-can ``virtual`` channel, for which the drive makes (and owns) a
     network of its own. ``audit`` is the simulator's shared audit, which gets the violations
-    that have a rule there; every violation is in :attr:`violations`.
+    that have a rule there; every violation is in :attr:`violations`. ``variant`` says how the
+    drive differs from a stock one (:class:`DriveVariant`; the rig's drives are stock).
     """
 
     def __init__(
@@ -307,12 +427,13 @@ class SimulatedDrive:
         clock: Callable[[], float],
         audit: Audit | None = None,
         *,
-        params: MotorParams = POWER_UP_PARAMS,
+        variant: DriveVariant = STOCK,
         step_real_s: float = STEP_REAL_S,
         name: str = "",
         head_limit: float | None = None,
     ) -> None:
         self.node_id = node_id
+        self.variant = variant
         self._head_limit = head_limit
         """Counts from true zero beyond which the head winds its cable: HEAD_BEYOND_LIMIT in
         ``audit`` (the pan's, as on the board: :data:`sim.hctl1000.HEAD_LIMIT_COUNTS`)."""
@@ -343,7 +464,15 @@ class SimulatedDrive:
         self._t = clock()
         self._history: collections.deque[tuple[float, int]] = collections.deque(maxlen=HISTORY)
         """(clock time, position actual) after each sample, for :meth:`position_at`."""
-        self._sent_status: int | None = None
+        self._sent_frame: bytes | None = None
+        """TPDO1's last frame sent (None: send the next whatever it holds)."""
+        self._sent_t: float | None = None
+        """When (drive clock) TPDO1 was last sent: the inhibit time and event timer count
+        from it."""
+        self._tpdo_held = False
+        """A change came within the inhibit time: it goes out when that expires."""
+        self.tpdo_sent = 0
+        """TPDO1 frames sent since power-on (backdoor for tests and benchmarks)."""
         self._batch = False
         self._cw_pending: int | None = None
         self._consumer: tuple[int, float] | None = None
@@ -360,9 +489,12 @@ class SimulatedDrive:
         """Objects the master has written since power-on (the MOVE_UNCONFIGURED audit)."""
         self._reset_application()
         # -- the node --
-        self.od = build_dictionary(node_id, params)
+        self.od = build_dictionary(node_id, variant)
         self.node = network.create_node(node_id, self.od)
         self._values: dict[tuple[int, int], int] = {}
+        self._dynamic_objects = self._dynamic()
+        self._tpdo_layout: list[tuple[Callable[[], int], Callable[[int], bytes]]] | None = None
+        """TPDO1's mapping as readers and packers (:meth:`_tpdo_frame`); None: build it anew."""
         self._load_defaults(communication_only=False)
         local: Any = self.node  # canopen's callbacks are untyped
         local.add_read_callback(self._on_read)
@@ -378,6 +510,7 @@ class SimulatedDrive:
     def _load_defaults(self, *, communication_only: bool) -> None:
         """The object dictionary's power-on values: all of them, or only the communication
         profile's (0x1000-0x1FFF), which is what NMT reset communication restores."""
+        self._tpdo_layout = None
         for index in self.od:
             if communication_only and not 0x1000 <= index < 0x2000:
                 continue
@@ -395,6 +528,11 @@ class SimulatedDrive:
         self._state = DriveState.SWITCH_ON_DISABLED
         self._cw = 0
         self._mode = 0
+        """The mode the drive runs (and 0x6061 shows)."""
+        self._mode_pending: int | None = None
+        """0x6060 written, taken at the next cycle (``mode_at_cycle``)."""
+        self._homing_until: float | None = None
+        """A homing under way ends at this clock time (``homing_s``)."""
         self._offset = -self.plant.encoder_counts
         self._demand = 0.0
         self._profile = None
@@ -431,7 +569,8 @@ class SimulatedDrive:
         self._master_seen = None
         self._master_lost = False
         self._load_defaults(communication_only=True)
-        self._sent_status = None
+        self._sent_frame = self._sent_t = None
+        self._tpdo_held = False
 
     def _boot(self) -> None:
         """Boot-up message, then pre-operational (heartbeat from 0x1017 when the master sets
@@ -480,9 +619,10 @@ class SimulatedDrive:
 
     def restore_power(self) -> None:
         """Power comes back (after :meth:`lose_power`): the drive boots as it did at first --
-        every object at its power-on value (PDOs off, no heartbeat, its own motor record), SWITCH
-        ON DISABLED, the position actual restarting at 0 where the head coasted to -- sends its
-        boot-up message and waits in pre-operational for a master to set it up again."""
+        every object at its power-on value (PDOs off, no heartbeat, its own profile and, with a
+        record, its own gains), SWITCH ON DISABLED, the position actual restarting at 0 where
+        the head coasted to -- sends its boot-up message and waits in pre-operational for a
+        master to set it up again."""
         with self._lock:
             self._advance()  # the coast so far, unpowered
             if self._powered:
@@ -587,6 +727,13 @@ class SimulatedDrive:
             self._advance()
             return self._statusword()
 
+    @property
+    def mode_display(self) -> int:
+        """The mode the drive runs, as 0x6061 shows it (backdoor)."""
+        with self._lock:
+            self._advance()
+            return self._mode
+
     def position_at(self, t: float) -> int:
         """The position actual as it read at clock time ``t`` (at or before now): what BIRIS,
         tagging an acquisition mid-exposure, reads from the drive, even when it gets round to
@@ -638,8 +785,15 @@ class SimulatedDrive:
                 self._advance()
                 self._watch_master()
 
+    def _gain(self, key: str) -> int:
+        """The loop's sample timer or filter value: the record's, or the drive's tuning."""
+        if self.variant.gain_record:
+            return self._values[(GAIN_RECORD, _GAIN_SUBS[key])] & 0xFF
+        value: int = getattr(self.variant.tuning, key)
+        return value
+
     def _period(self) -> float:
-        timer = max(SAMPLE_TIMER_MIN, self._values[(Obj.MOTOR_PARAMS, 1)] & 0xFF)
+        timer = max(SAMPLE_TIMER_MIN, self._gain("sample"))
         return 16.0 * (timer + 1) / F_CLK_HZ
 
     def _actual(self) -> int:
@@ -668,8 +822,10 @@ class SimulatedDrive:
         a head that friction holds."""
         if self._profile is not None or self._mc_prev != 0 or self._x_prev != 0:
             return False
-        if self._ack_falling:
+        if self._ack_falling or self._mode_pending is not None or self._homing_until is not None:
             return False
+        if self._tpdo_held or (self._tpdo_live() and self._values[(0x1800, 5)]):
+            return False  # a TPDO is due at a later cycle
         if self._enabled() and (round(self._demand) != self._actual() or not self._reached):
             return False
         return self.plant.holds_at_rest(0)
@@ -683,6 +839,10 @@ class SimulatedDrive:
     def _sample(self, period: float) -> None:
         if self._ack_falling:  # one cycle after bit 4 fell (CiA 402's handshake)
             self._ack = self._ack_falling = False
+        if self._mode_pending is not None:  # the mode written since the last cycle
+            self._take_mode(self._mode_pending)
+        if self._homing_until is not None and self._t + period >= self._homing_until:
+            self._finish_homing()
         actual = self._actual()
         if self._enabled():
             profile = self._profile
@@ -692,7 +852,7 @@ class SimulatedDrive:
                 if profile.done:
                     self._profile = None
             x = round(self._demand) - actual
-            gain, zero, pole = (self._values[(Obj.MOTOR_PARAMS, s)] & 0xFF for s in (4, 2, 3))
+            gain, zero, pole = (self._gain(key) for key in ("gain", "zero", "pole"))
             mc = int(gain * 0.25 * (x - zero / 256.0 * self._x_prev) - pole / 256.0 * self._mc_prev)
             mc = max(-128, min(127, mc))
             self._x_prev, self._mc_prev = x, mc
@@ -754,49 +914,95 @@ class SimulatedDrive:
 
     # -- the statusword ---------------------------------------------------------------------------
     def _statusword(self) -> int:
-        word = _BASE[self._state] | (Sw.REMOTE if self._powered else 0)
+        """The statusword now (plain ints: it is built at every cycle, for the TPDO)."""
+        word = _BASE[self._state] | (_REMOTE if self._powered else 0)
         if self._state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
-            return word | (Sw.FOLLOWING_ERROR if self._following_error else 0)
-        if self._mode == 1 and self._state is DriveState.OPERATION_ENABLED:
-            word |= Sw.TARGET_REACHED if self._reached else 0
-            word |= Sw.SET_POINT_ACKNOWLEDGE if self._ack else 0
-            word |= Sw.FOLLOWING_ERROR if self._following_error else 0
-        elif self._mode == 6 and self._state is DriveState.OPERATION_ENABLED:
-            word |= (Sw.TARGET_REACHED | Sw.SET_POINT_ACKNOWLEDGE) if self._homing_attained else 0
-            word |= Sw.FOLLOWING_ERROR if self._homing_error else 0
-        return int(word)
+            return word | (_FOLLOWING_ERROR if self._following_error else 0)
+        if self._state is not DriveState.OPERATION_ENABLED:
+            return word
+        if self._mode == 1:
+            word |= _TARGET_REACHED if self._reached else 0
+            word |= _ACKNOWLEDGE if self._ack else 0
+            word |= _FOLLOWING_ERROR if self._following_error else 0
+        elif self._mode == 6:
+            if self._homing_error:  # error, the head standing
+                word |= _FOLLOWING_ERROR | _TARGET_REACHED
+            elif self._homing_attained:
+                word |= _TARGET_REACHED | _ACKNOWLEDGE
+            elif self._homing_until is None:  # not started, or interrupted
+                word |= _TARGET_REACHED
+        return word
+
+    def _tpdo_live(self) -> bool:
+        """TPDO1 is valid, event-driven, and the drive OPERATIONAL: it may be sent."""
+        return (
+            self._tpdo_cob is not None
+            and self._powered
+            and self.node.nmt.state == "OPERATIONAL"
+            and self._values[(0x1800, 2)] >= 254
+        )
 
     def _publish(self) -> None:
-        """TPDO1 whenever the statusword changed (event-driven, type 254/255)."""
-        status = self._statusword()
-        if status == self._sent_status:
+        """TPDO1 as an event-driven PDO goes (type 254/255): when any mapped value changed
+        since the last one, or its event timer ran out; never within the inhibit time of the
+        last one (a change meanwhile is held until it expires: :meth:`_quiescent` keeps the
+        cycles running for it)."""
+        if not self._tpdo_live():
+            self._tpdo_held = False
             return
-        self._sent_status = status
-        cob = self._tpdo_cob
-        if cob is None or not self._powered or self.node.nmt.state != "OPERATIONAL":
+        frame = self._tpdo_frame()
+        last = self._sent_t
+        timer_ms = self._values[(0x1800, 5)]
+        due = last is not None and timer_ms > 0 and self._t - last >= timer_ms / 1000.0
+        if frame == self._sent_frame and not due:
+            self._tpdo_held = False
             return
-        if self._values[(0x1800, 2)] < 254:
+        inhibit_s = self._values[(0x1800, 3)] * 1e-4
+        if last is not None and self._t - last < inhibit_s:
+            self._tpdo_held = True
             return
-        self._transmit(cob)
-
-    def _transmit(self, cob: int) -> None:
+        self._tpdo_held = False
+        self._sent_frame, self._sent_t = frame, self._t
         if self._cut:
             return
-        frame = b""
-        for sub in range(1, self._values[(0x1A00, 0)] + 1):
-            entry = self._values[(0x1A00, sub)]
-            index, subindex, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
-            var = self.od.get_variable(index, subindex)
-            assert var is not None  # checked when mapped
-            frame += var.encode_raw(self._read_value(index, subindex))[: bits // 8]
+        assert self._tpdo_cob is not None
         try:
-            self.network.send_message(cob, frame)
+            self.network.send_message(self._tpdo_cob, frame)
+            self.tpdo_sent += 1
         except Exception as exc:  # the bus is closing: nobody is listening any more
             log.debug("%s: TPDO not sent (%s)", self.name, exc)
 
+    def _tpdo_frame(self) -> bytes:
+        """TPDO1's data as mapped now (built every cycle: its layout is kept until the mapping
+        changes)."""
+        layout = self._tpdo_layout
+        if layout is None:
+            layout = self._tpdo_layout = self._layout()
+        return b"".join(pack(read()) for read, pack in layout)
+
+    def _layout(self) -> list[tuple[Callable[[], int], Callable[[int], bytes]]]:
+        """Each mapped object of TPDO1: how to read it, how to pack it."""
+        layout: list[tuple[Callable[[], int], Callable[[int], bytes]]] = []
+        for sub in range(1, self._values[(0x1A00, 0)] + 1):
+            entry = self._values[(0x1A00, sub)]
+            index, subindex, nbytes = entry >> 16, (entry >> 8) & 0xFF, (entry & 0xFF) // 8
+            var = self.od.get_variable(index, subindex)
+            assert var is not None  # checked when mapped
+            read = self._dynamic_objects.get(index) or self._stored(index, subindex)
+            fmt = _PACK.get(var.data_type) if var.data_type is not None else None
+            pack = struct.Struct(fmt).pack if fmt is not None else _encoder(var, nbytes)
+            layout.append((read, pack))
+        return layout
+
+    def _stored(self, index: int, subindex: int) -> Callable[[], int]:
+        """A reader of a stored object's present value."""
+        key = (index, subindex)
+        return lambda: self._values[key]
+
     # -- object access ----------------------------------------------------------------------------
-    def _read_value(self, index: int, subindex: int) -> int:
-        dynamic: dict[int, Callable[[], int]] = {
+    def _dynamic(self) -> dict[int, Callable[[], int]]:
+        """The objects whose value is the drive's state, not a stored value."""
+        return {
             0x6041: self._statusword,
             0x6061: lambda: self._mode,
             0x6062: lambda: round(self._demand) if self._enabled() else self._actual(),
@@ -805,7 +1011,9 @@ class SimulatedDrive:
             0x60BA: lambda: self._tp_value,
             0x1001: lambda: self._error_register,
         }
-        read = dynamic.get(index)
+
+    def _read_value(self, index: int, subindex: int) -> int:
+        read = self._dynamic_objects.get(index)
         if read is not None:
             return read()
         return self._values[(index, subindex)]
@@ -841,6 +1049,8 @@ class SimulatedDrive:
             raise SdoAbortedError(0x06090030)
         if index == 0x6098 and value not in (35, 37):
             raise SdoAbortedError(0x06090030)
+        if index == 0x1800 and subindex == 3 and not self._values[(0x1800, 1)] & 0x8000_0000:
+            raise SdoAbortedError(0x08000022)  # the inhibit time changes only while invalid
         if index in (0x1600, 0x1A00):
             comm = 0x1400 if index == 0x1600 else 0x1800
             if not self._values[(comm, 1)] & 0x8000_0000:
@@ -873,13 +1083,14 @@ class SimulatedDrive:
             else:
                 self._controlword(value)
         elif index == 0x6060:
-            if value != self._mode:
-                self._mode = value
-                self._ack = False
-                self._ack_falling = False
-                self._homing_attained = self._homing_error = False
+            if self.variant.mode_at_cycle:
+                self._mode_pending = value
+            else:
+                self._take_mode(value)
         elif index == 0x60B8:
             self._touch_probe_function(value, old)
+        elif index == 0x1A00:
+            self._tpdo_layout = None
         elif index == 0x1016 and subindex == 1:
             self._set_consumer(value)
         elif index in (0x1400, 0x1800) and subindex == 1:
@@ -935,7 +1146,7 @@ class SimulatedDrive:
         """NMT commands for this node, after canopen's own slave has taken the state: entering
         OPERATIONAL sends the event PDO once; reset node (0x81) restarts the application and
         communication as a power-up does, reset communication (0x82) the communication
-        objects only (the CiA 402 state, the count and the motor record stay); both end with
+        objects only (the CiA 402 state, the count and the profile stay); both end with
         the boot-up message and pre-operational, as CiA 301 has it."""
         with self._lock:
             if len(data) < 2 or data[1] not in (0, self.node_id):
@@ -944,7 +1155,7 @@ class SimulatedDrive:
                 return
             command = data[0]
             if command == 0x01:
-                self._sent_status = None  # entering OPERATIONAL: the event PDO goes out once
+                self._sent_frame = None  # entering OPERATIONAL: the event PDO goes out once
                 self._advance()
                 self._publish()
             elif command in (0x81, 0x82):
@@ -1021,6 +1232,8 @@ class SimulatedDrive:
                     self._ack_falling = True  # bit 12 falls at the next cycle
             elif self._mode == 6 and rising:
                 self._home()
+            elif self._mode == 6 and not cw & Cw.NEW_SET_POINT:
+                self._homing_until = None  # bit 4 fell before the end: homing interrupted
         elif cw & Cw.NEW_SET_POINT and not prev & Cw.NEW_SET_POINT and self._mode == 1:
             self._violation(
                 DriveRule.SET_POINT_NOT_ENABLED,
@@ -1075,7 +1288,9 @@ class SimulatedDrive:
             self._reached = True
             self._window_s = 0.0
             self._following_s = 0.0
-            self._homing_attained = self._homing_error = False
+            self._homing_until = None
+            if not self.variant.keeps_homing_attained:
+                self._homing_attained = self._homing_error = False
         elif new is DriveState.QUICK_STOP_ACTIVE:
             self._ack = False
             self._ack_falling = False
@@ -1085,6 +1300,21 @@ class SimulatedDrive:
             self._ack = False
             self._ack_falling = False
             self._reached = False
+        if new is not DriveState.OPERATION_ENABLED:
+            self._homing_until = None  # a homing under way is interrupted
+
+    def _take_mode(self, mode: int) -> None:
+        """The drive runs ``mode`` from now (0x6061 shows it): a homing under way is
+        interrupted, and "homing attained" goes unless the drive keeps it."""
+        self._mode_pending = None
+        if mode == self._mode:
+            return
+        self._mode = mode
+        self._ack = False
+        self._ack_falling = False
+        self._homing_until = None
+        if not self.variant.keeps_homing_attained:
+            self._homing_attained = self._homing_error = False
 
     def _stop_ramp(self, decel: int) -> None:
         profile = self._profile
@@ -1093,8 +1323,10 @@ class SimulatedDrive:
         self._profile = _Profile(self._demand, vel, round(stop_at), abs(vel), decel, decel)
 
     def _parameters_set(self) -> bool:
-        needed: list[tuple[int, int]] = [(Obj.MOTOR_PARAMS, sub) for sub in range(1, 7)]
-        needed += [(0x6081, 0), (0x6083, 0), (0x6084, 0)]
+        """The master has loaded the profile (and the loop's record, on a drive with one)."""
+        needed = [(0x6081, 0), (0x6083, 0), (0x6084, 0)]
+        if self.variant.gain_record:
+            needed += [(GAIN_RECORD, sub) for sub in _GAIN_SUBS.values()]
         return all(key in self._configured for key in needed)
 
     def _set_point(self, cw: int) -> None:
@@ -1126,11 +1358,21 @@ class SimulatedDrive:
         self._window_s = 0.0
 
     def _home(self) -> None:
-        """Methods 35/37: the present position becomes the home offset; nothing moves."""
+        """Methods 35/37 started (bit 4's rising edge): in progress, and done at once or
+        ``homing_s`` later (:meth:`_finish_homing`); nothing moves."""
         method = self._values[(0x6098, 0)]
+        self._homing_attained = self._homing_error = False
         if method not in (35, 37):
             self._homing_error = True
             return
+        if self.variant.homing_s > 0.0:
+            self._homing_until = self._t + self.variant.homing_s
+        else:
+            self._finish_homing()
+
+    def _finish_homing(self) -> None:
+        """The present position becomes the home offset 0x607C: homing attained."""
+        self._homing_until = None
         actual = self._actual()
         shift = self._values[(0x607C, 0)] - actual
         self._offset += shift
@@ -1147,6 +1389,7 @@ class SimulatedDrive:
         self._ack_falling = False
         self._reached = False
         self._x_prev = self._mc_prev = 0
+        self._homing_until = None
         self._error_register |= 0x01
         self._send_emcy(code)
         self._publish()

@@ -33,13 +33,14 @@ __all__ = ["FaultPanel"]
 
 
 class FaultPanel:
-    """``rig.faults``: parity and bus errors, a hung supervisor, a locked pan shaft, a dead pan
-    amplifier, interrupt troubles (coalesced, spurious, dropped), a malformed PARAM answer, and
-    host latency (late interrupts, slow reads).
+    """``rig.faults``: parity and bus errors, the BIRIS crate's power, a hung supervisor, a
+    locked pan shaft, a dead pan amplifier, interrupt troubles (coalesced, spurious, dropped), a
+    malformed PARAM answer, and host latency (late interrupts, slow reads).
 
     ``seed`` (the rig's) seeds the late interrupts' delays unless a call gives its own;
     ``driver_windows`` returns the windows the driver reads through (``rig.hardware``'s), the
-    ones :meth:`slow_reads` slows.
+    ones :meth:`slow_reads` slows; ``remote_power(on)`` switches the BIRIS crate's power and
+    returns the BIRIS that powered up, if one did (the rig's; without it the panel has none).
     """
 
     def __init__(
@@ -53,8 +54,10 @@ class FaultPanel:
         *,
         seed: int = 0,
         driver_windows: Callable[[], Iterable[BusWindow]] = tuple,
+        remote_power: Callable[[bool], BirisSupervisor | None] | None = None,
     ) -> None:
         self._supervisor = supervisor
+        self._remote_power = remote_power
         self._board = board
         self._pan_drive = pan_drive
         """The pan's CiA 402 drive when the axes are on CAN (``axes="canopen"``): the motor
@@ -80,6 +83,26 @@ class FaultPanel:
     def bus_error(self) -> None:
         """A failed bus cycle on the BIRIS VMEbus: sticky status bit, level-2 interrupt."""
         self._coupler.bus_error()
+
+    def remote_power_off(self) -> None:
+        """The BIRIS crate loses power (or the coupler's cable comes out): the coupler reports
+        NO_CONNECT, every access across it times out (sticky TIMEOUT, a level-2 interrupt if
+        error interrupts are enabled, a BusError to the accessor), and BIRIS stops dead. The
+        host's crate (the Model 7600, the coupler's own node, a VM-USB) keeps running."""
+        self._power(False)
+
+    def remote_power_on(self) -> None:
+        """Power is back: the coupler connects again and BIRIS powers up afresh, not booted
+        (``rig.supervisor`` is then a new supervisor). A TIMEOUT the coupler latched stays set
+        until the driver writes CLR_ERROR, as its reset does."""
+        self._power(True)
+
+    def _power(self, on: bool) -> None:
+        if self._remote_power is None:
+            raise RuntimeError("this fault panel has no BIRIS crate to power (no rig behind it)")
+        powered_up = self._remote_power(on)
+        if powered_up is not None:
+            self._supervisor = powered_up
 
     # -- BIRIS -----------------------------------------------------------------------------------
     def hang_supervisor(self) -> None:
@@ -267,7 +290,10 @@ class FaultPanel:
 
     # -- all -------------------------------------------------------------------------------------
     def clear_all(self) -> None:
-        """Undo every fault that persists (the coupler's sticky bits are the driver's to clear)."""
+        """Undo every fault that persists (the coupler's sticky bits are the driver's to clear);
+        a BIRIS crate without power is powered on again."""
+        if self._remote_power is not None and not self._coupler.remote_powered:
+            self.remote_power_on()
         self.clear_hang()
         self.clear_stall()
         self.clear_dead_amplifier()

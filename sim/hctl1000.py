@@ -32,6 +32,10 @@ Interpretations where the datasheets found say nothing (docs/design.md):
   chip's own (R00H writes to it are ignored); F2 (unipolar) limits R08H to 80H..FFH; F4 is stored.
 * Reading R00H returns the flags, bit n = Fn; R05H reads 0. The HCTL-1000 has no position
   preset: R15H..R17H are ignored. Unmapped registers read 0 and ignore writes.
+* Any write to R13H clears the actual position counter (an HCTL-1100 fact applied to the 1000)
+  and the software reset (R05H = 00H) clears it too. Neither is verified for the HCTL-1000, so
+  a chip can be made to differ (:class:`ChipVariant`, ``chip.variant``): a driver that assumes
+  a clear without reading the counter back then commits a command far from the head.
 * Reading R0CH..R0EH returns the live command position; R0CH/R0DH writes are held until R0EH.
 * Proportional velocity: the command position follows the actual position, so leaving the mode
   holds the head where it is; R34H/R35H get the measured counts per sample.
@@ -59,7 +63,10 @@ Audit rules (recorded with the register values involved; a violation is a driver
   mode to position control while a trapezoid is still running (always) or the head turns faster
   than 0.5 counts/sample; (b) an R0EH write in position control commits a command more than
   16 counts from the actual position while the head turns faster than 0.5 counts/sample;
-  (c) R05H = 02H/03H enters position control while the head turns faster than 0.5 counts/sample.
+  (c) R05H = 02H/03H enters position control while the head turns faster than 0.5 counts/sample;
+  (d) R05H = 02H/03H enters position control with the command position more than
+  :data:`JUMP_COUNTS` from the actual position: the head jumps to it (a driver that zeroed the
+  command but not the counter, the report's HOME warning).
 * ``MOTION_WHILE_UNINITIALISED``: a trapezoid or velocity mode starts before both the filter gain
   (R22H) and the sample timer (R0FH) have been written since the last reset.
 * ``WRITE_TO_READ_ONLY``: any write to R12H, R14H, R34H or R35H (the write is ignored).
@@ -77,6 +84,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from regs.hctl1000 import (
     F_CLK_HZ,
@@ -97,6 +105,7 @@ __all__ = [
     "JUMP_COUNTS",
     "MOVING_COUNTS_PER_SAMPLE",
     "POWER_UP",
+    "ChipVariant",
     "Hctl1000",
     "Mode",
 ]
@@ -180,6 +189,21 @@ class Mode(enum.Enum):
     PROPORTIONAL_VELOCITY = "proportional velocity"
     INTEGRAL_VELOCITY = "integral velocity"
     TRAPEZOID = "trapezoid"
+
+
+@dataclass(frozen=True)
+class ChipVariant:
+    """How this chip differs from the model's reading of the datasheet (all True: as read).
+
+    Real HCTL-1000s were never seen by this project (docs/design.md): the variants are what a
+    driver must not take for granted, each proved by a test that fails on a driver that does.
+    """
+
+    r13h_clears: bool = True
+    """A write to R13H clears the actual position counter (False: the write does nothing)."""
+    reset_clears: bool = True
+    """The software reset (R05H = 00H) zeroes the actual position counter (False: the reset
+    restores every other register and leaves the counter counting)."""
 
 
 _MOVES = frozenset({Mode.TRAPEZOID, Mode.PROPORTIONAL_VELOCITY, Mode.INTEGRAL_VELOCITY})
@@ -271,7 +295,8 @@ class Hctl1000:
     the chip issues the last setpoint of a trapezoid and clears F0 -- which does not mean the head
     has stopped. ``head_limit`` (counts from true zero) turns on the ``HEAD_BEYOND_LIMIT`` audit
     of the plant's true position; it is a property of the axis's cable, not of the chip, so
-    only the pan axis has one.
+    only the pan axis has one. ``variant`` (:class:`ChipVariant`; settable at any time, like a
+    chip swapped between runs) says where this chip departs from the datasheet reading.
     """
 
     def __init__(
@@ -283,9 +308,11 @@ class Hctl1000:
         clock: Callable[[], float] | None = None,
         f_clk: float = F_CLK_HZ,
         head_limit: float | None = None,
+        variant: ChipVariant = ChipVariant(),  # frozen: sharing the default is harmless
     ) -> None:
         self.name = name
         self.plant = plant
+        self.variant = variant
         self._audit = audit
         self._clock = clock
         self._f_clk = float(f_clk)
@@ -307,8 +334,11 @@ class Hctl1000:
         self.reset()
 
     # -- reset and mode bookkeeping --------------------------------------------------------------
-    def reset(self) -> None:
-        """Board chip reset: power-up register values, init/idle, actual position counter 0."""
+    def reset(self, *, keep_counter: bool = False) -> None:
+        """Board chip reset: power-up register values, init/idle, actual position counter 0
+        (``keep_counter``: the counter goes on counting, as on a chip whose reset does not clear
+        it, :attr:`ChipVariant.reset_clears`)."""
+        counter: tuple[int, int] | None = (self._act_offset, self._actual) if keep_counter else None
         self._regs[:] = bytes(HCTL_SPACE)
         for reg, value in POWER_UP.items():
             self._regs[reg] = value
@@ -318,9 +348,12 @@ class Hctl1000:
         self._flags = _F1
         self._cmd = 0
         self._staged = [0, 0]  # R0CH, R0DH until R0EH commits
-        self._act_offset = self.plant.encoder_counts
-        self._actual = 0
-        self._hist_n = 0
+        if counter is None:
+            self._act_offset: int = self.plant.encoder_counts
+            self._actual: int = 0
+            self._hist_n = 0
+        else:
+            self._act_offset, self._actual = counter
         self._latch = 0
         self._x_prev = 0
         self._mc_prev = 0
@@ -487,7 +520,7 @@ class Hctl1000:
             self._staged[reg - Reg.CMD_POS_MSB] = value
         elif reg == Reg.CMD_POS_LSB:
             self._commit_command((self._staged[0] << 16) | (self._staged[1] << 8) | value)
-        elif reg == Reg.ACT_POS_MID:
+        elif reg == Reg.ACT_POS_MID and self.variant.r13h_clears:
             self._act_offset = self.plant.encoder_counts
             self._actual = 0
             self._hist_n = 0  # the counter's earlier readings are on another zero
@@ -523,7 +556,7 @@ class Hctl1000:
     def _write_program_counter(self, value: int) -> None:
         old = self.mode
         if value == 0x00:
-            self.reset()
+            self.reset(keep_counter=not self.variant.reset_clears)
             self._state = Mode.RESET
             return
         if value == 0x01:
@@ -542,11 +575,19 @@ class Hctl1000:
             return
         new = self.mode
         self._check_start(old, new)
-        if new is Mode.POSITION and old is not Mode.POSITION and self._moving():
-            self._record(
-                Rule.POSITION_MODE_WHILE_MOVING,
-                f"program counter 0x{value:02X} entered position control while the head turned",
-            )
+        if new is Mode.POSITION and old is not Mode.POSITION:
+            if self._moving():
+                self._record(
+                    Rule.POSITION_MODE_WHILE_MOVING,
+                    f"program counter 0x{value:02X} entered position control while the head turned",
+                )
+            elif abs(_wrap24(self._cmd - self._actual)) > JUMP_COUNTS:
+                self._record(
+                    Rule.POSITION_MODE_WHILE_MOVING,
+                    f"program counter 0x{value:02X} entered position control with the command "
+                    f"position {self._cmd} {self._cmd - self._actual} counts from the actual "
+                    f"{self._actual}: the head jumps to it",
+                )
         self._enter(old, new)
 
     def _commit_command(self, raw: int) -> None:

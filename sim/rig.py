@@ -8,18 +8,21 @@ also exposes what no driver can see: the true head azimuth, the fault panel and 
 
 from __future__ import annotations
 
+import ctypes
 import math
 import threading
 import uuid
+from collections.abc import Callable
 from types import TracebackType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from biris_hw.bus.base import BusWindow
+from biris_hw.bus.base import BusWindow, StructView
 from biris_hw.bus.memory import MemoryWindow
 from biris_hw.devices import LEVEL2_VECTOR
+from biris_hw.errors import BusError
 from biris_hw.hardware import BirisHardware
 from biris_hw.irq.eventfd import EventFdLine
 from biris_hw.timebase import ScaledTime, TimeBase, VirtualTime
@@ -112,12 +115,18 @@ Model 7600 and the coupler's node registers in A16 short I/O space."""
 
 _TWO_PI_PER_COUNT = 2.0 * math.pi / COUNTS_PER_REV
 
+_S = TypeVar("_S", bound=ctypes.Structure)
+
 
 class _DriverMemoryWindow(MemoryWindow):
     """The driver's view of BIRIS memory: the same bytes as the supervisor's, plus a tap on
     COMMAND writes, so the audit sees every write (field-rate polling alone would miss a
     rewrite of the same code), and a catch-up before every read, so that a starved supervisor
-    thread never shows the driver a BIRIS that lags behind the video fields."""
+    thread never shows the driver a BIRIS that lags behind the video fields.
+
+    Every access crosses the Bit 3 coupler first (``remote``, :meth:`sim.bit3.Bit3Coupler.
+    remote_access`): with the BIRIS crate powered off it times out and nothing is read or
+    written."""
 
     def __init__(
         self,
@@ -125,38 +134,58 @@ class _DriverMemoryWindow(MemoryWindow):
         buffer: bytearray | memoryview,
         command_offset: int,
         on_command: _CommandTap,
+        remote: Callable[[str, int, int], None],
     ) -> None:
         super().__init__(size, buffer=buffer)
         self._command_offset = command_offset
         self._on_command = on_command
+        self._remote = remote
 
     def read(self, offset: int, n: int) -> bytes:
+        self._remote("read", offset, n)
         self._on_command.catch_up()
         return super().read(offset, n)
 
     def read8(self, offset: int) -> int:
+        self._remote("read", offset, 1)
         self._on_command.catch_up()
         return super().read8(offset)
 
     def read16(self, offset: int) -> int:
+        self._remote("read", offset, 2)
         self._on_command.catch_up()
         return super().read16(offset)
 
     def read32(self, offset: int) -> int:
+        self._remote("read", offset, 4)
         self._on_command.catch_up()
         return super().read32(offset)
 
+    def write8(self, offset: int, value: int) -> None:
+        self._remote("write", offset, 1)
+        super().write8(offset, value)
+
     def write16(self, offset: int, value: int) -> None:
+        self._remote("write", offset, 2)
         super().write16(offset, value)
         if offset == self._command_offset:
             self._on_command(value)
 
+    def write32(self, offset: int, value: int) -> None:
+        self._remote("write", offset, 4)
+        super().write32(offset, value)
+
     def write(self, offset: int, data: bytes | bytearray | memoryview) -> None:
-        super().write(offset, data)
         raw = bytes(data)
+        self._remote("write", offset, len(raw))
+        super().write(offset, raw)
         if offset <= self._command_offset < offset + len(raw) - 1:
             at = self._command_offset - offset
             self._on_command(int.from_bytes(raw[at : at + 2], "big"))
+
+    def view(self, struct_type: type[_S], offset: int = 0) -> StructView[_S]:
+        """Not offered: a ctypes view would reach the memory without crossing the coupler."""
+        raise BusError("BIRIS memory through the simulated coupler has no ctypes views")
 
 
 class _CommandTap:
@@ -306,8 +335,10 @@ class SimulatedBiris:
         )
         """The vehicle's odometry as its base publishes it (50 Hz, hardware-clock stamps, the
         drift and noise of ``odometry``): ``rig.odometry.since(t)``, ``.wait(t)``, ``.latest()``."""
-        seeds = np.random.SeedSequence(seed).spawn(5)
-        rngs = [np.random.default_rng(s) for s in seeds]
+        self._seeds = np.random.SeedSequence(seed)
+        """Spawns the generators: five for the rig, then one for each BIRIS that powers up again
+        (:meth:`_remote_power`), so a run with power cycles is reproducible too."""
+        rngs = [np.random.default_rng(s) for s in self._seeds.spawn(5)]
         self._closed = False
         self._started = False
 
@@ -365,27 +396,15 @@ class SimulatedBiris:
 
         self._memory = biris_buffer if biris_buffer is not None else bytearray(self.memory_map.size)
         self._supervisor_window = MemoryWindow(self.memory_map.size, buffer=self._memory)
-        tap = _CommandTap()
+        self._tap = tap = _CommandTap()
         self._driver_window = _DriverMemoryWindow(
             self.memory_map.size,
             self._memory,
             self.memory_map.biexec_offset + biexec.OFF_COMMAND,
             tap,
+            self.coupler.remote_access,
         )
-        self.supervisor = BirisSupervisor(
-            self._supervisor_window,
-            self.memory_map,
-            self.clock,
-            self.level2_gate,
-            self._acquire,
-            self._exposure_azimuth,
-            audit=self.audit,
-            rng=rngs[4],
-            tilting=self._tilting,
-            elevation_counts=self._encoder_elevation,
-            true_elevation_counts=self._true_elevation,
-        )
-        tap.target = self.supervisor
+        self.supervisor = self._make_supervisor(rngs[4])
         self.faults = FaultPanel(
             self.supervisor,
             self.board,
@@ -395,6 +414,7 @@ class SimulatedBiris:
             pan_drive=self.drives.get(Axis.AZIMUTH),
             seed=self.seed,
             driver_windows=self._driver_windows,
+            remote_power=self._remote_power,
         )
         self._motion_window: BusWindow = self.board.window()
         self._coupler_window: BusWindow = self.coupler.window()
@@ -417,6 +437,56 @@ class SimulatedBiris:
             time_scale=time_scale,
             lag=self.lag_s,
         )
+
+    def _make_supervisor(self, rng: np.random.Generator) -> BirisSupervisor:
+        """BIRIS as it powers up (BIEXEC_COM clear, not booted), on the rig's memory and gate;
+        the driver's COMMAND tap reports to it."""
+        supervisor = BirisSupervisor(
+            self._supervisor_window,
+            self.memory_map,
+            self.clock,
+            self.level2_gate,
+            self._acquire,
+            self._exposure_azimuth,
+            audit=self.audit,
+            rng=rng,
+            tilting=self._tilting,
+            elevation_counts=self._encoder_elevation,
+            true_elevation_counts=self._true_elevation,
+        )
+        self._tap.target = supervisor
+        return supervisor
+
+    # -- the BIRIS crate's power (the fault panel's remote_power_off/on) ----------------------
+    def _remote_power(self, on: bool) -> BirisSupervisor | None:
+        """Power the BIRIS crate off or on again; returns the BIRIS that powered up, if any.
+
+        Off: the coupler reports NO_CONNECT and every driver access to BIRIS memory times out
+        (:meth:`~sim.bit3.Bit3Coupler.remote_access`); BIRIS stops where it is (no command
+        completes, nothing is acquired or raised). On: the coupler connects again and BIRIS
+        powers up afresh -- a new :attr:`supervisor` (BIEXEC_COM clear, not booted, its RAM
+        disk as at power-up), the old one stopped. Either does nothing if already so.
+
+        The Model 7600 and the coupler's own node are in the host's crate and keep running;
+        with ``transport="vmusb"`` so is the VM-USB, which answers an access across the
+        powered-off coupler with a VME bus error. Other transports: see docs/faults.md.
+        """
+        if self._closed:
+            raise RuntimeError("the simulator has been shut down")
+        if not on:
+            if self.coupler.remote_powered:
+                self.coupler.remote_power_off()
+                self.supervisor.hang()
+            return None
+        if self.coupler.remote_powered:
+            return None
+        old = self.supervisor
+        old.stop()  # a participant may join it (a wait in the time base)
+        self.supervisor = self._make_supervisor(np.random.default_rng(self._seeds.spawn(1)[0]))
+        if self._started:
+            self.supervisor.start()
+        self.coupler.remote_power_on()
+        return self.supervisor
 
     # -- the crate's monitor on CAN ------------------------------------------------------------
     def _add_crate(self, poll_s: float) -> None:

@@ -11,6 +11,14 @@ writing 1. The azimuth chip also audits the pan head's *true* position after eve
 (``HEAD_BEYOND_LIMIT``, see :mod:`sim.hctl1000`): the cable allows +-0x1000 counts from true zero
 plus the filter's overshoot, whatever the chip's counter reads.
 
+Every board register is our reading (no Model 7600 manual survives), so a board can be made to
+differ where a driver might otherwise take the reading for granted (:class:`BoardVariant`,
+``board.variant``, settable at any time under ``board.lock``): a CHIP_RESET that does nothing,
+an INDEX_STATUS that shows the live index level (asserted while the encoder is within
+``index_width`` counts past true zero, modulo a revolution; writes are ignored) instead of a
+latch, or a latch that a write does not clear. Each chip has variants of its own
+(:class:`sim.hctl1000.ChipVariant`, ``board.azimuth.variant``).
+
 Time: both chips are caught up to ``clock.now()`` on every bus access (whole sample periods, each
 chip at its own period), and a background thread (:meth:`Model7600.start`) keeps them moving so
 that profile ends, and their interrupts, happen on time without any bus access: it waits, through
@@ -29,6 +37,8 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -41,11 +51,37 @@ from sim.device import DeviceWindow
 from sim.hctl1000 import ACCESS_TICKS, HEAD_LIMIT_COUNTS, Hctl1000
 from sim.motor import MotorPlant
 
-__all__ = ["Model7600"]
+__all__ = ["INDEX_KINDS", "BoardVariant", "Model7600"]
 
 log = logging.getLogger(__name__)
 
 _AXIS_BITS = (int(AxisBit.AZIMUTH), int(AxisBit.ELEVATION))
+
+INDEX_KINDS = ("latch", "level", "stuck")
+"""What INDEX_STATUS shows: a latch set when the head crosses the index and cleared by writing 1
+(the reading the driver homes with by default), the index's live level, or a latch that a write
+does not clear."""
+
+
+@dataclass(frozen=True)
+class BoardVariant:
+    """How this board differs from our reading of it (the defaults: as read)."""
+
+    chip_reset: bool = True
+    """A write of 1 to CHIP_RESET resets that axis's chip (False: the register does nothing)."""
+    index: Literal["latch", "level", "stuck"] = "latch"
+    """See :data:`INDEX_KINDS`."""
+    index_width: float = 1.0
+    """Counts the index level stays asserted past each multiple of a revolution (``index =
+    "level"``): one quadrature count, a gated index."""
+
+    def __post_init__(self) -> None:
+        if self.index not in INDEX_KINDS:
+            raise ValueError(f"index must be one of {', '.join(INDEX_KINDS)}, not {self.index!r}")
+        if not (math.isfinite(self.index_width) and 0.0 < self.index_width < 2048.0):
+            raise ValueError(f"index_width must be in (0, 2048) counts, not {self.index_width}")
+
+
 _POLL_REAL_S = 0.002
 """Longest sleep of the background thread between catch-ups, in real seconds at the clock's
 scale (``timeout_hw``: the same hardware time in virtual time, at the nominal scale). It bounds
@@ -98,6 +134,8 @@ class Model7600:
         self._irq_vector = 0
         self._irq_enable = 0
         self._irq_status = 0
+        self.variant = BoardVariant()
+        """Where this board departs from our reading (module notes); change it under ``lock``."""
         self._tb = clock.timebase
         self._wake = self._tb.Condition(self.lock)
         """The background thread waits on it (releasing ``lock``); stop() and a bus write that
@@ -247,6 +285,8 @@ class Model7600:
             return self._irq_status
         if offset == BoardReg.INDEX_STATUS:
             seen = zip(_AXIS_BITS, self.plants, strict=True)
+            if self.variant.index == "level":
+                return sum(bit for bit, plant in seen if self._on_index(plant))
             return sum(bit for bit, plant in seen if plant.index_seen)
         if offset == BoardReg.IRQ_LEVEL:
             return MOTOR_IRQ_LEVEL
@@ -260,10 +300,14 @@ class Model7600:
         elif offset == BoardReg.IRQ_STATUS:
             self._irq_status &= ~value
         elif offset == BoardReg.CHIP_RESET:
+            if not self.variant.chip_reset:
+                return
             for bit, chip in zip(_AXIS_BITS, self.chips, strict=True):
                 if value & bit:
                     chip.reset()
         elif offset == BoardReg.INDEX_STATUS:
+            if self.variant.index != "latch":
+                return  # a live level, or a latch that does not clear
             for bit, plant in zip(_AXIS_BITS, self.plants, strict=True):
                 if value & bit:
                     plant.clear_index()
@@ -274,6 +318,12 @@ class Model7600:
                 REGISTER=offset,
                 VALUE=value,
             )
+
+    def _on_index(self, plant: MotorPlant) -> bool:
+        """The index's live level: the head within ``index_width`` counts past a multiple of a
+        revolution (the plant's true position; the encoder counts from elsewhere)."""
+        cpr = plant.params.counts_per_rev
+        return plant.true_azimuth_counts % cpr < self.variant.index_width
 
     # -- backdoor --------------------------------------------------------------------------------
     def window(self) -> DeviceWindow:

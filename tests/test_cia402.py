@@ -19,6 +19,7 @@ import pytest
 
 from biris_hw.axes import MotionAxis, MotionController
 from biris_hw.axes.cia402 import (
+    DEFAULT_HOMING_METHOD,
     HOMING_METHODS,
     TOUCH_PROBE_INDEX,
     Cia402Axes,
@@ -46,6 +47,9 @@ NODE = 3
 SCALE = 10.0
 WAIT = 5.0
 """Seconds for what should happen almost at once; reached only when a test fails."""
+HEARTBEAT_TIMEOUT_S = 0.5
+"""Real seconds of silence before either end declares the other lost: a loaded test host can
+stall a thread for a couple of hundred ms, which is no lost drive."""
 START_AZIMUTH = -300.4
 """Where the head wakes, counts from true zero: the index is at encoder count 300/301."""
 
@@ -89,7 +93,10 @@ def rig(no_leaks: None, request: pytest.FixtureRequest) -> Iterator[Rig]:
     plant = MotorPlant(np.random.default_rng(1), initial_azimuth_counts=START_AZIMUTH)
     drive = SimulatedDrive(channel, NODE, plant, clock)
     bus = Cia402Bus(
-        interface="virtual", channel=channel, heartbeat_period_s=0.02, heartbeat_timeout_s=0.15
+        interface="virtual",
+        channel=channel,
+        heartbeat_period_s=0.02,
+        heartbeat_timeout_s=HEARTBEAT_TIMEOUT_S,
     )
     axis = Cia402Axis(bus, NODE, Axis.AZIMUTH, clock, SCALE)
     faulted = threading.Event()
@@ -134,15 +141,18 @@ def test_start_configures_the_drive_without_a_violation(rig: Rig) -> None:
     assert [drive.value(0x1600, s) for s in range(3)] == [2, 0x60400010, 0x607A0020]
     assert drive.value(0x1800, 1) == 0x180 + NODE
     assert drive.value(0x1800, 2) == 255  # event-driven
-    assert [drive.value(0x1A00, s) for s in range(3)] == [2, 0x60410010, 0x60640020]
+    assert (drive.value(0x1800, 3), drive.value(0x1800, 5)) == (0, 0)  # no inhibit, no timer
+    assert [drive.value(0x1A00, s) for s in range(2)] == [1, 0x60410010]  # the statusword alone
     assert drive.value(0x6060) == 1  # profile position
     assert drive.value(0x1017) == 20  # heartbeat producer, ms
-    assert drive.value(0x1016, 1) == (0x7F << 16) | 150  # consumer of the bus's heartbeat
+    assert drive.value(0x1016, 1) == (0x7F << 16) | 500  # consumer of the bus's heartbeat
     assert drive.value(0x60B8) == TOUCH_PROBE_INDEX
     assert drive.state is DriveState.SWITCH_ON_DISABLED
 
 
 def test_parameters_round_trip_and_convert_to_profile_objects(rig: Rig) -> None:
+    """A stock drive holds the converted profile: read_params names the set that converts to
+    what it holds (nothing else is written: no gain objects are named)."""
     params = MotorParams(sample=0x9F, zero=0x70, pole=0xE0, gain=0x40, max_vel=3, max_accel=0x2000)
     rig.axis.configure(params)
     assert rig.axis.read_params() == params.to_dict()
@@ -384,13 +394,15 @@ def test_a_stalled_motor_faults_and_its_move_ends_unsettled_far_from_its_target(
 
 
 def test_sdo_errors_name_the_node_and_the_object(rig: Rig) -> None:
-    other = Cia402Axis(rig.bus, NODE, Axis.ELEVATION, rig.clock, SCALE, params_index=0x2100)
+    """A gain object the (stock) drive does not have: its abort names the node, the object and
+    what it was to hold."""
+    other = Cia402Axis(rig.bus, NODE, Axis.ELEVATION, rig.clock, SCALE, gains={"zero": "0x2100:2"})
     with pytest.raises(DriveBusError) as caught:
         other.configure(MotorParams())
     text = str(caught.value)
     assert f"node {NODE}" in text
-    assert "0x2100:01" in text
-    assert "motor parameter sample" in text
+    assert "0x2100:02" in text
+    assert "motor parameter zero" in text
 
 
 def test_an_absent_drive_is_a_bus_error(rig: Rig) -> None:
@@ -411,15 +423,17 @@ def test_a_drive_that_loses_the_masters_heartbeat_faults(rig: Rig) -> None:
 
 def test_node_ids_and_homing_methods_have_one_rule(no_leaks: None) -> None:
     """The driver's rule (what the target file's check uses too): node ids 1..127, homing on
-    the current position by 35 or 37 only; Cia402Axes applies it before it opens a bus."""
+    the current position by 37 (35 in the older numbering) only, 37 by default; Cia402Axes
+    applies it before it opens a bus."""
     for node in (1, 127):
         assert check_node_id(node) == node
     for bad in (0, 128, True, 2.0):
         with pytest.raises(ValueError, match=r"must be in 1\.\.127"):
             check_node_id(bad)
-    assert [check_homing_method(m) for m in HOMING_METHODS] == [35, 37]
+    assert [check_homing_method(m) for m in HOMING_METHODS] == [37, 35]
+    assert DEFAULT_HOMING_METHOD == 37
     for bad in (36, 34, True):
-        with pytest.raises(ValueError, match=r"^homing_method: must be 35 or 37 \("):
+        with pytest.raises(ValueError, match=r"^homing_method: must be 37 \(homing on the"):
             check_homing_method(bad)
     channel = f"t-{uuid.uuid4().hex}"
     with pytest.raises(ValueError, match="pan_node"):

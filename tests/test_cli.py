@@ -68,8 +68,8 @@ def test_every_command_has_help(biris: Run, name: str) -> None:
     code, out, err = biris(name, "--help")
     assert code == 0, err
     assert out.startswith(f"usage: biris {name}")
-    if name in ("regdump", "sim", "replay", "reset", "grid"):
-        return  # their own flags (replay and grid read a file, reset asks a service)
+    if name in ("regdump", "sim", "replay", "reset", "grid", "list"):
+        return  # their own flags (replay and grid read a file, reset and list ask services)
     flags = ["--scene", "--samples", "--time-scale", "--seed", "--debug"]
     if name != "demo":  # the demo is the simulator's by definition
         flags += ["--sim", "--target", "--init"]

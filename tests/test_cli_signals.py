@@ -174,6 +174,7 @@ def test_sigterm_stops_the_service_in_order() -> None:
         code, out, err = _finish(proc)
     assert code == EXIT_TERMINATED, err
     assert out == "stopping sig\n"
-    lines = err.splitlines()
+    # a loaded host adds the simulator's lag warning anywhere: not what is tested here
+    lines = [line for line in err.splitlines() if "cannot keep up with" not in line]
     assert lines[-2].endswith(" INFO serve: stopping sig"), err
     assert lines[-1].endswith(" INFO service: service 'sig' down"), err

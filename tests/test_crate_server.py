@@ -135,7 +135,7 @@ def test_the_crate_reaches_network_clients_diagnostics_and_watch(
     # diagnostics: one status for the crate, ERROR with its alarm
     encoded = diagnostics(status, 1.0)
     msg = typestore().deserialize_cdr(encoded.data, encoded.msgtype)
-    (item,) = [s for s in msg.status if s.name == "biris: VME crate"]
+    (item,) = [s for s in msg.status if s.name == "VME crate"]
     assert item.level == 2 and "channel 3" in item.message
     values = {kv.key: kv.value for kv in item.values}
     assert values["power"] == "on" and values["fan1.rpm"] == str(crate.fans_rps[0] * 60)
@@ -149,7 +149,7 @@ def test_an_unreachable_crate_crosses_the_wire_as_an_error() -> None:
     assert back.crate is None and back.crate_error == "no answer from crate 7"
     encoded = diagnostics(status, 0.0)
     msg = typestore().deserialize_cdr(encoded.data, encoded.msgtype)
-    (item,) = [s for s in msg.status if s.name == "biris: VME crate"]
+    (item,) = [s for s in msg.status if s.name == "VME crate"]
     assert item.level == 1 and item.message == "no answer from crate 7"
 
 

@@ -21,6 +21,7 @@ from biris_hw.data import Point
 from biris_hw.errors import ConnectionClosed
 from biris_hw.server import messages as m
 from biris_hw.server.encoders import MOVING_PERIOD_S, REST_PERIOD_S
+from biris_hw.server.isr import COUPLER_WATCH_S
 from biris_hw.status import ServerState, ServerStatus
 from sim import SimulatedBiris
 from tests.conftest import WAIT, RigFactory, join, spawn
@@ -51,7 +52,11 @@ def test_a_watcher_of_an_idle_sensor_costs_nothing(make_rig: RigFactory) -> None
             server.status(newer_than=status.change, timeout=_seconds(rig, 10.0))
         assert server.clock() - begun >= 10.0
         assert sum(posts.snapshot().values()) == 0  # the wait was spent on the bulletin
-        assert sum(reads.snapshot().values()) == 0
+        # nothing is read but the coupler's status, once a COUPLER_WATCH_S: a crate that loses
+        # power is the one thing an idle sensor must still notice (issue 26)
+        read = reads.snapshot()
+        assert set(read) <= {"coupler"}
+        assert read["coupler"] <= (server.clock() - begun) / COUPLER_WATCH_S + 1
 
 
 def test_a_change_is_pushed_to_a_waiting_watcher(make_rig: RigFactory) -> None:

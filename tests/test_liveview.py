@@ -29,6 +29,7 @@ from biris_hw import BirisServer
 from biris_hw.cli import build_parser
 from biris_hw.commands import session as cli_session
 from biris_hw.commands import view as view_command
+from biris_hw.errors import ConnectionLost
 from biris_hw.io import codec as ros2
 from biris_hw.io import liveview
 from biris_hw.io.liveview import FAULT_POLL_S, LiveView
@@ -120,13 +121,14 @@ def test_live_view_advertises_and_delivers_decodable_messages(tmp_path: Path) ->
     assert sum(m.width for m in sweep) == swept
     pieces = np.concatenate([cloud_xyz(m) for m in sweep])
     np.testing.assert_allclose(pieces, np.concatenate([s.points() for s in scans]), atol=1e-5)
-    assert got["/diagnostics"][0].status[0].name == "biris: server"
+    assert got["/diagnostics"][0].status[0].name == "server"  # shown as "biris: server"
 
 
 def test_the_layout_keeps_the_sweep_pieces_long_enough_to_show_a_sweep() -> None:
-    """docs/foxglove-layout.json shows every cloud topic in its 3-D panel; /biris/sweep carries
-    only the points since its previous message, so the panel must keep them (a decay time)."""
-    layout = json.loads((Path(__file__).parents[1] / "docs" / "foxglove-layout.json").read_text())
+    """The layout (liveview.LAYOUT_FILE) shows every cloud topic in its 3-D panel; /biris/sweep
+    carries only the points since its previous message, so the panel must keep them (a decay
+    time)."""
+    layout = json.loads(liveview.LAYOUT_FILE.read_text())
     topics = layout["configById"]["3D!biris"]["topics"]
     clouds = {t for t, msgtype in ros2.TOPICS.items() if msgtype == ros2.POINT_CLOUD2}
     assert clouds <= set(topics)
@@ -187,7 +189,7 @@ def test_a_fault_shows_on_diagnostics_while_the_view_serves_on(
                 if len(errors) == 2:  # said again at the status period: the view goes on
                     break
         for status in errors:
-            assert status.name == "biris: server"
+            assert status.name == "server"
             assert status.message == "fault:parity: parity error on the coupler"
         assert not view.failed.is_set()
         assert 1 <= view.faults_met <= 2 + (time.monotonic() - faulted) / FAULT_POLL_S
@@ -370,3 +372,152 @@ def test_a_script_that_forgets_close_ends_and_its_view_is_closed_at_exit() -> No
     port = int(done.stdout)
     closed = f"live view on ws://127.0.0.1:{port} closed: its owner had not closed it"
     assert closed in done.stderr.splitlines(), done.stderr
+
+
+# -- log times: the hardware clock's, or the host's wall clock -------------------------------------
+
+
+class _Clocked:
+    """A sensor as LogTimes.anchor_to sees it: a status (that may fail) and a clock."""
+
+    def __init__(self, clock: float, fails: bool = False) -> None:
+        self.clock_s = clock
+        self.fails = fails
+        self.asked = 0
+
+    def status(self) -> None:
+        self.asked += 1
+        if self.fails:
+            raise ConnectionLost("the service cannot be reached now")
+
+    def clock(self) -> float:
+        return self.clock_s
+
+
+def test_wall_log_times_move_every_stamp_by_one_offset() -> None:
+    """The offset is measured once (wall now minus the sensor's clock now, a status asked first
+    to bring a network sensor's clock up to date); intervals stay the hardware's, a late message
+    included; a clock that goes back by more than RESTART_S (a restart) is measured afresh;
+    hardware log times are the stamps."""
+    wall = iter([1_700_000_000_000_000_000, 1_700_000_100_000_000_000])
+    times = ros2.LogTimes("wall", wall_ns=lambda: next(wall))
+    sensor = _Clocked(100.0)
+    times.anchor_to(sensor)
+    assert sensor.asked == 1 and times.offset_ns == 1_700_000_000_000_000_000 - 100 * 10**9
+    assert times(100 * 10**9) == 1_700_000_000_000_000_000
+    assert times(102_500_000_000) - times(100 * 10**9) == 2_500_000_000  # late by 2.5 s
+    assert times.anchors == 1
+    assert times(3 * 10**9) == 1_700_000_100_000_000_000  # back by 99.5 s: a restarted clock
+    assert times.anchors == 2
+    hardware = ros2.LogTimes()
+    hardware.anchor_to(_Clocked(10.0))
+    assert hardware(123) == 123 and hardware.offset_ns == 0 and hardware.anchors == 0
+
+
+def test_a_stamp_is_hardware_or_wall() -> None:
+    with pytest.raises(ValueError, match="stamp must be one of hardware, wall"):
+        ros2.LogTimes("gps")  # type: ignore[arg-type]
+
+
+def test_without_a_clock_the_first_message_measures_the_offset() -> None:
+    """A sensor that cannot say its time yet (a replay not begun, a service out of reach)."""
+    times = ros2.LogTimes("wall", wall_ns=lambda: 5 * 10**18)
+    for sensor in (_Clocked(0.0), _Clocked(3.0, fails=True)):
+        times.anchor_to(sensor)
+    assert times.anchors == 1  # the one that failed its status still had a clock: 3.0
+    late = ros2.LogTimes("wall", wall_ns=lambda: 5 * 10**18)
+    late.anchor_to(_Clocked(0.0))
+    assert late.offset_ns is None and late(7 * 10**9) == 5 * 10**18
+
+
+def test_the_live_view_logs_on_the_wall_clock_and_keeps_hardware_stamps(tmp_path: Path) -> None:
+    scans = synthetic_scans(2)
+    replay = ReplayServer(write_raw(tmp_path / "run.mcap", scans), speed=None, autostart=False)
+    view = LiveView(replay, port=0, stamp="wall", status_period_s=0.05)
+    before = time.time_ns()
+    with replay, view, connect(f"ws://127.0.0.1:{view.port}", subprotocols=[SUBPROTOCOL]) as ws:
+        subs = _subscribe(ws, ["/biris/profile"])
+        replay.start()
+        offsets = set()
+        received = 0
+        while received < 20:  # profiles of both scans' acquisitions
+            frame = ws.recv(timeout=WAIT)
+            if not (isinstance(frame, bytes) and frame[0] == 1):
+                continue
+            sub, log_time = struct.unpack_from("<IQ", frame, 1)
+            message = STANDARD.deserialize_cdr(frame[13:], subs[sub]["schemaName"])
+            stamp = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
+            assert 10 * 10**9 <= stamp <= 20 * 10**9  # the hardware clock's seconds, as recorded
+            offsets.add(log_time - stamp)
+            received += 1
+    (offset,) = offsets
+    assert offset == view.log_times.offset_ns
+    assert before - 20 * 10**9 <= offset + 10 * 10**9 <= time.time_ns()  # today, not 1970
+
+
+def test_a_recording_logs_on_the_wall_clock_when_asked_and_says_so(tmp_path: Path) -> None:
+    """The same data recorded twice: on the wall clock every message is logged one offset later
+    than on the hardware clock, the offset the metadata gives, today's date; the messages are
+    the same bytes (their stamps the hardware's)."""
+    from mcap.reader import make_reader
+
+    from biris_hw.io.record import Recorder
+
+    data_topics = ("/biris/profile", "/tf", "/biris/points", "/biris/raw/point", "/biris/raw/scan")
+    found: dict[str, list[tuple[str, int, bytes]]] = {}
+    records: dict[str, dict[str, dict[str, str]]] = {}
+    for stamp in ("wall", "hardware"):
+        out = tmp_path / f"{stamp}.mcap"
+        source = ReplayServer(
+            write_raw(tmp_path / "source.mcap", synthetic_scans(2)), speed=None, autostart=False
+        )
+        with source, Recorder(source, out, stamp=stamp) as recorder:  # type: ignore[arg-type]
+            source.start()
+            assert source.wait_done(WAIT)
+        assert recorder.summary is not None and recorder.summary.complete
+        with open(out, "rb") as f:
+            reader = make_reader(f)
+            records[stamp] = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+            found[stamp] = [
+                (channel.topic, message.log_time, bytes(message.data))
+                for _schema, channel, message in reader.iter_messages(log_time_order=False)
+            ]
+    for stamp in ("wall", "hardware"):
+        assert records[stamp]["biris"]["log_time"] == stamp
+        assert records[stamp]["biris.recording"]["log_time"] == stamp
+    assert "log_time_offset_ns" not in records["hardware"]["biris.recording"]
+    offset = int(records["wall"]["biris.recording"]["log_time_offset_ns"])
+    assert abs(offset + 10 * 10**9 - time.time_ns()) < 600 * 10**9  # today, not 1970
+    for topic in data_topics:
+        wall = [(t, data) for name, t, data in found["wall"] if name == topic]
+        hardware = [(t, data) for name, t, data in found["hardware"] if name == topic]
+        assert wall and [d for _, d in wall] == [d for _, d in hardware], topic
+        assert {w - h for (w, _), (h, _) in zip(wall, hardware, strict=True)} == {offset}, topic
+    assert min(t for _, t, _ in found["wall"]) >= offset  # every message moved, none in 1970
+    profile = next(data for name, _, data in found["hardware"] if name == "/biris/profile")
+    header = ros2.typestore().deserialize_cdr(profile, ros2.POINT_CLOUD2).header
+    first = next(t for name, t, _ in found["hardware"] if name == "/biris/profile")
+    assert first == header.stamp.sec * 10**9 + header.stamp.nanosec  # hardware: the stamp
+
+
+def test_the_sdk_takes_its_own_subprotocol_only_and_any_origin(tmp_path: Path) -> None:
+    """What the module tells of the viewers and of who can connect, as foxglove-sdk does it: the
+    old name ``foxglove.websocket.v1`` is refused (HTTP 400: Foxglove Studio 1.x and Lichtblick
+    before 1.22.1 cannot connect), ``foxglove.sdk.v1`` is taken, and so is a page of any
+    origin. A later SDK that changes either fails this, and the documents should change."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.typing import Origin, Subprotocol
+
+    recording = write_raw(tmp_path / "run.mcap", synthetic_scans(1))
+    with (
+        ReplayServer(recording, autostart=False) as replay,
+        LiveView(replay, port=0, layout_port=None) as view,
+    ):
+        url = f"ws://127.0.0.1:{view.port}"
+        assert "layout" not in view.urls and "open" not in view.urls
+        with pytest.raises(InvalidStatus, match="HTTP 400"):
+            connect(url, subprotocols=[Subprotocol("foxglove.websocket.v1")], open_timeout=WAIT)
+        offered = [Subprotocol(liveview.SUBPROTOCOL)]
+        with connect(url, subprotocols=offered, origin=Origin("https://any.example")) as ws:
+            assert ws.subprotocol == liveview.SUBPROTOCOL
+            assert json.loads(ws.recv(timeout=WAIT))["op"] == "serverInfo"

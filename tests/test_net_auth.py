@@ -95,6 +95,7 @@ def test_cli_reaches_a_service_behind_link_authentication(
         assert code == 0 and "idle" in out
         password_file = tmp_path / "link.txt"
         password_file.write_text("link-pw\n")
+        password_file.chmod(0o600)  # a secret others may read is refused, as ssh refuses one
         monkeypatch.delenv(LINK_PASSWORD_ENV)
         code, out = run("--link-user", "robot", "--link-password-file", str(password_file))
         assert code == 0 and "idle" in out

@@ -154,6 +154,7 @@ def test_cli_serve_and_watch_connect(tmp_path: Path, no_leaks: None) -> None:
     where = endpoint(port)
     credentials = tmp_path / "service.toml"
     credentials.write_text('[controllers]\nop = "pw"\n')
+    credentials.chmod(0o600)  # a secret others may read is refused
     serve = Helper(
         [
             "cli-serve",

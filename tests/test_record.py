@@ -108,7 +108,7 @@ def test_recording_a_sweeping_sensor_reads_back_everywhere(tmp_path: Path) -> No
     for topic in ("/biris/profile", "/tf", "/biris/raw/point"):
         assert sum(1 for m in messages if m[0] == topic) >= acquisitions
     diagnostics = [m[2] for m in messages if m[0] == "/diagnostics"]
-    assert diagnostics and diagnostics[-1].status[0].name == "biris: server"
+    assert diagnostics and diagnostics[-1].status[0].name == "server"
     meta = _metadata(out)
     assert meta["biris"]["software"].startswith("biris-hw ")
     assert "init_record" in meta["biris"] and meta["biris"]["scene"].startswith("Scene(")

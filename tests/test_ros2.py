@@ -80,12 +80,12 @@ def test_diagnostics_levels_follow_the_state() -> None:
         return [(s.name, s.level) for s in msg.status]
 
     ok = codec.diagnostics(status(ServerState.IDLE), 1.0, extra={"recorder": {"dropped_points": 0}})
-    assert levels(ok) == [("biris: server", 0), ("biris: recorder", 0)]
+    assert levels(ok) == [("server", 0), ("recorder", 0)]
     bad = codec.diagnostics(
         status(ServerState.FAULT, "bus"), 1.0, extra={"recorder": {"dropped_points": 2}}
     )
-    assert levels(bad) == [("biris: server", 2), ("biris: recorder", 1)]
-    assert levels(codec.diagnostics(None, 1.0, error="gone")) == [("biris: server", 2)]
+    assert levels(bad) == [("server", 2), ("recorder", 1)]
+    assert levels(codec.diagnostics(None, 1.0, error="gone")) == [("server", 2)]
     assert codec.stamp_ns(1.5) == 1_500_000_000 and codec.stamp_ns(-1.0) == 0
     assert math.isclose(codec.stamp_ns(2.25) / 1e9, 2.25)
 

@@ -461,7 +461,9 @@ def test_biris_reset_connect(
         assert (code, out) == (2, ""), err
         # the service's warning comes first: it runs in this process, and its log with it
         assert err.splitlines()[-1] == (
-            "biris reset: reset: needs a controller's credentials; nothing was done"
+            "biris reset: reset: the service refused the credentials of user 'op' (a wrong"
+            " password or an unknown user, or a reader's rather than a controller's); nothing was"
+            " done"
         )
         assert server.status().state is ServerState.FAULT  # nothing done
         monkeypatch.setenv("BIRIS_PASSWORD", "pw")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from biris_hw.axes.cia402 import Cia402Axes, Cia402Axis
+from biris_hw.axes.cia402 import Cia402Axes, Cia402Axis, GainObject
 from biris_hw.errors import RequestError
 from biris_hw.target import TARGET_KEYS, load_target, target_from_dict
 from tests.conftest import Run
@@ -76,7 +76,37 @@ def test_an_axes_table_opens_cia402_drives_on_the_named_bus(tmp_path: Path, no_l
         ('kind = "cia402"\npan_node = 2\ntilt_node = 3.0', r"axes\.tilt_node: must be an integer"),
         (
             'kind = "cia402"\npan_node = 2\ntilt_node = 3\nhoming_method = 36',
-            r"axes\.homing_method: must be 35 or 37 \(homing on the current position\), not 36$",
+            r"axes\.homing_method: must be 37 \(homing on the current position\), or 35 for a "
+            r"drive of the older numbering, not 36$",
+        ),
+        (
+            'kind = "cia402"\npan_node = 2\ntilt_node = 3\nparams_index = 0x2000',
+            r"axes\.params_index: not an option: .*\[axes\.gains\]",
+        ),
+        (
+            'kind = "cia402"\npan_node = 2\ntilt_node = 3\n[axes.gains]\nmax_vel = "0x2000:5"',
+            r"axes\.gains\.max_vel: not a value a drive's own object takes .*0x6081",
+        ),
+        (
+            'kind = "cia402"\npan_node = 2\ntilt_node = 3\n[axes.gains]\nzero = "0x2000"',
+            r"axes\.gains\.zero: '0x2000' is not INDEX:SUB\[:TYPE\]",
+        ),
+        (
+            'kind = "cia402"\npan_node = 2\ntilt_node = 3\n[axes.gains]\nzero = "0x6081:0"',
+            r"axes\.gains\.zero: 0x6081 is not a manufacturer object",
+        ),
+        (
+            'kind = "cia402"\npan_node = 2\ntilt_node = 3\n[axes.gains]\nzero = "0x2000:1:f32"',
+            r"axes\.gains\.zero: type 'f32' is none of u8, u16",
+        ),
+        (
+            'kind = "cia402"\npan_node = 2\ntilt_node = 3\n[axes.gains]\nzero = 0x2000',
+            r"axes\.gains\.zero: must be a string such as",
+        ),
+        (
+            'kind = "cia402"\npan_node = 2\ntilt_node = 3\n[axes.gains]\n'
+            'zero = "0x2000:1"\npole = "0x2000:0x01"',
+            r"axes\.gains\.pole: 0x2000:1 is zero's$",
         ),
         ('kind = "hctl"\npan_node = 2\ntilt_node = 3', r"axes\.kind: must be one of cia402"),
         ('kind = "cia402"\npan_node = 2\ntilt_node = 3\nbitrat = 1', r"axes\.bitrat: not an"),
@@ -89,6 +119,35 @@ def test_axes_mistakes_name_their_key(
 ) -> None:
     with pytest.raises(RequestError, match=message):
         load_target(_toml(tmp_path, axes))
+
+
+def test_an_axes_gains_table_names_the_drives_own_objects(tmp_path: Path, no_leaks: None) -> None:
+    """Off by default (nothing but standard objects); given, each key's object and type."""
+    plain = load_target(_toml(tmp_path, _virtual() + "pan_node = 5\ntilt_node = 6\n"))
+    try:
+        assert isinstance(plain.axes, Cia402Axes)
+        assert plain.axes.pan.gains == {} and plain.axes.tilt.gains == {}
+        assert plain.axes.pan.homing_method == 37
+    finally:
+        plain.close()
+    path = _toml(
+        tmp_path,
+        _virtual()
+        + 'pan_node = 5\ntilt_node = 6\nhoming_method = 35\n[axes.gains]\nsample = "0x2000:1"\n'
+        'gain = "0x2101:0x0A:u32"\n',
+    )
+    hardware = load_target(path)
+    try:
+        axes = hardware.axes
+        assert isinstance(axes, Cia402Axes)
+        for drive in (axes.pan, axes.tilt):
+            assert drive.gains == {
+                "sample": GainObject(0x2000, 1, "u16"),
+                "gain": GainObject(0x2101, 10, "u32"),
+            }
+            assert drive.homing_method == 35
+    finally:
+        hardware.close()
 
 
 def test_motion_and_level3_are_refused_beside_axes(no_leaks: None) -> None:
@@ -106,7 +165,8 @@ def test_motion_and_level3_are_refused_beside_axes(no_leaks: None) -> None:
 def test_the_can_example_parses_and_names_real_interfaces() -> None:
     text = EXAMPLE.read_text()
     data = tomllib.loads(text)
-    assert set(data) == set(TARGET_KEYS) - {"motion", "level3"}
+    # [homing] is the Model 7600's index; a CiA 402 drive's touch probe latches its own
+    assert set(data) == set(TARGET_KEYS) - {"motion", "level3", "homing"}
     assert "\n[axes]\n" in text
     assert data["axes"]["kind"] == "cia402"
     assert (data["axes"]["interface"], data["axes"]["channel"]) == ("socketcan", "can0")

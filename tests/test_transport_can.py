@@ -2,7 +2,9 @@
 
 The rig (``SimulatedBiris(axes="canopen")``) replaces the Model 7600 by two simulated drives
 (canopen LocalNodes around the same motor plants) on a python-can ``virtual`` channel of its own;
-the driver reaches them only through canopen on that channel. Three audits judge, all checked for
+the driver reaches them only through canopen on that channel. They are stock drives: standard
+objects only (a write to any other is aborted, as a real drive's is), their loops tuned by their
+own commissioning. Three audits judge, all checked for
 every rig at teardown by the conftest: the simulator's (the report's rules, including the true
 head beyond +-0x1000 of true zero, HEAD_BEYOND_LIMIT), and each drive's own (a set-point beyond
 +-0x1000, one while not OPERATION ENABLED, enabling with a jump...).
@@ -76,6 +78,9 @@ def test_a_session_over_can_homes_scans_tilts_and_streams(can_rig: SimulatedBiri
         # homed to TRUE zero from 150 degrees away, the drives holding
         assert abs(rig.azimuth_counts) < 3 and abs(rig.elevation_counts) < 3  # window 2 counts
         assert {d.state for d in rig.drives.values()} == {DriveState.OPERATION_ENABLED}
+        for drive in rig.drives.values():  # stock: nothing but standard objects
+            assert all(0x1000 <= i < 0x2000 or 0x6000 <= i < 0xA000 for i in drive.od)
+            assert drive.value(0x6098) == 37  # homed on the current position, today's number
         assert rig.drives[Axis.AZIMUTH].node.nmt.state == "OPERATIONAL"
 
         conn = server.open()

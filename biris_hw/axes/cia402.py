@@ -6,15 +6,39 @@ One :class:`Cia402Bus` owns the CAN network (python-can underneath, any interfac
 (:class:`~biris_hw.axes.base.MotionController`) and raises its ``end_of_motion`` line -- the
 "level 3 interrupt" -- when a drive's event TPDO says a move reached its target.
 
-**What the driver sets up on a drive** (:meth:`Cia402Axis.start`, once, before the first use):
-NMT pre-operational; heartbeat producer 0x1017 (``heartbeat_period_s``) and, when the bus
-produces a heartbeat of its own, consumer 0x1016 sub 1 (its id and ``heartbeat_timeout_s``;
-skipped on a drive without it); RPDO1 = controlword 0x6040 + target position 0x607A
-(transmission type 255), TPDO1 = statusword 0x6041 + position actual 0x6064, event-driven
-(type 255, sent when the statusword changes); RPDO2-4 and TPDO2-4 disabled where they exist;
-modes of operation 0x6060 = 1 (profile position); following error window 0x6065/0x6066,
-position window 0x6067/0x6068; touch probe 1 armed on the encoder's zero impulse (0x60B8);
-then NMT operational.
+The driver uses standard objects only (CiA 301 and CiA 402), so that a stock drive takes it as
+it comes; a manufacturer object is written only where a target file names one (``gains``, below).
+
+**What the driver checks and sets up on a drive** (:meth:`Cia402Axis.start`, once, before the
+first use): device type 0x1000 is CiA 402; the drive's units are the driver's (below; checked
+before anything is written); NMT pre-operational; heartbeat producer 0x1017
+(``heartbeat_period_s``) and, when the bus produces a heartbeat of its own, consumer 0x1016 sub 1
+(its id and ``heartbeat_timeout_s``; skipped on a drive without it); RPDO1 = controlword 0x6040 +
+target position 0x607A (transmission type 255); TPDO1 = the statusword 0x6041 alone, event-driven
+(type 255), inhibit time 0x1800 sub 3 and event timer sub 5 both 0 (skipped where the drive lacks
+them); RPDO2-4 and TPDO2-4 disabled where they exist; modes of operation 0x6060 = 1 (profile
+position), awaited in the mode display 0x6061; following error window 0x6065/0x6066, position
+window 0x6067/0x6068; touch probe 1 armed on the encoder's zero impulse (0x60B8); then NMT
+operational.
+
+**TPDO1 carries what the end of a move needs, the statusword, and nothing else.** A drive sends an
+event-driven PDO whenever a mapped object changes: with the position actual mapped that is about a
+frame per count while the head moves, which the driver never reads (it reads 0x6064 by SDO when it
+needs it). An inhibit time would bound that rate but delay the end of every move by up to that
+time; with the statusword alone the drive sends a handful of frames per move (set-point
+acknowledged, acknowledge cleared, target reached), each at once.
+
+**Units.** The driver writes positions in encoder counts (4096 per head revolution), the profile
+velocity 0x6081 in counts/s and the accelerations 0x6083/0x6084 in counts/s^2, and reads them back
+in those units. :meth:`Cia402Axis.start` reads the drive's units and refuses a drive whose units
+differ (``HardwareFault("protocol")`` naming the object, its value and what it must be): where the
+drive has the SI unit objects (0x60A8 position, 0x60A9 velocity: prefix in bits 24-31, unit in
+16-23, time unit in 8-15), position must be encoder increments (0xB5) and velocity increments per
+second (0x03), both without a power of ten; otherwise the factor group must scale by exactly 1:
+the position factor (0x608F encoder increments per motor revolution x 0x6091 gear ratio / 0x6092
+feed constant, or 0x6093), the velocity encoder factor 0x6094 and the acceleration factor 0x6097,
+each where the drive has it. An absent object scales nothing. The driver never writes them:
+they are the drive's commissioning (they also scale its own limits, windows and homing speeds).
 
 **Moves** go by RPDO1: the target with the new-set-point bit (controlword bit 4) rising, a wait
 for set-point acknowledge (statusword bit 12, seen in TPDO1), then bit 4 cleared (single
@@ -33,11 +57,17 @@ status sent before the set-point was taken can never end it. Every destination i
 
 **Holding never jumps**: :meth:`Cia402Axis.hold_here` reads the position actual and sends it as
 the target in every controlword frame that walks the state machine up to OPERATION ENABLED.
-``hold_here(zero_counter=True)`` homes by method 35 (or 37, ``homing_method``: "on the current
-position") with home offset 0, so the position actual becomes 0 where the head stands; the
-board's chip reset (:meth:`Cia402Controller.reset_chip`) does the same after a fault reset and
-a disable, because the pan reference takes a reset to restart the count where the head stood.
-:meth:`Cia402Axis.idle` is "disable operation" (SWITCHED ON: no torque, the head coasts).
+``hold_here(zero_counter=True)`` homes on the current position with home offset 0, so the
+position actual becomes 0 where the head stands: method 37 (``homing_method``; CiA 402-2 /
+IEC 61800-7-201 number it so, and ETG.6010's table marks 35 obsolete), or 35 for a drive built
+to the older DSP 402 numbering. Homing is started only once the mode display 0x6061 shows 6, and
+its end is judged on fresh reads, never on a statusword kept from before: bit 4 stays set until
+an SDO read of the statusword shows homing attained (bits 12 and 10; bit 13 is a homing error)
+*and* the position actual reads 0 (within the position window), since a drive may keep "homing
+attained" set from an earlier homing. The board's chip reset
+(:meth:`Cia402Controller.reset_chip`) does the same after a fault reset and a disable, because the
+pan reference takes a reset to restart the count where the head stood. :meth:`Cia402Axis.idle` is
+"disable operation" (SWITCHED ON: no torque, the head coasts).
 
 **Index latch**: touch probe 1 (0x60B8 = 0x0015: enabled, first event, zero impulse, positive
 edge); :meth:`Cia402Controller.index_seen` reads 0x60B9 bit 1, :meth:`clear_index` re-arms it
@@ -46,24 +76,26 @@ edge); :meth:`Cia402Controller.index_seen` reads 0x60B9 bit 1, :meth:`clear_inde
 **BIRIS_MOTOR_PARAMS** (``[motor]`` of the init record) map as follows, with the HCTL sample
 period T = 16 (sample + 1) / 2 MHz:
 
-==========  ==========================  ================================================
-parameter   drive object                value written
-==========  ==========================  ================================================
-max_vel     0x6081 profile velocity     round(max_vel / T) counts/s
-max_accel   0x6083 / 0x6084 acc / dec   round(max_accel / 256 / T^2) counts/s^2 (both)
-sample      0x2000 sub 1 (U16)          raw: the drive's position-loop sample period
-zero        0x2000 sub 2 (U16)          raw: filter zero A
-pole        0x2000 sub 3 (U16)          raw: filter pole B
-gain        0x2000 sub 4 (U16)          raw: filter gain K
-max_vel     0x2000 sub 5 (U16)          raw, as well: so that read_params round-trips
-max_accel   0x2000 sub 6 (U16)          raw, as well
-==========  ==========================  ================================================
+==========================  ==========================  =====================================
+parameter                   drive object                value written
+==========================  ==========================  =====================================
+max_vel                     0x6081 profile velocity     round(max_vel / T) counts/s
+max_accel                   0x6083 / 0x6084 acc / dec   round(max_accel / 256 / T^2)
+                                                        counts/s^2 (both)
+sample, zero, pole, gain    the drive's own objects     raw, only where ``gains`` names them
+                            named by ``gains``          (:class:`GainObject`); by default not
+                                                        at all: the drive's own tuning holds
+==========================  ==========================  =====================================
 
-:meth:`Cia402Axis.read_params` reads 0x2000 sub 1-6 back, exactly what was written: the pan
-reference compares them with what it loaded to tell a drive that kept its count from one that
-was power-cycled, so the drive must hold them in RAM only (the driver never stores 0x1010). A
-drive maps the filter onto its own position loop (the simulated one runs the HCTL-1000's filter
-at that sample period); ``params_index`` moves the record elsewhere.
+There is no standard object for a position loop's gains: each maker has its own, with its own
+meaning, so the driver writes none unless told where (a target file's ``[axes.gains]``, e.g.
+``sample = "0x2000:1"``). :meth:`Cia402Axis.read_params` says which BIRIS_MOTOR_PARAMS the drive
+holds: the set last loaded (or the pan reference's journal's) when the drive's profile objects and
+mapped gains hold exactly what that set converts to, else the drive's own values (0x6081 as
+``max_vel``, 0x6083 as ``max_accel``, each mapped gain as read, 0 for the others), which no init
+record converts to. The pan reference compares them to tell a drive that kept its count from one
+that was power-cycled (and so restored its power-on profile); the driver never stores them
+(0x1010), so a drive keeps them in RAM only.
 
 **Faults.** An EMCY becomes a :class:`DriveFault` in :attr:`Cia402Axis.faults` (and the
 controller's), handed to every fault listener: communication codes (0x81xx, 0x82xx) are kind
@@ -96,12 +128,14 @@ from __future__ import annotations
 
 import enum
 import logging
+import re
 import struct
 import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from fractions import Fraction
+from typing import Any, Literal, NoReturn
 
 import can
 import canopen
@@ -117,7 +151,7 @@ from biris_hw.axes.base import (
     wait_settled,
     wait_still,
 )
-from biris_hw.errors import BusError, FaultKind, HardwareFault
+from biris_hw.errors import BusError, FaultKind, HardwareFault, RequestError
 from biris_hw.irq.eventfd import EventFdLine
 from biris_hw.pan_reference import PanReference
 from biris_hw.records import MotorParams
@@ -127,11 +161,18 @@ from regs.tech80 import Axis, AxisBit
 
 __all__ = [
     "CIA402_PROFILE",
+    "DEFAULT_HOMING_METHOD",
     "DEFAULT_MASTER_ID",
+    "GAIN_KEYS",
+    "GAIN_TYPES",
     "HOMING_METHODS",
     "NODE_IDS",
     "PARAM_KEYS",
+    "RPDO1_MAPPING",
+    "SI_INCREMENT",
+    "SI_SECOND",
     "TOUCH_PROBE_INDEX",
+    "TPDO1_MAPPING",
     "Cia402Axes",
     "Cia402Axis",
     "Cia402Bus",
@@ -140,11 +181,14 @@ __all__ = [
     "DriveBusError",
     "DriveFault",
     "DriveState",
+    "GainObject",
     "Obj",
     "Sw",
+    "check_gains",
     "check_homing_method",
     "check_node_id",
     "fault_kind",
+    "parse_gain_object",
     "profile_for",
     "state_of",
     "stop_periodic_task",
@@ -164,9 +208,15 @@ NOTIFIER_CYCLE_S = 0.02
 NODE_IDS = range(1, 128)
 """The node ids a CANopen drive may have (0 addresses every node in NMT)."""
 
-HOMING_METHODS = (35, 37)
-"""The CiA 402 homing methods on the current position (0x6098): 35 in CiA 402-2016, 37 in
-earlier editions and many drives. The driver homes by no other: none of them moves."""
+HOMING_METHODS = (37, 35)
+"""The homing methods on the current position (0x6098), the only ones the driver homes by (none
+moves the head): 37, its number in CiA 402-2 / IEC 61800-7-201 (ETG.6010's homing table marks 35
+obsolete; KEB's drives built to IEC 61800-7-200 preset 37 "on current position"), and 35, its
+number in the older DSP 402 (what canopen's ``Homing.HM_ON_CURRENT_POSITION`` still says), for a
+drive built to that."""
+
+DEFAULT_HOMING_METHOD = 37
+"""The current number: a drive of the older numbering is given ``homing_method = 35``."""
 
 
 def check_node_id(node: object, what: str = "CANopen node id") -> int:
@@ -179,15 +229,108 @@ def check_node_id(node: object, what: str = "CANopen node id") -> int:
 def check_homing_method(method: object, what: str = "homing_method") -> int:
     """``method`` if the driver homes by it (:data:`HOMING_METHODS`); ValueError otherwise."""
     if isinstance(method, bool) or not isinstance(method, int) or method not in HOMING_METHODS:
-        accepted = " or ".join(str(m) for m in HOMING_METHODS)
         raise ValueError(
-            f"{what}: must be {accepted} (homing on the current position), not {method!r}"
+            f"{what}: must be 37 (homing on the current position), or 35 for a drive of the "
+            f"older numbering, not {method!r}"
         )
     return method
 
 
 PARAM_KEYS = ("sample", "zero", "pole", "gain", "max_vel", "max_accel")
-"""BIRIS_MOTOR_PARAMS in :meth:`MotorParams.to_dict` order: sub-indices 1-6 of the record."""
+"""BIRIS_MOTOR_PARAMS in :meth:`MotorParams.to_dict` order."""
+
+GAIN_KEYS = ("sample", "zero", "pole", "gain")
+"""The BIRIS_MOTOR_PARAMS a drive may take raw into objects of its own (``gains``): its loop's
+sample period and filter. ``max_vel`` and ``max_accel`` always go to the standard profile
+objects, converted."""
+
+GAIN_TYPES: dict[str, str] = {
+    "u8": "<B",
+    "u16": "<H",
+    "u32": "<I",
+    "i8": "<b",
+    "i16": "<h",
+    "i32": "<i",
+}
+"""The data types a gain object may have (CiA 301's UNSIGNED8..INTEGER32), as struct formats."""
+
+GAIN_INDICES = range(0x2000, 0x6000)
+"""Where a gain object may be: CiA 301's manufacturer-specific area. The profile area holds no
+loop gains, so an index there is a mistake that would write a standard object."""
+
+_GAIN_SYNTAX = re.compile(
+    r"0x(?P<index>[0-9a-f]{1,4}):(?P<sub>0x[0-9a-f]{1,2}|[0-9]{1,3})(?::(?P<type>[a-z0-9]+))?"
+)
+
+
+@dataclass(frozen=True)
+class GainObject:
+    """One object of the drive's own that takes one BIRIS_MOTOR_PARAMS value raw."""
+
+    index: int
+    subindex: int
+    type: str = "u16"
+    """A key of :data:`GAIN_TYPES`."""
+
+    def __post_init__(self) -> None:
+        if self.index not in GAIN_INDICES:
+            raise ValueError(
+                f"0x{self.index:04X} is not a manufacturer object (0x2000..0x5FFF): the drive's "
+                "own gains are there"
+            )
+        if not 0 <= self.subindex <= 0xFF:
+            raise ValueError(f"sub-index {self.subindex} is beyond 0..255")
+        if self.type not in GAIN_TYPES:
+            raise ValueError(f"type {self.type!r} is none of {', '.join(GAIN_TYPES)}")
+
+    @property
+    def fmt(self) -> str:
+        return GAIN_TYPES[self.type]
+
+    def __str__(self) -> str:
+        return f"0x{self.index:04X}:{self.subindex}:{self.type}"
+
+
+def parse_gain_object(text: object, what: str = "gain object") -> GainObject:
+    """``"0x2000:1"`` (UNSIGNED16) or ``"0x2000:1:u32"`` as a :class:`GainObject`: the index in
+    hex, the sub-index in decimal (or hex with 0x), the type one of :data:`GAIN_TYPES`;
+    ValueError starting with ``what`` otherwise."""
+    if isinstance(text, GainObject):
+        return text
+    if not isinstance(text, str):
+        raise ValueError(f'{what}: must be a string such as "0x2000:1", not {text!r}')
+    match = _GAIN_SYNTAX.fullmatch(text.strip().lower())
+    if match is None:
+        raise ValueError(
+            f'{what}: {text!r} is not INDEX:SUB[:TYPE] (e.g. "0x2000:1" or "0x2101:3:u32")'
+        )
+    sub = match["sub"]
+    try:
+        return GainObject(
+            int(match["index"], 16),
+            int(sub, 16) if sub.startswith("0x") else int(sub),
+            match["type"] or "u16",
+        )
+    except ValueError as exc:
+        raise ValueError(f"{what}: {exc}") from None
+
+
+def check_gains(gains: Mapping[str, object], what: str = "gains") -> dict[str, GainObject]:
+    """The ``gains`` mapping checked: keys among :data:`GAIN_KEYS`, values :class:`GainObject`
+    or their text, no object named twice; ValueError naming the key otherwise."""
+    checked: dict[str, GainObject] = {}
+    for key, value in gains.items():
+        if key not in GAIN_KEYS:
+            raise ValueError(
+                f"{what}.{key}: not a value a drive's own object takes (one of "
+                f"{', '.join(GAIN_KEYS)}; max_vel and max_accel go to 0x6081/0x6083/0x6084)"
+            )
+        obj = parse_gain_object(value, f"{what}.{key}")
+        for other, known in checked.items():
+            if (known.index, known.subindex) == (obj.index, obj.subindex):
+                raise ValueError(f"{what}.{key}: 0x{obj.index:04X}:{obj.subindex} is {other}'s")
+        checked[key] = obj
+    return checked
 
 
 class Obj(enum.IntEnum):
@@ -200,7 +343,6 @@ class Obj(enum.IntEnum):
     RPDO1_MAP = 0x1600
     TPDO1_COMM = 0x1800
     TPDO1_MAP = 0x1A00
-    MOTOR_PARAMS = 0x2000
     CONTROLWORD = 0x6040
     STATUSWORD = 0x6041
     MODES_OF_OPERATION = 0x6060
@@ -217,7 +359,15 @@ class Obj(enum.IntEnum):
     PROFILE_ACCELERATION = 0x6083
     PROFILE_DECELERATION = 0x6084
     QUICK_STOP_DECELERATION = 0x6085
+    POSITION_ENCODER_RESOLUTION = 0x608F
+    GEAR_RATIO = 0x6091
+    FEED_CONSTANT = 0x6092
+    POSITION_FACTOR = 0x6093
+    VELOCITY_ENCODER_FACTOR = 0x6094
+    ACCELERATION_FACTOR = 0x6097
     HOMING_METHOD = 0x6098
+    SI_UNIT_POSITION = 0x60A8
+    SI_UNIT_VELOCITY = 0x60A9
     TOUCH_PROBE_FUNCTION = 0x60B8
     TOUCH_PROBE_STATUS = 0x60B9
     TOUCH_PROBE_1_POSITIVE = 0x60BA
@@ -247,16 +397,25 @@ _NAMES = {
     int(Obj.PROFILE_VELOCITY): "profile velocity",
     int(Obj.PROFILE_ACCELERATION): "profile acceleration",
     int(Obj.PROFILE_DECELERATION): "profile deceleration",
+    int(Obj.POSITION_ENCODER_RESOLUTION): "position encoder resolution",
+    int(Obj.GEAR_RATIO): "gear ratio",
+    int(Obj.FEED_CONSTANT): "feed constant",
+    int(Obj.POSITION_FACTOR): "position factor",
+    int(Obj.VELOCITY_ENCODER_FACTOR): "velocity encoder factor",
+    int(Obj.ACCELERATION_FACTOR): "acceleration factor",
     int(Obj.HOMING_METHOD): "homing method",
+    int(Obj.SI_UNIT_POSITION): "SI unit position",
+    int(Obj.SI_UNIT_VELOCITY): "SI unit velocity",
     int(Obj.TOUCH_PROBE_FUNCTION): "touch probe function",
     int(Obj.TOUCH_PROBE_STATUS): "touch probe status",
     int(Obj.TOUCH_PROBE_1_POSITIVE): "touch probe 1 positive edge",
 }
 
 
-def _object_name(index: int, subindex: int, params_index: int = Obj.MOTOR_PARAMS) -> str:
-    if index == params_index and 1 <= subindex <= len(PARAM_KEYS):
-        return f"motor parameter {PARAM_KEYS[subindex - 1]}"
+def _object_name(index: int, subindex: int, gains: Mapping[str, GainObject] | None = None) -> str:
+    for key, obj in (gains or {}).items():
+        if (obj.index, obj.subindex) == (index, subindex):
+            return f"motor parameter {key}, the drive's own object"
     if 0x1400 <= index <= 0x1BFF:
         kind = {0x14: "RPDO communication", 0x16: "RPDO mapping", 0x18: "TPDO communication"}
         return f"{kind.get(index >> 8, 'TPDO mapping')} {(index & 0x1FF) + 1}"
@@ -348,6 +507,11 @@ class Mode(enum.IntEnum):
     HOMING = 6
 
 
+_POLL_S = 0.002
+"""Real seconds between two SDO polls of a drive the driver waits for (mode display, homing):
+a drive's cycle is a millisecond or so, and a TPDO wakes the wait earlier."""
+
+
 TOUCH_PROBE_INDEX = 0x0015
 """0x60B8: touch probe 1 enabled (bit 0), first event only (bit 1 clear), triggered by the
 encoder's zero impulse (bits 2-3 = 01), latching on the positive edge (bit 4)."""
@@ -355,10 +519,56 @@ TOUCH_PROBE_STORED = 0x0002
 """0x60B9 bit 1: touch probe 1 has latched a positive edge."""
 
 _FRAME = struct.Struct("<Hi")
-"""RPDO1 (controlword, target) and TPDO1 (statusword, position actual): U16 then I32."""
+"""RPDO1: controlword (U16) then target position (I32)."""
+_STATUS = struct.Struct("<H")
+"""TPDO1: the statusword."""
+
+RPDO1_MAPPING = (0x60400010, 0x607A0020)
+"""RPDO1's entries (CiA 301: index << 16 | sub-index << 8 | bits): controlword, target."""
+TPDO1_MAPPING = (0x60410010,)
+"""TPDO1's entries: the statusword alone, all the end of a move needs (module notes)."""
 
 _PDO_INVALID = 0x8000_0000
 _EVENT_DRIVEN = 255
+_INHIBIT_TIME = 3
+"""0x18xx sub 3: the least time between two sends of the PDO, in 100 us (CiA 301)."""
+_EVENT_TIMER = 5
+"""0x18xx sub 5: a send every so many ms whatever changed (CiA 301); 0 is none."""
+
+_NO_OBJECT = (0x06020000, 0x06090011)
+"""SDO abort codes for "object does not exist" and "sub-index does not exist" (CiA 301)."""
+
+SI_INCREMENT = 0xB5
+"""The SI-unit code of an encoder increment, in 0x60A8/0x60A9's unit byte (as drives document
+CiA 402's unit table, e.g. Nanotec's "user-defined units")."""
+SI_SECOND = 0x03
+"""The code of the second, in 0x60A9's time-unit byte (CiA 303-2: the SI base units metre 0x01,
+kilogram 0x02, second 0x03; minute 0x47, which drives' rpm 0x00B44700 shows)."""
+_SI_NAMES = {
+    0x00: "none",
+    0x01: "metre",
+    0x03: "second",
+    0x10: "radian",
+    0x41: "degree",
+    0x47: "minute",
+    0x48: "hour",
+    0xAC: "step",
+    0xB4: "revolution",
+    0xB5: "increment",
+}
+
+
+def _si_unit(value: int, *, with_time: bool) -> str:
+    """0x60A8/0x60A9's coding in words: power of ten, unit, per time unit."""
+    exponent = struct.unpack("<b", bytes([(value >> 24) & 0xFF]))[0]
+    unit = (value >> 16) & 0xFF
+    text = _SI_NAMES.get(unit, f"unit 0x{unit:02X}")
+    if exponent:
+        text = f"10^{exponent} {text}"
+    if with_time:
+        time_unit = (value >> 8) & 0xFF
+        text += f" per {_SI_NAMES.get(time_unit, f'time unit 0x{time_unit:02X}')}"
+    return text
 
 
 def profile_for(params: MotorParams) -> tuple[int, int]:
@@ -552,7 +762,13 @@ class Cia402Axis:
     :class:`~biris_hw.devices.AxisDriver` does; the CAN timeouts (``state_timeout_s``, the
     bus's SDO and heartbeat ones) are real seconds. ``reference`` (the pan's only) records every
     move before it is sent and cuts its destination, and hears of every settle position and
-    parameter load. The drive is set up on first use (:meth:`start`).
+    parameter load. The drive is set up on first use (:meth:`start`). ``gains`` names the drive's
+    own objects that take BIRIS_MOTOR_PARAMS' sample and filter values raw (:func:`check_gains`:
+    :class:`GainObject` or its text by key); none by default, so that nothing but standard
+    objects is written.
+
+    Raises:
+        ValueError: a bad node id, homing method, gains mapping or boot timeout.
     """
 
     def __init__(
@@ -564,8 +780,8 @@ class Cia402Axis:
         time_scale: float = 1.0,
         reference: PanReference | None = None,
         *,
-        params_index: int = Obj.MOTOR_PARAMS,
-        homing_method: int = 35,
+        gains: Mapping[str, GainObject | str] | None = None,
+        homing_method: int = DEFAULT_HOMING_METHOD,
         following_error_window: int = 256,
         following_error_timeout_ms: int = 20,
         position_window: int = 2,
@@ -575,13 +791,13 @@ class Cia402Axis:
     ) -> None:
         check_node_id(node_id)
         check_homing_method(homing_method)
+        self.gains = check_gains(gains or {})
         if not boot_timeout_s > 0.0:
             raise ValueError(f"boot_timeout_s must be positive, not {boot_timeout_s!r}")
         self.bus = bus
         self.node_id = node_id
         self.axis = axis
         self.reference = reference
-        self.params_index = params_index
         self.homing_method = homing_method
         self.following_error_window = following_error_window
         self.following_error_timeout_ms = following_error_timeout_ms
@@ -614,6 +830,8 @@ class Cia402Axis:
         self.relinks = 0
         """How many times :meth:`relink` brought the drive back."""
         self._target = 0
+        self._loaded: MotorParams | None = None
+        """The BIRIS_MOTOR_PARAMS :meth:`configure` last loaded (:meth:`read_params`)."""
         self._end_listeners: list[Callable[[Axis], None]] = []
         self._fault_listeners: list[Callable[[DriveFault], None]] = []
         self.faults: list[DriveFault] = []
@@ -648,6 +866,7 @@ class Cia402Axis:
                     "protocol",
                     f"{self._who}: device type 0x{device_type:08X} is not a CiA 402 drive",
                 )
+            self._check_units()  # before anything is written: a refused drive is left as it was
             self._nmt(0x80)  # pre-operational: PDO mappings may change only there
             bus = self.bus
             self._write(Obj.PRODUCER_HEARTBEAT, 0, "<H", _ms(bus.heartbeat_period_s))
@@ -655,7 +874,7 @@ class Cia402Axis:
                 consumer = (bus.master_id << 16) | _ms(bus.heartbeat_timeout_s)
                 self._write(Obj.CONSUMER_HEARTBEAT, 1, "<I", consumer, optional=True)
             self._map_pdos()
-            self._write(Obj.MODES_OF_OPERATION, 0, "<b", Mode.PROFILE_POSITION)
+            self._set_mode(Mode.PROFILE_POSITION)
             self._write(Obj.FOLLOWING_ERROR_WINDOW, 0, "<I", self.following_error_window)
             self._write(Obj.FOLLOWING_ERROR_TIMEOUT, 0, "<H", self.following_error_timeout_ms)
             self._write(Obj.POSITION_WINDOW, 0, "<I", self.position_window)
@@ -674,15 +893,19 @@ class Cia402Axis:
             self._started = True
 
     def _map_pdos(self) -> None:
-        """RPDO1 = controlword + target, TPDO1 = statusword + position actual (event-driven);
-        the other PDOs off, where the drive has them (CiA 301's order: invalidate, unmap, map,
-        count, validate)."""
+        """RPDO1 = controlword + target, TPDO1 = the statusword (event-driven, no inhibit time,
+        no event timer: sent at once when the statusword changes, and only then); the other
+        PDOs off, where the drive has them (CiA 301's order: invalidate, unmap, map, count,
+        validate; the inhibit time may change only while the PDO is invalid)."""
         node_id = self.node_id
         for comm, mapping, cob, entries in (
-            (Obj.RPDO1_COMM, Obj.RPDO1_MAP, 0x200 + node_id, (0x60400010, 0x607A0020)),
-            (Obj.TPDO1_COMM, Obj.TPDO1_MAP, 0x180 + node_id, (0x60410010, 0x60640020)),
+            (Obj.RPDO1_COMM, Obj.RPDO1_MAP, 0x200 + node_id, RPDO1_MAPPING),
+            (Obj.TPDO1_COMM, Obj.TPDO1_MAP, 0x180 + node_id, TPDO1_MAPPING),
         ):
             self._write(comm, 1, "<I", cob | _PDO_INVALID)
+            if comm == Obj.TPDO1_COMM:  # a drive's defaults could delay or add frames
+                self._write(comm, _INHIBIT_TIME, "<H", 0, optional=True)
+                self._write(comm, _EVENT_TIMER, "<H", 0, optional=True)
             self._write(mapping, 0, "<B", 0)
             for sub, entry in enumerate(entries, start=1):
                 self._write(mapping, sub, "<I", entry)
@@ -692,6 +915,123 @@ class Cia402Axis:
         for n in range(1, 4):
             self._write(0x1400 + n, 1, "<I", 0x200 + 0x100 * n + node_id | _PDO_INVALID, True)
             self._write(0x1800 + n, 1, "<I", 0x180 + 0x100 * n + node_id | _PDO_INVALID, True)
+
+    def _check_units(self) -> None:
+        """Refuse a drive whose position, velocity or acceleration units are not encoder
+        counts, counts/s and counts/s^2 (the module notes say which objects decide)."""
+        position = self._read_optional(Obj.SI_UNIT_POSITION, 0, "<I")
+        velocity = self._read_optional(Obj.SI_UNIT_VELOCITY, 0, "<I")
+        if position is not None or velocity is not None:
+            if position is not None and position & 0xFFFF0000 != SI_INCREMENT << 16:
+                self._wrong_units(
+                    Obj.SI_UNIT_POSITION,
+                    position,
+                    _si_unit(position, with_time=False),
+                    "encoder increments (0x00B50000)",
+                )
+            want = SI_INCREMENT << 16 | SI_SECOND << 8
+            if velocity is not None and velocity & 0xFFFFFF00 != want:
+                self._wrong_units(
+                    Obj.SI_UNIT_VELOCITY,
+                    velocity,
+                    _si_unit(velocity, with_time=True),
+                    f"increments per second (0x{want:08X})",
+                )
+            return  # the SI units say what the user units are; the factors serve them
+        ratios = {
+            index: self._read_ratio(index)
+            for index in (
+                Obj.POSITION_ENCODER_RESOLUTION,
+                Obj.GEAR_RATIO,
+                Obj.FEED_CONSTANT,
+                Obj.POSITION_FACTOR,
+                Obj.VELOCITY_ENCODER_FACTOR,
+                Obj.ACCELERATION_FACTOR,
+            )
+        }
+        encoder, feed = ratios[Obj.POSITION_ENCODER_RESOLUTION], ratios[Obj.FEED_CONSTANT]
+        if encoder is not None and feed is not None:
+            gear = ratios[Obj.GEAR_RATIO] or Fraction(1)
+            factor = encoder * gear / feed
+            if factor != 1:
+                self._wrong_units(
+                    Obj.FEED_CONSTANT,
+                    None,
+                    f"a position factor of {factor} (0x608F encoder resolution {encoder} x "
+                    f"0x6091 gear ratio {gear} / 0x6092 feed constant {feed})",
+                    "1: one position unit per encoder increment",
+                )
+        for index, what in (
+            (Obj.POSITION_FACTOR, "one position unit per encoder increment"),
+            (Obj.VELOCITY_ENCODER_FACTOR, "velocity in increments per second"),
+            (Obj.ACCELERATION_FACTOR, "acceleration in increments per second squared"),
+        ):
+            ratio = ratios[index]
+            if ratio is not None and ratio != 1:
+                self._wrong_units(index, None, f"a factor of {ratio}", f"1: {what}")
+
+    def _wrong_units(self, index: int, value: int | None, shown: str, wanted: str) -> NoReturn:
+        raw = f" = 0x{value:08X}" if value is not None else ""
+        raise HardwareFault(
+            "protocol",
+            f"{self._who}: 0x{index:04X} ({_object_name(index, 0)}){raw} gives {shown}, not "
+            f"{wanted}. The driver writes positions in encoder counts (4096 per head "
+            "revolution), velocities in counts/s and accelerations in counts/s^2: set the "
+            "drive's units so with its maker's tool (docs/transports.md, drive requirements)",
+        )
+
+    def _read_ratio(self, index: int) -> Fraction | None:
+        """A two-entry factor object (sub 1 / sub 2, UNSIGNED32) as a fraction; None when the
+        drive has no such object. A zero term is no scale at all: refused."""
+        numerator = self._read_optional(index, 1, "<I")
+        if numerator is None:
+            return None
+        denominator = self._read(index, 2, "<I")
+        if numerator == 0 or denominator == 0:
+            self._wrong_units(
+                index, None, f"{numerator}/{denominator}", "a ratio of two non-zero numbers"
+            )
+        return Fraction(numerator, denominator)
+
+    def _read_optional(self, index: int, subindex: int, fmt: str) -> int | None:
+        """:meth:`_read`, or None when the drive answers that the object does not exist."""
+        try:
+            with self._sdo_lock:
+                raw = self._node.sdo.upload(index, subindex)
+        except SdoAbortedError as exc:
+            if exc.code in _NO_OBJECT:
+                return None
+            self._check_lost()
+            raise self._sdo_error("read", index, subindex, exc) from exc
+        except (SdoCommunicationError, can.CanError) as exc:
+            self._check_lost()
+            raise self._sdo_error("read", index, subindex, exc) from exc
+        try:
+            value: int = struct.unpack(fmt, bytes(raw[: struct.calcsize(fmt)]))[0]
+        except struct.error as exc:
+            raise self._sdo_error("read", index, subindex, exc) from exc
+        return value
+
+    def _set_mode(self, mode: Mode) -> None:
+        """Modes of operation 0x6060 = ``mode``, then the mode display 0x6061 read until it
+        shows it: a drive takes a new mode at its next cycle, and a controlword meant for one
+        mode sent while the drive still runs the other starts the wrong thing (bit 4 is a
+        set-point in profile position, the start of homing in homing mode)."""
+        self._write(Obj.MODES_OF_OPERATION, 0, "<b", mode)
+        deadline = time.monotonic() + self.state_timeout_s
+        while True:
+            shown = self._read(Obj.MODES_DISPLAY, 0, "<b")
+            if shown == mode:
+                return
+            if time.monotonic() > deadline:
+                raise HardwareFault(
+                    "protocol",
+                    f"{self._who}: modes of operation display 0x6061 shows {shown}, not "
+                    f"{int(mode)} ({mode.name.lower().replace('_', ' ')}), "
+                    f"{self.state_timeout_s:g} s after 0x6060 was written",
+                )
+            with self._cond:  # a poll, woken early by a TPDO (the drive's next cycle)
+                self._cond.wait(_POLL_S)
 
     @property
     def lost(self) -> bool:
@@ -752,10 +1092,10 @@ class Cia402Axis:
 
     # -- the drive's reports (CAN receive thread) ------------------------------------------------
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if len(data) < _FRAME.size:
+        if len(data) < _STATUS.size:
             log.warning("%s: short TPDO1 %s", self._who, bytes(data).hex())
             return
-        status, _position = _FRAME.unpack_from(data)
+        (status,) = _STATUS.unpack_from(data)
         ended = False
         with self._cond:
             self._status = status
@@ -828,7 +1168,7 @@ class Cia402Axis:
             self.start()
 
     def _sdo_error(self, what: str, index: int, subindex: int, exc: Exception) -> DriveBusError:
-        name = _object_name(index, subindex, self.params_index)
+        name = _object_name(index, subindex, self.gains)
         return DriveBusError(
             f"{self._who}: SDO {what} of 0x{index:04X}:{subindex:02X} ({name}) failed: {exc}"
         )
@@ -850,7 +1190,7 @@ class Cia402Axis:
             with self._sdo_lock:
                 self._node.sdo.download(index, subindex, struct.pack(fmt, value))
         except SdoAbortedError as exc:
-            if optional and exc.code in (0x06020000, 0x06090011):
+            if optional and exc.code in _NO_OBJECT:
                 log.info("%s: no object 0x%04X:%02X; skipped", self._who, index, subindex)
                 return
             self._check_lost()
@@ -1026,25 +1366,68 @@ class Cia402Axis:
         return status
 
     def configure(self, params: MotorParams) -> None:
-        """The six parameters raw into the manufacturer record, the profile limits converted
-        into 0x6081/0x6083/0x6084 (module notes); read back for the pan reference."""
+        """The profile limits converted into 0x6081/0x6083/0x6084, and the sample and filter
+        values raw into the objects ``gains`` names, if any (module notes); read back for the
+        pan reference."""
         self._ready()
-        for sub, key in enumerate(PARAM_KEYS, start=1):
-            self._write(self.params_index, sub, "<H", getattr(params, key))
+        for key, obj in self.gains.items():
+            self._write(obj.index, obj.subindex, obj.fmt, getattr(params, key))
+        unmapped = [key for key in GAIN_KEYS if key not in self.gains]
+        if unmapped and self._loaded is None:  # said once: every reset loads them again
+            log.info(
+                "%s: %s not written (no gain object named for them): the drive's own tuning",
+                self._who,
+                ", ".join(unmapped),
+            )
         velocity, accel = profile_for(params)
         self._write(Obj.PROFILE_VELOCITY, 0, "<I", velocity)
         self._write(Obj.PROFILE_ACCELERATION, 0, "<I", accel)
         self._write(Obj.PROFILE_DECELERATION, 0, "<I", accel)
+        self._loaded = params
         if self.reference is not None:
             self.reference.configured(self.read_params())
 
     def read_params(self) -> dict[str, int]:
-        """The six parameters as the drive holds them (0x2000 sub 1-6, raw)."""
+        """BIRIS_MOTOR_PARAMS as the drive holds them, in :meth:`MotorParams.to_dict`'s keys.
+
+        A drive holds the profile (converted) and the mapped gains, not the six raw values, so
+        this is the set last loaded here -- or, after a restart of the driver, the one the pan
+        reference's journal names -- when the drive's 0x6081/0x6083/0x6084 and mapped gains
+        hold exactly what that set converts to; otherwise the drive's own values (0x6081 as
+        ``max_vel``, 0x6083 as ``max_accel``, each mapped gain as read, 0 for the others),
+        which no init record converts to: a drive that restored its power-on profile."""
         self._ready()
-        return {
-            key: self._read(self.params_index, sub, "<H")
-            for sub, key in enumerate(PARAM_KEYS, start=1)
+        held = {
+            key: self._read(obj.index, obj.subindex, obj.fmt) for key, obj in self.gains.items()
         }
+        profile = self.profile_params()
+        candidates: list[Mapping[str, int]] = []
+        if self._loaded is not None:
+            candidates.append(self._loaded.to_dict())
+        journal = self.reference.state.params if self.reference is not None else None
+        if journal is not None:
+            candidates.append(journal)
+        for candidate in candidates:
+            if self._holds(candidate, held, profile):
+                return dict(candidate)
+        own = dict.fromkeys(PARAM_KEYS, 0)
+        own.update(held)
+        own["max_vel"], own["max_accel"] = profile[0], profile[1]
+        return own
+
+    @staticmethod
+    def _holds(
+        candidate: Mapping[str, int], held: Mapping[str, int], profile: tuple[int, int, int]
+    ) -> bool:
+        """The drive holds what ``candidate`` (a raw BIRIS_MOTOR_PARAMS set) converts to."""
+        try:
+            params = MotorParams(**{key: candidate[key] for key in PARAM_KEYS})
+        except (KeyError, TypeError, RequestError):
+            return False  # not a set an init record could hold
+        velocity, accel = profile_for(params)
+        if profile != (velocity, accel, accel):
+            return False
+        return all(getattr(params, key) == value for key, value in held.items())
 
     def profile_params(self) -> tuple[int, int, int]:
         """(0x6081, 0x6083, 0x6084) as the drive holds them."""
@@ -1079,28 +1462,67 @@ class Cia402Axis:
             self._zero_here()
             return
         here = self._read(Obj.POSITION_ACTUAL, 0, "<i")
-        self._write(Obj.MODES_OF_OPERATION, 0, "<b", Mode.PROFILE_POSITION)
+        self._set_mode(Mode.PROFILE_POSITION)
         self._target = here
         self._enable(here)
 
     def _zero_here(self) -> None:
         """Homing on the current position with home offset 0: position actual becomes 0 and
-        the drive holds it, back in profile position (OPERATION ENABLED)."""
+        the drive holds it, back in profile position (OPERATION ENABLED). Started only once the
+        mode display shows homing; bit 4 (homing active) falls only once fresh reads show it
+        done (:meth:`_await_homed`): CiA 402 takes bit 4's fall during homing as "interrupt
+        homing", and a drive may show "homing attained" kept from an earlier homing."""
         here = self._read(Obj.POSITION_ACTUAL, 0, "<i")
-        self._write(Obj.MODES_OF_OPERATION, 0, "<b", Mode.HOMING)
+        self._set_mode(Mode.HOMING)
         self._write(Obj.HOMING_METHOD, 0, "<b", self.homing_method)
         self._write(Obj.HOME_OFFSET, 0, "<i", 0)
         self._target = here
         self._enable(here)
         self._send(ENABLE_OPERATION | Cw.NEW_SET_POINT, here)
-        status = self._await(
-            lambda sw: bool(sw & (Sw.SET_POINT_ACKNOWLEDGE | Sw.FOLLOWING_ERROR)), "homing attained"
-        )
-        if status & Sw.FOLLOWING_ERROR:
-            raise HardwareFault("motor_stall", f"{self._who}: homing error (0x{status:04X})")
+        self._await_homed(here)
         self._target = 0
         self._send(ENABLE_OPERATION, 0)
-        self._write(Obj.MODES_OF_OPERATION, 0, "<b", Mode.PROFILE_POSITION)
+        self._set_mode(Mode.PROFILE_POSITION)
+
+    def _await_homed(self, here: int) -> None:
+        """Poll, by SDO (fresh: a statusword kept in a TPDO may predate the start), until the
+        statusword shows homing attained with target reached (bits 12 and 10) and the position
+        actual reads 0 within the position window; a homing error (bit 13) or FAULT is a
+        ``motor_stall``, a drive that shows "attained" but never reads 0 a ``protocol`` fault
+        (it kept bit 12 from an earlier homing and did not home), one that never gets there a
+        bus fault, as any state not reached. ``here`` is where the head stood (for the
+        message)."""
+        homed = Sw.SET_POINT_ACKNOWLEDGE | Sw.TARGET_REACHED
+        deadline = time.monotonic() + self.state_timeout_s
+        actual: int | None = None
+        while True:
+            status = self.statusword()
+            state = state_of(status)
+            if state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
+                raise HardwareFault(
+                    "motor_stall", f"{self._who}: faulted while homing{self._last_fault()}"
+                )
+            if status & Sw.FOLLOWING_ERROR:
+                raise HardwareFault("motor_stall", f"{self._who}: homing error (0x{status:04X})")
+            if status & homed == homed:
+                actual = self._read(Obj.POSITION_ACTUAL, 0, "<i")
+                if abs(actual) <= self.position_window:
+                    return
+            if time.monotonic() > deadline:
+                break
+            with self._cond:
+                self._cond.wait(_POLL_S)
+        if actual is not None:
+            raise HardwareFault(
+                "protocol",
+                f"{self._who} shows homing attained (statusword 0x{status:04X}) but its "
+                f"position actual reads {actual}, not 0 (the head stood at {here}): it keeps "
+                "bit 12 from an earlier homing and did not home on the current position "
+                f"(method {self.homing_method}, home offset 0)",
+            )
+        raise DriveBusError(
+            f"{self._who} did not reach homing attained (statusword 0x{status:04X}, {_name(state)})"
+        )
 
     def reset(self) -> None:
         """The board's chip reset: clear a fault, take the voltage off, let the head come to
@@ -1398,9 +1820,12 @@ class Cia402Axes:
     closes it. Nothing is sent before the first use: the drives are set up by the server's
     initialisation (or :meth:`Cia402Controller.start` on :attr:`controller`).
 
+    ``gains`` (both drives: the same model) and ``homing_method`` are :class:`Cia402Axis`'s.
+
     Raises:
         DriveBusError: the CAN interface cannot be opened.
-        ValueError: a node id outside 1..127, both axes on one node, or bad heartbeat times.
+        ValueError: a node id outside 1..127, both axes on one node, bad heartbeat times, a
+            homing method or gains mapping the driver does not take.
     """
 
     def __init__(
@@ -1416,13 +1841,14 @@ class Cia402Axes:
         sdo_timeout_s: float = 0.3,
         state_timeout_s: float = 0.5,
         boot_timeout_s: float = 1.0,
-        homing_method: int = 35,
-        params_index: int = Obj.MOTOR_PARAMS,
+        homing_method: int = DEFAULT_HOMING_METHOD,
+        gains: Mapping[str, GainObject | str] | None = None,
         **can_config: Any,
     ) -> None:
         check_node_id(pan_node, "pan_node")  # before the bus is opened
         check_node_id(tilt_node, "tilt_node")
         check_homing_method(homing_method)
+        checked_gains = check_gains(gains or {})
         if pan_node == tilt_node:
             raise ValueError(f"pan and tilt cannot both be node {pan_node}")
         self.bus = Cia402Bus(
@@ -1433,7 +1859,7 @@ class Cia402Axes:
             **can_config,
         )
         options: dict[str, Any] = {
-            "params_index": params_index,
+            "gains": checked_gains,
             "homing_method": homing_method,
             "state_timeout_s": state_timeout_s,
             "boot_timeout_s": boot_timeout_s,

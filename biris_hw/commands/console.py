@@ -5,7 +5,9 @@ what the server is doing while the person waits (homing, booting BIRIS: the prog
 :func:`progress_to_stderr`, shown only when a terminal watches), what the driver and the
 simulator warn about (a short scan, acquisitions lost: :func:`log_to_stderr`, always), and an
 angle the server clamped (:func:`note_clamped`). Failures have their own module
-(:mod:`biris_hw.commands.failures`).
+(:mod:`biris_hw.commands.failures`). A long-running command may also keep one line of how it
+is doing rewritten in place at the bottom, for a terminal only (:class:`StatusLine`: ``biris
+record``'s elapsed time, scans, megabytes and drops); the other lines are written above it.
 
 A service (``biris serve``) is not watched by a person but read from a log: there
 :func:`log_to_stderr` writes the whole log from INFO up (DEBUG with ``--debug``), one line per
@@ -22,8 +24,9 @@ import contextlib
 import logging
 import os
 import sys
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TextIO
 
 from biris_hw.errors import HardwareFault
@@ -31,6 +34,7 @@ from biris_hw.errors import HardwareFault
 __all__ = [
     "PROGRESS_LOGGER",
     "ServiceLines",
+    "StatusLine",
     "is_terminal",
     "journal_stream",
     "log_to_stderr",
@@ -93,6 +97,98 @@ def note_clamped(
     return True
 
 
+STATUS_EVERY_S = 0.5
+"""How often a :class:`StatusLine` is rewritten."""
+
+
+class StatusLine:
+    """One line on stderr, rewritten in place every :data:`STATUS_EVERY_S` while a block runs
+    (``with StatusLine(prog, text):``): how a long command is doing, for a person at a
+    terminal. ``text()`` is called on a thread of the line's own and says what to show.
+
+    Only where a person watches (the caller decides: :func:`wants_progress`); never into a log
+    or a pipe, where a line rewritten with carriage returns is noise. The line is erased before
+    any other line this module writes (a warning, a progress line: :meth:`write_above`) and drawn
+    again at the next tick, and erased when the block ends, so that what the command prints
+    then (its summary) starts on a clean line.
+    """
+
+    _current: StatusLine | None = None
+    _lock = threading.Lock()
+
+    def __init__(
+        self,
+        prog: str,
+        text: Callable[[], str],
+        *,
+        every_s: float = STATUS_EVERY_S,
+        err: TextIO | None = None,
+    ) -> None:
+        self._prog = prog
+        self._text = text
+        self._every = every_s
+        self._err = err
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._drawn = False
+        self.draws = 0
+        """Times the line was written (tests)."""
+
+    def _stream(self) -> TextIO:
+        return self._err or sys.stderr
+
+    def draw(self) -> None:
+        """Write the line now (over the previous one)."""
+        try:
+            text = self._text()
+        except Exception as exc:  # what it reads has gone: say so rather than stop drawing
+            text = f"({type(exc).__name__})"
+        with StatusLine._lock:
+            stream = self._stream()
+            stream.write(f"\r\x1b[K{self._prog}: {text}")
+            stream.flush()
+            self._drawn = True
+            self.draws += 1
+
+    def _erase(self) -> None:
+        if self._drawn:
+            stream = self._stream()
+            stream.write("\r\x1b[K")
+            stream.flush()
+            self._drawn = False
+
+    @classmethod
+    def write_above(cls, stream: TextIO, text: str) -> None:
+        """Write ``text`` (whole lines) to ``stream``, the line being shown erased first (it is
+        drawn again at its next tick), so that the two never share a line."""
+        with cls._lock:
+            if cls._current is not None:
+                cls._current._erase()
+            stream.write(text)
+            stream.flush()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._every):
+            self.draw()
+
+    def __enter__(self) -> StatusLine:
+        with StatusLine._lock:
+            StatusLine._current = self
+        self._thread = threading.Thread(target=self._run, name="biris-status-line", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        with StatusLine._lock:
+            if StatusLine._current is self:
+                StatusLine._current = None
+            self._erase()
+
+
 class _ProgressLines(logging.Handler):
     """``biris scan: homing the pan...``: one line on stderr per progress record.
 
@@ -111,9 +207,7 @@ class _ProgressLines(logging.Handler):
                 return
             if text[-1] not in ".!?:":
                 text += "..."
-            stream = sys.stderr
-            stream.write(f"{self._prog}: {text}\n")
-            stream.flush()
+            StatusLine.write_above(sys.stderr, f"{self._prog}: {text}\n")
         except Exception:
             self.handleError(record)
 
@@ -178,9 +272,7 @@ class _WarningLines(logging.Handler):
             if record.name == "sim" or record.name.startswith("sim."):
                 text = f"simulator: {text}"
             kind = "warning" if record.levelno < logging.ERROR else "error"
-            stream = sys.stderr
-            stream.write(f"biris: {kind}: {text}\n")
-            stream.flush()
+            StatusLine.write_above(sys.stderr, f"biris: {kind}: {text}\n")
         except Exception:
             self.handleError(record)
 

@@ -7,7 +7,8 @@ or its permissions, a controller's credentials), 1 means "the hardware failed" (
 error while running, no answer in time, a rule the simulator's audit caught the driver
 breaking, the network to the service lost), 130 is Ctrl-C and 143 SIGTERM (128 + the signal's
 number, as a shell reports a process the signal ended: the command has kept what it could, as
-for Ctrl-C). ``--debug`` adds the traceback.
+for Ctrl-C). ``--debug`` adds the traceback. What a library below says in its own terms is
+cleaned on the way (:func:`error_line`): Zenoh's errors lose the Rust source paths they carry.
 
 The dispatcher (:mod:`biris_hw.cli`) imports this module to run every command, ``biris --help``
 included, so it imports nothing of the server, the hardware or the outside world.
@@ -108,8 +109,14 @@ def error_line(exc: BaseException) -> str:
     known = (BirisError, OSError, TimeoutError, ModuleNotFoundError)
     if not isinstance(exc, known):
         text = f"internal error: {type(exc).__name__}: {text} (--debug shows where)"
+    text = _RUST_SOURCE.sub("", text)
     lines = text.splitlines()
     return lines[0] if lines and lines[0] else type(exc).__name__
+
+
+_RUST_SOURCE = re.compile(r"[ \t]*\bat[ \t]+\S*?\.rs(?::\d+)+\.?")
+"""`` at /root/.cargo/git/checkouts/zenoh-.../unicast.rs:61.``: where in Zenoh's source an error
+was made (the network service's errors carry them), which tells a user nothing."""
 
 
 _COMMAND_NAME = re.compile(r"\bBI_[A-Z_]+")

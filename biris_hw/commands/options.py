@@ -10,9 +10,15 @@ ignored) and :func:`connect_options` turns the service's flags into
 :func:`~biris_hw.opening.open_sensor`'s keywords, passwords read from a file or the environment,
 never from the command line (where ``ps`` shows them to every user).
 
+Where the flags say nothing, the client's profile does (:mod:`biris_hw.commands.profile`:
+``$BIRIS_CONNECT``, ``$BIRIS_ENDPOINT``, ``$BIRIS_USER`` and ``~/.config/biris/client.toml``):
+the service to use and how to reach it, so that the ``--connect ... --endpoint ... --user``
+tail is typed once. A flag always wins over the environment, the environment over the file.
+
 A command also checks the files it will write before it touches the sensor
 (:func:`check_output_file`, :func:`check_output_folder`), so that a typo in a folder name
-costs nothing.
+costs nothing, and the files it will read that hold secrets (:func:`check_private_file`):
+one other users may read or write is refused, as ssh refuses such a key.
 
 Only :mod:`biris_hw.commands.argtypes` is imported here (for the argument types): declaring the
 flags loads nothing of the server, so ``biris COMMAND --help`` stays quick.
@@ -23,10 +29,11 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import stat
 import sys
 from collections.abc import Collection, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 from biris_hw.commands.argtypes import (
     DEFAULT_TIME_SCALE,
@@ -37,24 +44,34 @@ from biris_hw.commands.argtypes import (
 )
 from biris_hw.commands.failures import SetupError, UsageError
 
+if TYPE_CHECKING:
+    from biris_hw.commands.profile import ClientProfile
+    from biris_hw.io.codec import Stamp
+
 __all__ = [
     "DEFAULT_WAIT_S",
     "LINK_PASSWORD_ENV",
     "PASSWORD_ENV",
+    "STAMPS",
     "TARGET_ENV",
     "add_continuous_argument",
     "add_debug_argument",
     "add_quiet_argument",
     "add_service_client_arguments",
+    "add_stamp_argument",
     "add_target_arguments",
     "add_timeout_argument",
     "add_yes_argument",
     "check_output_file",
     "check_output_folder",
+    "check_private_file",
     "check_target_arguments",
+    "client_profile",
     "connect_options",
     "parse_zenoh_options",
+    "profile_hint",
     "read_toml",
+    "stamp_of",
     "sweep_chosen",
 ]
 
@@ -109,7 +126,7 @@ def add_target_arguments(parser: argparse.ArgumentParser, *, remote: bool = True
             "--connect",
             metavar="NAME",
             help="a running sensor service (`biris serve --name NAME`) instead of a server of "
-            "our own",
+            "our own (default: $BIRIS_CONNECT, or the profile's connect)",
         )
         add_service_client_arguments(parser)
     where.add_argument(
@@ -133,24 +150,25 @@ def add_service_client_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         metavar="ENDPOINT",
         help="Zenoh endpoint of the service, e.g. tcp/robot:7447 (repeatable; default: "
-        "found by multicast scouting)",
+        "$BIRIS_ENDPOINT, the profile's, else found by multicast scouting)",
     )
     net.add_argument(
         "--user",
         metavar="USER",
-        help=f"controller's user name; the password is read from ${PASSWORD_ENV}",
+        help=f"controller's user name (default $BIRIS_USER, or the profile's); the password "
+        f"is read from ${PASSWORD_ENV}",
     )
     net.add_argument(
         "--credentials",
         type=path,
         metavar="FILE",
-        help='controller\'s credentials, a TOML file: user = "...", password = "..."',
+        help='controller\'s credentials, a TOML file of mode 600: user = "...", password = "..."',
     )
     net.add_argument(
         "--tls-ca",
         type=path,
         metavar="FILE",
-        help="root CA certificate (PEM) for a tls/ endpoint",
+        help="root CA certificate (PEM) for a tls/ endpoint (default: the profile's tls_ca)",
     )
     net.add_argument(
         "--read-credentials",
@@ -220,6 +238,7 @@ def _link_options(args: argparse.Namespace) -> dict[str, str]:
             raise UsageError("--link-password-file goes with --link-user")
         return {}
     if file is not None:
+        check_private_file("--link-password-file", Path(file))
         try:
             lines = Path(file).read_text(encoding="utf-8").splitlines()
         except OSError as exc:
@@ -268,6 +287,37 @@ def sweep_chosen(args: argparse.Namespace) -> bool:
     if sweep and args.cw >= args.ccw:
         raise UsageError(f"--cw ({args.cw:g}) must lie clockwise of (below) --ccw ({args.ccw:g})")
     return sweep
+
+
+STAMPS = ("wall", "hardware")
+"""``--stamp``'s choices: :data:`biris_hw.io.codec.STAMPS`, named here so that building a
+parser loads nothing of the outside world (``biris view --help`` starts at once)."""
+
+
+def add_stamp_argument(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--stamp wall|hardware``: what a recording's or the live view's messages are logged at
+    (:class:`biris_hw.io.codec.LogTimes`); :func:`stamp_of` gives its value or its default."""
+    parser.add_argument(
+        "--stamp",
+        choices=STAMPS,
+        help="log times: the host's wall clock (default on a real sensor) or the hardware "
+        "clock's seconds (default on the simulator and a replay); the messages keep their "
+        "hardware stamps",
+    )
+
+
+def stamp_of(args: argparse.Namespace) -> Stamp:
+    """``--stamp``, or its default: ``wall`` on a real sensor (``--target``, or a service with
+    ``--connect``), whose hardware clock keeps pace with the host's, so that the file or the
+    view lines up with the robot's other logs; ``hardware`` on the simulator (``--sim``,
+    ``--attach``: a time-scaled simulator's seconds are not real ones) and a replay (which
+    plays the recorded times)."""
+    if getattr(args, "stamp", None) is not None:
+        return cast("Stamp", args.stamp)
+    simulated = getattr(args, "sim", False) or getattr(args, "attach", None) is not None
+    if getattr(args, "replay", None) is not None or simulated:
+        return "hardware"
+    return "wall"
 
 
 def add_yes_argument(parser: argparse.ArgumentParser) -> None:
@@ -320,15 +370,19 @@ def check_target_arguments(args: argparse.Namespace) -> None:
     ``--connect``.
     """
     attach = getattr(args, "attach", None)
+    chosen = args.sim or args.target is not None or attach is not None
+    if hasattr(args, "connect") and args.connect is None and not chosen:
+        _connect_from_profile(args)
     if getattr(args, "connect", None) is not None:
         given = [key for key in (*_SIM_ONLY, "init") if getattr(args, key, None) is not None]
         if getattr(args, "continuous", False):
             given.append("continuous")
         if given:
             flag = "--" + given[0].replace("_", "-")
+            where = getattr(args, "connect_source", "")
             raise UsageError(
-                f"{flag} does not apply to a running service (--connect): its server is the "
-                "service's, started with its own settings"
+                f"{flag} does not apply to a running service (--connect {args.connect}"
+                f"{where}): its server is the service's, started with its own settings"
             )
         return
     if getattr(args, "endpoint", None) or getattr(args, "user", None):
@@ -340,6 +394,11 @@ def check_target_arguments(args: argparse.Namespace) -> None:
     if not args.sim and args.target is None and attach is None:
         args.target = os.environ.get(TARGET_ENV) or None
         if args.target is None:
+            if hasattr(args, "connect"):
+                raise UsageError(
+                    "say which sensor to use: --sim, --target FILE or --attach NAME, or a "
+                    f"service: --connect NAME (or set {TARGET_ENV}, or BIRIS_CONNECT)"
+                )
             raise UsageError(
                 f"say which sensor to use: --sim, --target FILE or --attach NAME "
                 f"(or set {TARGET_ENV})"
@@ -363,6 +422,38 @@ def check_target_arguments(args: argparse.Namespace) -> None:
             raise UsageError(f"{flag} only applies to the in-process simulator (--sim)")
 
 
+def client_profile(args: argparse.Namespace) -> ClientProfile:
+    """The client's profile (environment and file), read once per command and kept on
+    ``args``.
+
+    Raises:
+        SetupError: a profile file that cannot be used
+            (:func:`~biris_hw.commands.profile.load_profile`).
+    """
+    found = getattr(args, "client_profile", None)
+    if found is None:
+        from biris_hw.commands.profile import load_profile
+
+        found = load_profile()
+        args.client_profile = found
+    return found
+
+
+def _connect_from_profile(args: argparse.Namespace) -> None:
+    """No sensor flag: the service ``$BIRIS_CONNECT`` names; else ``$BIRIS_TARGET`` (left to
+    the caller); else the profile file's ``connect``. The environment before the file, whatever
+    each names: a shell that sets ``$BIRIS_TARGET`` means it over a file written long ago."""
+    from biris_hw.commands.profile import CONNECT_ENV
+
+    profile = client_profile(args)
+    if profile.connect is None:
+        return
+    from_env = profile.sources.get("connect") == f"${CONNECT_ENV}"
+    if from_env or not os.environ.get(TARGET_ENV):
+        args.connect = profile.connect
+        args.connect_source = profile.source("connect")
+
+
 # -- what the service flags mean ---------------------------------------------------------------
 
 
@@ -376,12 +467,24 @@ def connect_options(args: argparse.Namespace) -> dict[str, Any]:
             ``--link-user`` without its password, a password in ``--zenoh-option``).
         SetupError: a credentials or password file that cannot be read, or says too little.
     """
-    user, password = _credentials(args)
+    profile = client_profile(args)
+    user, password = _credentials(args, profile)
     zenoh = parse_zenoh_options(getattr(args, "zenoh_option", None) or [])
     zenoh.update(_link_options(args))
     ca = getattr(args, "tls_ca", None)
+    if ca is None and profile.tls_ca is not None:
+        ca = profile.tls_ca
+        _readable(f"tls_ca{profile.source('tls_ca')}", Path(ca))
+    elif ca is not None:
+        _readable("--tls-ca", Path(ca))
+    if profile.tls_cert is not None and profile.tls_key is not None:
+        where = profile.source("tls_key")
+        _readable(f"tls_cert{where}", profile.tls_cert)
+        check_private_file(f"tls_key{where}", profile.tls_key)
+        zenoh.setdefault("transport/link/tls/connect_certificate", str(profile.tls_cert))
+        zenoh.setdefault("transport/link/tls/connect_private_key", str(profile.tls_key))
     return {
-        "endpoints": getattr(args, "endpoint", None),
+        "endpoints": getattr(args, "endpoint", None) or list(profile.endpoints) or None,
         "user": user,
         "password": password,
         "tls_ca": None if ca is None else str(ca),
@@ -390,11 +493,19 @@ def connect_options(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _credentials(args: argparse.Namespace) -> tuple[str | None, str | None]:
-    """(user, password) from --credentials FILE or --user and $BIRIS_PASSWORD, or (None, None)."""
+def _credentials(args: argparse.Namespace, profile: ClientProfile) -> tuple[str | None, str | None]:
+    """(user, password) from --credentials FILE, or --user and $BIRIS_PASSWORD, or the profile's
+    user and $BIRIS_PASSWORD, or (None, None).
+
+    A user the flags name needs its password; one the profile names (``$BIRIS_USER``, the file)
+    is used only when ``$BIRIS_PASSWORD`` is there too -- a profile is for every command, and
+    those that only read need no password. Without it nothing is sent, and
+    ``args.profile_user`` says whose password was missing (:func:`profile_hint`).
+    """
     file = getattr(args, "credentials", None)
     user = getattr(args, "user", None)
     if file is not None:
+        check_private_file("--credentials", Path(file))
         table = read_toml(file)
         found_user, password = table.get("user"), table.get("password")
         if not isinstance(found_user, str) or not isinstance(password, str):
@@ -407,7 +518,64 @@ def _credentials(args: argparse.Namespace) -> tuple[str | None, str | None]:
         if not password:
             raise UsageError(f"--user {user} needs the password in ${PASSWORD_ENV}")
         return user, password
+    if profile.user is not None:
+        password = os.environ.get(PASSWORD_ENV)
+        if password:
+            return profile.user, password
+        args.profile_user = f"{profile.user}{profile.source('user')}"
     return None, None
+
+
+def profile_hint(args: argparse.Namespace) -> str:
+    """What to add to an AccessDenied when the profile named a user whose password was not in
+    ``$BIRIS_PASSWORD`` (so no credentials were sent); "" otherwise."""
+    user = getattr(args, "profile_user", None)
+    if user is None:
+        return ""
+    return f" (no credentials were sent: user {user} has no password in ${PASSWORD_ENV})"
+
+
+_OPEN_TO_OTHERS = stat.S_IROTH | stat.S_IWOTH | stat.S_IWGRP
+"""Mode bits that let other users read a secret, or others or the group change it. A group may
+read (a service's own group, ``root:biris 0640``); nobody else may."""
+
+
+def check_private_file(flag: str, file: Path) -> Path:
+    """Refuse a file that holds secrets (passwords, a private key) when other users may read it
+    or others may write it (as ssh refuses such a key): one line naming its mode and the
+    ``chmod`` that fixes it. A missing or unreadable file is named too. Returns ``file``.
+
+    Raises:
+        SetupError: the file is missing, cannot be read, or is open to others.
+    """
+    try:
+        mode = stat.S_IMODE(file.stat().st_mode)
+    except FileNotFoundError:
+        raise SetupError(f"{flag} {file}: no such file") from None
+    except OSError as exc:
+        raise SetupError(f"{flag} {file}: {exc.strerror or exc}") from exc
+    if os.name == "posix" and mode & _OPEN_TO_OTHERS:
+        what = []
+        if mode & stat.S_IROTH:
+            what.append("read")
+        if mode & (stat.S_IWOTH | stat.S_IWGRP):
+            what.append("change")
+        raise SetupError(
+            f"{flag} {file}: mode {mode:04o} lets other users {' and '.join(what)} it, and it "
+            f"holds secrets: chmod 600 {file}"
+        )
+    return file
+
+
+def _readable(flag: str, file: Path) -> None:
+    """A file the command will read: there, a file, and readable (named before anything
+    starts, not found by Zenoh after a timeout)."""
+    if not file.exists():
+        raise SetupError(f"{flag} {file}: no such file")
+    if not file.is_file():
+        raise SetupError(f"{flag} {file}: not a file")
+    if not os.access(file, os.R_OK):
+        raise SetupError(f"{flag} {file}: cannot read it (permission denied)")
 
 
 def read_toml(file: str | os.PathLike[str]) -> dict[str, Any]:

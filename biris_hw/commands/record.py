@@ -13,33 +13,70 @@ turns SIGTERM into the same KeyboardInterrupt), and before the error's line when
 fault, a timeout, a full disk or a network to the service lost for longer than
 :data:`~biris_hw.io.feed.LOST_LIMIT_S` stops the run (exit 1, or 2 for a full disk, with a
 valid, shorter file). A shorter loss of the network is ridden out: the summary names the span.
+On a terminal (and not with ``--quiet``) one line at the bottom says how the recording is doing
+while it runs: seconds elapsed, scans recorded, megabytes written, items dropped.
+
+On a moving robot (docs/moving.md): ``--drive`` (with ``--sim``) puts the simulated vehicle on
+the simulator's default drive through its scene (:func:`sim.drives.default_drive`, setting off
+at 8 s of hardware time), and the recording carries its odometry (``/odom``, ``odom ->
+vehicle`` on ``/tf``) and ``/biris/points`` in ``odom``, each scan deskewed; ``--grid`` adds the
+certainty grid on ``/biris/grid`` (a few Hz), built from every acquisition (on ``--sim`` alone
+the vehicle stands at the origin, and its odometry is recorded the same way). A real robot's
+poses come in through the API (``Recorder(poses=...)``, docs/moving.md).
+
+``--stamp wall|hardware`` is what the messages are logged at, as for ``biris view``: ``wall``
+on a real sensor, ``hardware`` on the simulator (:func:`~biris_hw.commands.options.stamp_of`).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from biris_hw.commands.argtypes import degrees, path, positive_float
-from biris_hw.commands.console import note_clamped, prog_of
-from biris_hw.commands.failures import EXIT_INTERRUPTED, UsageError
+from biris_hw.commands.console import StatusLine, note_clamped, prog_of, wants_progress
+from biris_hw.commands.failures import EXIT_INTERRUPTED, AuditFailure, UsageError
 from biris_hw.commands.options import (
     add_continuous_argument,
+    add_stamp_argument,
     add_target_arguments,
     add_timeout_argument,
     add_yes_argument,
     check_output_file,
+    check_target_arguments,
+    stamp_of,
     sweep_chosen,
 )
-from biris_hw.commands.session import Session, confirm_moves, open_session, quiet_collector
+from biris_hw.commands.session import (
+    LagWatch,
+    Session,
+    confirm_moves,
+    make_scene,
+    open_session,
+    quiet_collector,
+)
 
 if TYPE_CHECKING:
+    from biris_hw.io.grid import GridParams
+    from biris_hw.io.moving_sink import PoseFeed
     from biris_hw.io.record import Recorder
 
-__all__ = ["add_arguments", "recording_metadata", "run"]
+__all__ = [
+    "add_arguments",
+    "add_moving_arguments",
+    "check_moving_arguments",
+    "grid_params",
+    "moving_session",
+    "progress_text",
+    "recording_metadata",
+    "run",
+]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -72,6 +109,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="leave out the per-acquisition profile clouds (the lossless data stay)",
     )
+    add_stamp_argument(out)
+    add_moving_arguments(parser)
     how = parser.add_argument_group("what to scan meanwhile (optional)")
     how.add_argument("--to", type=degrees, metavar="DEG", help="one scan to DEG degrees")
     how.add_argument("--cw", type=degrees, metavar="DEG", help="sweep: clockwise limit")
@@ -82,8 +121,117 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_target_arguments(parser)
 
 
+def add_moving_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--drive`` and ``--grid``: the simulated vehicle on its default drive, the certainty
+    grid (``biris record`` and ``biris view``)."""
+    moving = parser.add_argument_group("on a moving robot (docs/moving.md)")
+    moving.add_argument(
+        "--drive",
+        action="store_true",
+        help="with --sim: the vehicle follows the simulator's default drive through its scene "
+        "(from 8 s of hardware time); its odometry goes on /odom and /tf, and /biris/points "
+        "is in odom, each scan deskewed",
+    )
+    moving.add_argument(
+        "--grid",
+        action="store_true",
+        help="the certainty grid on /biris/grid (nav_msgs/OccupancyGrid in odom, 5 cm cells "
+        "over 20 m x 20 m, a few Hz), built from every acquisition placed with the vehicle's "
+        "pose (on --sim; with --replay, a recording that holds poses)",
+    )
+
+
+def check_moving_arguments(args: argparse.Namespace, *, replay: bool = False) -> None:
+    """``--drive`` and ``--grid`` where the command has the vehicle's poses: the simulator
+    (``--sim``), or a replay (``replay``: its own poses, for ``--grid``); UsageError else."""
+    if getattr(args, "drive", False) and not args.sim:
+        what = "a replay drives nothing" if replay else "a real vehicle drives itself"
+        raise UsageError(f"--drive goes with --sim ({what})")
+    if getattr(args, "grid", False) and not (args.sim or replay):
+        raise UsageError(
+            "--grid needs the vehicle's poses, which this command has on the simulator "
+            "(--sim, and --drive for a moving vehicle) or in a recording (biris view "
+            "--replay); a real robot's poses come in through the API: Recorder(poses=...), "
+            "LiveView(poses=...) (docs/moving.md)"
+        )
+
+
+def grid_params() -> GridParams:
+    """The certainty grid ``--grid`` builds: the defaults (5 cm cells over 20 m x 20 m round
+    the odom origin, docs/moving.md)."""
+    from biris_hw.io.grid import GridParams
+
+    return GridParams()
+
+
+@contextlib.contextmanager
+def moving_session(
+    args: argparse.Namespace,
+    opener: Callable[[argparse.Namespace], AbstractContextManager[Session]] | None = None,
+) -> Iterator[tuple[Session, PoseFeed | None]]:
+    """:func:`~biris_hw.commands.session.open_session`, and the vehicle's poses when
+    ``--drive`` or ``--grid`` asks for them (None otherwise): the simulated odometry, pumped
+    into a :class:`~biris_hw.io.pose.PoseBuffer` on the rig's time base while the block runs.
+    With ``--drive`` the simulator's vehicle follows :func:`sim.drives.default_drive` (a scene
+    too tight for it is a UsageError, before anything starts). ``opener`` opens the session
+    without ``--drive`` (the calling command's ``open_session``)."""
+    from biris_hw.opening import open_poses
+
+    drive = getattr(args, "drive", False)
+    wants_poses = drive or getattr(args, "grid", False)
+    opening = _driving(args) if drive else (opener or open_session)(args)
+    with opening as session:
+        if not wants_poses:
+            yield session, None
+            return
+        if session.rig is None:  # check_moving_arguments refuses this first
+            raise UsageError("--drive and --grid go with --sim")
+        with open_poses(sim=session.rig) as poses:
+            yield session, poses
+
+
+@contextlib.contextmanager
+def _driving(args: argparse.Namespace) -> Iterator[Session]:
+    """The session of ``--sim`` (as :func:`~biris_hw.commands.session.open_session` opens it:
+    the init record, the lag watch, the audit read at the end) with the vehicle on the
+    scene's default drive."""
+    from biris_hw.opening import load_init_record, open_sensor
+    from sim import SimulatedBiris
+    from sim.drives import default_drive
+
+    check_target_arguments(args)
+    prog = prog_of(args)
+    scene = make_scene(args.scene)
+    try:
+        trajectory = default_drive(scene)
+    except ValueError as exc:
+        raise UsageError(f"--drive in --scene {args.scene}: {exc}") from exc
+    continuous = True if getattr(args, "continuous", False) else None
+    record = load_init_record(args.init, continuous=continuous)
+    rig = SimulatedBiris(
+        scene=scene,
+        samples=args.samples,
+        time_scale=args.time_scale,
+        seed=args.seed,
+        clock=getattr(args, "clock", None) or "scaled",
+        trajectory=trajectory,
+    ).start()
+    with contextlib.ExitStack() as stack:
+        stack.callback(rig.close)
+        stack.callback(LagWatch(rig, prog).start().stop)
+        server = stack.enter_context(open_sensor(sim=rig, init=record))
+        yield Session(server, server.hardware, server.record, rig, True, prog)
+    if rig.audit.violations:
+        found = rig.audit.violations
+        raise AuditFailure(
+            f"the simulator's audit recorded {len(found)} driver rule violation(s); "
+            f"first: {found[0]}"
+        )
+
+
 def _check(args: argparse.Namespace) -> None:
     sweep_chosen(args)
+    check_moving_arguments(args)
     if args.to is None and args.duration is None:
         raise UsageError("say how long to record: --duration S (or --to DEG for one scan)")
     out = check_output_file("--out", Path(args.out), suffixes={".mcap"})
@@ -100,12 +248,15 @@ def recording_metadata(session: Session, args: argparse.Namespace) -> dict[str, 
     if session.rig is not None:
         rig = session.rig
         meta["scene"] = repr(rig.scene)
-        meta["simulator"] = {
+        simulator: dict[str, object] = {
             "scene": getattr(args, "scene", None),
             "samples": rig.samples,
             "time_scale": rig.time_scale,
             "seed": rig.seed,
         }
+        if getattr(args, "drive", False):
+            simulator["drive"] = "sim.drives.default_drive"
+        meta["simulator"] = simulator
     target = getattr(args, "target", None)
     if target is not None:
         try:
@@ -124,7 +275,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     interrupted = False
     recorder: Recorder | None = None
     try:
-        with open_session(args) as session:
+        with moving_session(args) as (session, poses):
             quiet_collector()
             recorder = Recorder(
                 session.server,
@@ -133,9 +284,12 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 profiles=not args.no_profiles,
                 metadata=recording_metadata(session, args),
                 overwrite=getattr(args, "force", False),
+                stamp=stamp_of(args),
+                poses=poses,
+                grid=grid_params() if getattr(args, "grid", False) else None,
             )
             try:
-                with recorder:
+                with recorder, _progress(args, recorder):
                     _scan(session, args, recorder)
             except KeyboardInterrupt:  # Ctrl-C (or SIGTERM), even a second one during close
                 interrupted = True
@@ -151,6 +305,40 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         print(f"{prog_of(args)}: interrupted: {args.out} is complete up to then", file=sys.stderr)
         return EXIT_INTERRUPTED
     return 0
+
+
+@contextlib.contextmanager
+def _progress(args: argparse.Namespace, recorder: Recorder) -> Iterator[None]:
+    """While the recording runs, on a terminal (not with --quiet): one line rewritten in place,
+    ``biris record: 12 s, 37 scans, 1.2 MB, dropped 0``."""
+    if not wants_progress(args):
+        yield
+        return
+    started = time.monotonic()
+    out = Path(args.out)
+
+    def text() -> str:
+        return progress_text(
+            time.monotonic() - started,
+            recorder.scans,
+            _size(out),
+            recorder.dropped_points + recorder.dropped_scans,
+        )
+
+    with StatusLine(prog_of(args), text):
+        yield
+
+
+def progress_text(elapsed_s: float, scans: int, size: int, dropped: int) -> str:
+    """The recording's progress line: elapsed time, scans, megabytes written, items dropped."""
+    return f"{elapsed_s:.0f} s, {scans} scans, {size / 1e6:.1f} MB, dropped {dropped}"
+
+
+def _size(file: Path) -> int:
+    try:
+        return file.stat().st_size
+    except OSError:
+        return 0
 
 
 def _scan(session: Session, args: argparse.Namespace, recorder: Recorder) -> None:

@@ -38,6 +38,7 @@ from biris_hw.commands.options import (
     add_quiet_argument,
     add_service_client_arguments,
     add_timeout_argument,
+    client_profile,
     connect_options,
 )
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault, RequestError
@@ -83,8 +84,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument(
         "--connect",
         metavar="NAME",
-        required=True,
-        help="the service (`biris serve --name NAME`) whose sensor to reset",
+        help="the service (`biris serve --name NAME`) whose sensor to reset (default: "
+        "$BIRIS_CONNECT, or the profile's)",
     )
     add_service_client_arguments(parser)
     add_timeout_argument(parser)
@@ -101,10 +102,16 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         AccessDenied: the credentials are not a controller's.
         TimeoutError: another client's reset was under way and did not end within --timeout.
     """
+    from biris_hw.commands.session import check_reachable
     from biris_hw.opening import open_sensor
 
     stream = out or sys.stdout
+    if args.connect is None:
+        args.connect = client_profile(args).connect
+        if args.connect is None:
+            raise UsageError("say which service: --connect NAME (or set BIRIS_CONNECT)")
     options = connect_options(args)
+    check_reachable(args.connect, options)  # a refused link or a wrong name said at once
     if options["user"] is None:
         raise UsageError(
             f"a reset is a controller's request: give --user USER (the password in "

@@ -16,6 +16,13 @@ read-only. A service with credentials does no multicast scouting unless ``--mult
 ``--dead-man`` stops the head (stop_scan) when the last controller's client has gone, so that a
 continuous scan nobody controls any more does not sweep for ever.
 
+The service listens on loopback (:data:`~biris_hw.commands.serve_setup.DEFAULT_LISTEN`) unless
+``--listen`` says otherwise, and every flag is checked before the sensor is touched
+(:mod:`biris_hw.commands.serve_setup`: a name, an endpoint or a port in use, a TLS file, a
+credentials file other users may read): a mistake costs no homing. What leaves it open -- an
+endpoint beyond loopback in the clear or open to anyone, a certificate expired or about to, a
+live view on the network -- is warned about in its log as it starts.
+
 A fault of the sensor does not end the service: the server stays up in its fault, the service
 goes on answering (the status says ``fault:<kind>``) and publishes the fault, and once the
 sensor has been reset it publishes the sensor's data again (:class:`~biris_hw.io.net.Service`);
@@ -50,22 +57,21 @@ import contextlib
 import logging
 import sys
 import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
 from biris_hw.commands.argtypes import path, positive_float, seconds
 from biris_hw.commands.failures import EXIT_INTERRUPTED, SetupError, UsageError
-from biris_hw.commands.options import add_target_arguments, parse_zenoh_options, read_toml
+from biris_hw.commands.options import add_target_arguments
 from biris_hw.commands.reset import AutoReset, add_auto_reset_arguments, check_auto_reset
+from biris_hw.commands.serve_setup import DEFAULT_LISTEN, check_service_flags, warn_about_exposure
 from biris_hw.commands.session import open_session, quiet_collector
 from biris_hw.errors import BirisError, HardwareFault
 
 __all__ = ["add_arguments", "run"]
 
 log = logging.getLogger(__name__)
-
-DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,18 +86,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="+",
         action="extend",
         metavar="ENDPOINT",
-        help=f"Zenoh endpoints to listen on (default {DEFAULT_LISTEN}); tls/HOST:PORT with "
-        "--tls-cert and --tls-key",
+        help=f"Zenoh endpoints to listen on (default {DEFAULT_LISTEN}: this machine only; "
+        "tcp/0.0.0.0:7447 for the network); tls/HOST:PORT with --tls-cert and --tls-key",
     )
     service.add_argument(
         "--credentials",
         type=path,
         metavar="FILE",
-        help='TOML: [controllers] user = "password" (may move and configure), optionally '
-        "[readers] (then reading needs credentials too); default: read-only for everyone",
+        help='TOML of mode 600: [controllers] user = "password" (may move and configure), '
+        "optionally [readers] (then reading needs credentials too); default: read-only for "
+        "everyone",
     )
     service.add_argument("--tls-cert", type=path, metavar="FILE", help="TLS certificate (PEM)")
-    service.add_argument("--tls-key", type=path, metavar="FILE", help="TLS private key (PEM)")
+    service.add_argument(
+        "--tls-key", type=path, metavar="FILE", help="TLS private key (PEM, mode 600)"
+    )
     service.add_argument(
         "--zenoh-option",
         action="append",
@@ -216,65 +225,28 @@ def _live_view(args: argparse.Namespace, sensor: Any, stream: TextIO) -> Iterato
     if args.foxglove is None:
         yield
         return
-    if not 0 <= args.foxglove <= 65535:
-        raise UsageError(f"--foxglove {args.foxglove}: not a TCP port")
     try:
         from biris_hw.io.liveview import LiveView
     except ImportError as exc:
         raise SetupError(
             f"--foxglove needs the record extra (pip install 'biris-hw[record]'): {exc}"
         ) from exc
-    view = LiveView(sensor, host=args.foxglove_host, port=args.foxglove)
+    # log times on the host's wall clock for a real sensor (a timeline shows the date), on the
+    # hardware clock for the simulator and a recording, as `biris view` does
+    real = args.replay is None and not args.sim and getattr(args, "attach", None) is None
+    view = LiveView(
+        sensor, host=args.foxglove_host, port=args.foxglove, stamp="wall" if real else "hardware"
+    )
     try:
         view.start()
     except RuntimeError as exc:  # the port is taken
         raise SetupError(f"--foxglove {args.foxglove}: {exc}") from exc
     try:
-        print(f"live view: {view.urls['websocket']} ({view.urls['foxglove']})", file=stream)
+        print(f"live view: {view.urls['websocket']} (opens with its layout: {view.urls['open']})",
+              file=stream)  # fmt: skip
         yield
     finally:
         view.close()
-
-
-def _tables(file: Any) -> tuple[dict[str, str] | None, dict[str, str] | None]:
-    """(controllers, readers) from a credentials file."""
-    if file is None:
-        return None, None
-    table = read_toml(file)
-    unknown = set(table) - {"controllers", "readers"}
-    if unknown:
-        raise SetupError(f"{file}: unknown table(s) {', '.join(sorted(unknown))}")
-    found: list[dict[str, str] | None] = []
-    for key in ("controllers", "readers"):
-        users = table.get(key)
-        if users is None:
-            found.append(None)
-            continue
-        if not isinstance(users, Mapping) or not all(
-            isinstance(v, str) and v for v in users.values()
-        ):
-            raise SetupError(f'{file}: [{key}] must hold user = "password" lines')
-        found.append(dict(users))
-    return found[0], found[1]
-
-
-def _zenoh_options(args: argparse.Namespace) -> dict[str, Any]:
-    from biris_hw.io.net.zconfig import tls_options
-
-    if (args.tls_cert is None) != (args.tls_key is None):
-        raise UsageError("--tls-cert and --tls-key go together")
-    options: dict[str, Any] = {}
-    if args.tls_cert is not None:
-        options.update(tls_options(certificate=str(args.tls_cert), private_key=str(args.tls_key)))
-    options.update(parse_zenoh_options(args.zenoh_option))
-    return options
-
-
-def _multicast(args: argparse.Namespace, controllers: Mapping[str, str] | None) -> bool:
-    """Scouting on unless refused; with credentials, off unless asked for."""
-    if args.no_multicast:
-        return False
-    return bool(args.multicast or not (controllers or args.credentials is not None))
 
 
 def _describe(args: argparse.Namespace) -> str:
@@ -305,9 +277,9 @@ def run(
         ) from exc
     _check_replay_arguments(args)
     check_auto_reset(args, playback=args.replay is not None)
-    controllers, readers = _tables(args.credentials)
-    options = _zenoh_options(args)
-    listen = args.listen or [DEFAULT_LISTEN]
+    setup = check_service_flags(args)  # all of them, before the sensor is touched
+    warn_about_exposure(setup, args)
+    controllers, listen = setup.controllers, setup.listen
     stop = stop or threading.Event()
     gave_up: list[HardwareFault] = []
     interrupted = False
@@ -333,9 +305,9 @@ def run(
                     name=args.name,
                     listen=listen,
                     controllers=controllers,
-                    readers=readers,
-                    multicast=_multicast(args, controllers),
-                    options=options,
+                    readers=setup.readers,
+                    multicast=setup.multicast,
+                    options=setup.options,
                     stop_when_controllers_leave=args.dead_man,
                 )
             )

@@ -19,14 +19,15 @@ import contextlib
 import gc
 import sys
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, TextIO
+from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 from biris_hw.commands.argtypes import time_scale_warning
 from biris_hw.commands.console import prog_of
-from biris_hw.commands.failures import AuditFailure, UsageError
-from biris_hw.commands.options import check_target_arguments, connect_options
+from biris_hw.commands.failures import AuditFailure, SetupError, UsageError
+from biris_hw.commands.options import check_target_arguments, connect_options, profile_hint
+from biris_hw.errors import AccessDenied, ConnectionClosed
 from biris_hw.opening import load_init_record, open_sensor
 from regs.hctl1000 import COUNTS_PER_REV
 
@@ -45,6 +46,7 @@ __all__ = [
     "LagWatch",
     "Lagging",
     "Session",
+    "check_reachable",
     "confirm_moves",
     "make_scene",
     "open_session",
@@ -103,6 +105,10 @@ def _start_rig(args: argparse.Namespace) -> SimulatedBiris:
 def open_session(args: argparse.Namespace) -> Iterator[Session]:
     """Open the sensor the flags name; take it down on the way out, server first.
 
+    ``--connect NAME`` (or the client's profile: ``$BIRIS_CONNECT``...) opens the service, its
+    files checked and its endpoints probed first, so that a missing CA file or a refused
+    connection is said at once (:mod:`biris_hw.io.net.probe`).
+
     ``--continuous`` builds the server with Appendix D's continuous acquisition
     (``BirisInitRecord.continuous_acquisition``) on top of whatever ``--init`` says, so it works
     the same on every sensor; the init record is read before anything starts. With --sim a
@@ -112,10 +118,18 @@ def open_session(args: argparse.Namespace) -> Iterator[Session]:
     check_target_arguments(args)
     prog = prog_of(args)
     if getattr(args, "connect", None) is not None:
-        with open_sensor(connect=args.connect, **connect_options(args)) as remote:
-            from biris_hw.records import BirisInitRecord
+        options = connect_options(args)  # files named, credentials read: before any network
+        check_reachable(args.connect, options)
+        try:
+            with open_sensor(connect=args.connect, **options) as remote:
+                from biris_hw.records import BirisInitRecord
 
-            yield Session(remote, None, BirisInitRecord(), None, False, prog, remote=True)
+                yield Session(remote, None, BirisInitRecord(), None, False, prog, remote=True)
+        except AccessDenied as exc:
+            hint = profile_hint(args)  # the profile's user, but no $BIRIS_PASSWORD
+            if not hint:
+                raise
+            raise AccessDenied(f"{exc}{hint}") from exc
         return
     continuous = True if getattr(args, "continuous", False) else None
     record = load_init_record(args.init, continuous=continuous)
@@ -139,6 +153,34 @@ def open_session(args: argparse.Namespace) -> Iterator[Session]:
             f"the simulator's audit recorded {len(found)} driver rule violation(s); "
             f"first: {found[0]}"
         )
+
+
+def check_reachable(name: str, options: Mapping[str, Any]) -> None:
+    """Probe the endpoints ``connect_options`` gave (:func:`~biris_hw.io.net.probe.reachable`)
+    and raise, at once, why none can be used: a connection refused, a host that cannot be
+    reached, a certificate refused, a ``tls/`` endpoint on a port without TLS. A command starts
+    no service, so waiting for one to listen would only delay the answer. No endpoints
+    (multicast scouting) and the ``net`` extra missing are left to opening the service.
+
+    Raises:
+        SetupError: no endpoint can be used (each one's reason said).
+        RequestError: a malformed endpoint, TLS files that cannot be used.
+    """
+    endpoints = options.get("endpoints") or []
+    if not endpoints:
+        return
+    try:
+        from biris_hw.io.net.probe import reachable
+        from biris_hw.io.net.zconfig import tls_options
+    except ImportError:
+        return
+    zenoh = dict(options.get("zenoh_options") or {})
+    if options.get("tls_ca") is not None:
+        zenoh.update(tls_options(root_ca=options["tls_ca"]))
+    try:
+        reachable(endpoints, zenoh, f"no BIRIS service {name!r}")
+    except ConnectionClosed as exc:
+        raise SetupError(str(exc)) from exc
 
 
 def quiet_collector() -> None:

@@ -62,7 +62,9 @@ The biris_msgs payloads carry frame ``biris`` (:data:`FRAME_ID`): the sensor's o
 ``vehicle``: the acquisitions since its previous message, for a 3D panel that keeps clouds a
 while), ``/tf`` (pan and tilt at each acquisition's time), ``/tf_static`` (the two static
 transforms), ``/diagnostics`` (REP 107). The lossless channels of a recording are
-:data:`RAW_SCAN_TOPIC`, :data:`RAW_POINT_TOPIC` and :data:`RAW_STATUS_TOPIC`.
+:data:`RAW_SCAN_TOPIC`, :data:`RAW_POINT_TOPIC` and :data:`RAW_STATUS_TOPIC`. On a moving robot a
+recording and the live view add :data:`MOVING_TOPICS` (``/odom``, ``/biris/grid``), ``odom ->
+vehicle`` on ``/tf`` and ``/biris/points`` in ``odom`` (:func:`placed_cloud`).
 
 Every cloud has the fields ``x, y, z`` (float32, m), ``intensity`` (float32, BIRIS's int16
 value), ``time`` (float32, s after the header's stamp: the acquisition's time), ``azimuth``
@@ -70,7 +72,9 @@ value), ``time`` (float32, s after the header's stamp: the acquisition's time), 
 first); no-return samples are left out (``is_dense`` true), in the order of ``Scan.points()``.
 
 **Stamps** are the hardware clock's seconds (since the target's clock started), as whole
-nanoseconds by :func:`stamp_ns`, the one rule for every header and every log time.
+nanoseconds by :func:`stamp_ns`, the one rule for every header and every log time as encoded. A
+recording or the live view may log on the host's wall clock instead (:class:`LogTimes`): the log
+time moves, the headers keep the hardware time.
 
 Conventions of biris_msgs: optional values travel as a value plus a ``has_*`` flag (CDR has no
 null); a 2-D array is flattened row-major with its row and column counts beside it.
@@ -89,11 +93,14 @@ rosbags is imported on first use, so that importing this module costs nothing wi
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import struct
-from collections.abc import Mapping, Sequence
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Protocol, get_args
 
 import numpy as np
 from numpy.typing import NDArray
@@ -123,6 +130,7 @@ __all__ = [
     "LATENCY",
     "MAX_PAYLOAD",
     "MOUNT",
+    "MOVING_TOPICS",
     "MSG_DEFINITIONS",
     "OCCUPANCY_GRID",
     "ODOMETRY",
@@ -142,6 +150,7 @@ __all__ = [
     "RAW_STATUS_TOPIC",
     "SCAN",
     "SENSOR_FRAME",
+    "STAMPS",
     "STATUS",
     "SWEEP_TOPIC",
     "TF_MESSAGE",
@@ -152,9 +161,11 @@ __all__ = [
     "TRANSFORM_STAMPED",
     "VEHICLE_FRAME",
     "Encoded",
+    "LogTimes",
     "OccupancyGridMessage",
     "PoseMessage",
     "ProximityMessage",
+    "Stamp",
     "WireError",
     "cloud_frame_id",
     "decode_crate",
@@ -178,8 +189,11 @@ __all__ = [
     "encode_transform_stamped",
     "full_definition",
     "occupancy_grid_message",
+    "odom_transform_messages",
     "odom_transforms",
     "odometry_message",
+    "odometry_messages",
+    "placed_cloud",
     "point_rows",
     "profile_cloud",
     "profile_clouds",
@@ -277,7 +291,7 @@ float64 head_offset_m
 """,
     SCAN: """\
 # One sweep's data, as the server buffered it (biris_hw.data.Scan), losslessly.
-# header.stamp: hardware time of the newest acquisition (t[n_acq-1]), or 0 when empty.
+# header.stamp: hardware time of the newest acquisition (the last of t), or 0 when empty.
 std_msgs/Header header
 uint8 DIRECTION_CW=0
 uint8 DIRECTION_CCW=1
@@ -532,6 +546,102 @@ def stamp_ns(t: float) -> int:
     if t >= MAX_STAMP_NS / 1e9:
         return MAX_STAMP_NS
     return min(round(t * 1e9), MAX_STAMP_NS)
+
+
+class _Clocked(Protocol):
+    """What :meth:`LogTimes.anchor_to` needs of a sensor (:class:`biris_hw.sensor.Sensor`)."""
+
+    def status(self) -> object: ...
+
+    def clock(self) -> float: ...
+
+
+Stamp = Literal["hardware", "wall"]
+"""What a sink logs its messages at (:class:`LogTimes`)."""
+
+STAMPS: tuple[Stamp, ...] = get_args(Stamp)
+
+_log = logging.getLogger(__name__)
+
+
+class LogTimes:
+    """The log times a sink (a recording, the live view) gives its messages.
+
+    ``"hardware"``: the header's stamp (:func:`stamp_ns`), as every message is encoded. A
+    timeline then reads seconds since the target's clock started (1970 in a viewer).
+
+    ``"wall"``: that stamp moved onto the host's wall clock by one offset, measured by
+    :meth:`anchor` (the host's time now minus the sensor's) or, without one, at the first
+    message, so that a file or a live view lines up with everything else the robot logs. The
+    messages keep their hardware stamps (``header.stamp``, the biris_msgs times): only the log
+    time moves, and by the same amount for every message, so intervals are the hardware's
+    exactly. A hardware time more than :attr:`RESTART_S` before the latest seen (the
+    sensor's clock restarted: its host rebooted) is anchored afresh. The offset is as exact as
+    the reading of the sensor's clock: a status round trip for a network sensor, and up to a
+    batch of the feed late when the first message measures it. A real target's clock is its
+    host's monotonic clock, which keeps pace with the wall clock (until the wall clock is
+    stepped, by hand or by NTP); a service on another host keeps pace with that host's.
+
+    Raises:
+        ValueError: ``stamp`` is not one of :data:`STAMPS`.
+    """
+
+    RESTART_S = 60.0
+    """A hardware time this far before the latest seen is a restarted clock, not a late
+    message: a sink's messages come in their stamps' order up to the depth of its queue in the
+    feed (seconds), while a host's clock restarts from its boot."""
+
+    def __init__(self, stamp: Stamp = "hardware", *, wall_ns: Callable[[], int] = time.time_ns):
+        if stamp not in STAMPS:
+            raise ValueError(f"stamp must be one of {', '.join(STAMPS)}, not {stamp!r}")
+        self.stamp: Stamp = stamp
+        self._wall_ns = wall_ns
+        self._lock = threading.Lock()
+        self.offset_ns: int | None = 0 if stamp == "hardware" else None
+        """Log time minus hardware time (ns); None until the first anchor."""
+        self.anchors = 0
+        """How often the offset was measured (1 normally; more after clock restarts)."""
+        self._latest = 0
+
+    def anchor(self, hardware_s: float) -> None:
+        """The sensor's clock reads ``hardware_s`` now: measure the offset (wall only)."""
+        if self.stamp == "wall":
+            with self._lock:
+                self._anchor(stamp_ns(hardware_s))
+
+    def anchor_to(self, sensor: _Clocked) -> None:
+        """Measure the offset on ``sensor``'s clock now (wall only). A status is asked first:
+        it brings a network sensor's clock up to date (its ``clock()`` is the newest time it has
+        seen); a sensor that cannot say yet (0.0: a replay not begun) leaves it to the first
+        message."""
+        if self.stamp != "wall":
+            return
+        try:
+            sensor.status()
+        except BirisError:
+            pass
+        clock = float(sensor.clock())
+        if clock > 0:
+            self.anchor(clock)
+
+    def _anchor(self, hardware_ns: int) -> None:
+        self.offset_ns = self._wall_ns() - hardware_ns
+        self._latest = hardware_ns
+        self.anchors += 1
+
+    def __call__(self, hardware_ns: int) -> int:
+        """The log time of a message stamped ``hardware_ns``."""
+        if self.stamp == "hardware":
+            return hardware_ns
+        with self._lock:
+            if self.offset_ns is None:
+                self._anchor(hardware_ns)
+            elif hardware_ns < self._latest - round(self.RESTART_S * 1e9):
+                _log.info("the sensor's clock went back: its log times measured afresh")
+                self._anchor(hardware_ns)
+            self._latest = max(self._latest, hardware_ns)
+            assert self.offset_ns is not None
+            return max(0, hardware_ns + self.offset_ns)
 
 
 def _cls(name: str) -> Any:
@@ -1443,6 +1553,92 @@ def odom_transforms(samples: Sequence[PoseSample], topic: str = TF_TOPIC) -> Enc
     return Encoded(topic, TF_MESSAGE, _serialize(msg, TF_MESSAGE), stamp_ns(float(samples[-1].t)))
 
 
+_NO_COVARIANCE = bytes(36 * 8)
+"""A 6 x 6 float64 covariance of zeros (not known), as CDR."""
+
+
+def _odometry_cdr(sample: PoseSample, frame_id: str, child_frame_id: str) -> bytes:
+    """:func:`encode_odometry`'s bytes, written by hand (:class:`_Cdr`): a sink writes one per
+    pose sample (50 Hz), and building rosbags' message objects costs ten times the encoding."""
+    out = _Cdr()
+    out.stamp(stamp_ns(float(sample.t)))
+    out.string(frame_id)
+    out.string(child_frame_id)
+    qx, qy, qz, qw = _yaw_quaternion(float(sample.yaw_rad))
+    out.pack("<7d", float(sample.x_m), float(sample.y_m), 0.0, qx, qy, qz, qw, align=8)
+    out.raw(_NO_COVARIANCE)  # 8-aligned after seven float64s: no padding
+    v, w = float(sample.v_mps), float(sample.omega_rad_s)
+    out.pack("<6d", v, 0.0, 0.0, 0.0, 0.0, w, align=8)
+    out.raw(_NO_COVARIANCE)
+    return out.bytes()
+
+
+def odometry_messages(samples: Sequence[PoseSample], topic: str = ODOM_TOPIC) -> list[Encoded]:
+    """One ``nav_msgs/msg/Odometry`` per sample (``odom -> vehicle``, the twist in
+    ``vehicle``), each logged at its stamp: what a recording and the live view carry on
+    ``/odom``. The bytes are :func:`encode_odometry`'s, written by hand for the pose rate."""
+    return [
+        Encoded(
+            topic,
+            ODOMETRY,
+            _odometry_cdr(s, ODOM_FRAME, VEHICLE_FRAME),
+            stamp_ns(float(s.t)),
+        )
+        for s in samples
+    ]
+
+
+def odom_transform_messages(samples: Sequence[PoseSample], topic: str = TF_TOPIC) -> list[Encoded]:
+    """One ``tf2_msgs/msg/TFMessage`` per sample holding its ``odom -> vehicle`` transform,
+    each logged at its stamp: what a recording and the live view carry on ``/tf`` beside the
+    head's own transforms. Each message is :func:`odom_transforms` of that one sample, written
+    by hand for the pose rate."""
+    out = []
+    for s in samples:
+        xyz = (float(s.x_m), float(s.y_m), 0.0)
+        quat = _yaw_quaternion(float(s.yaw_rad))
+        ns = stamp_ns(float(s.t))
+        out.append(_transforms_message(ns, [(ODOM_FRAME, VEHICLE_FRAME, xyz, quat)], topic))
+    return out
+
+
+def placed_cloud(
+    scan: Scan,
+    placed: NDArray[np.float64],
+    topic: str = POINTS_TOPIC,
+    frame_id: str = ODOM_FRAME,
+) -> Encoded:
+    """A scan whose acquisitions were each placed with the vehicle's pose at its own time
+    (``placed``: the ``(n_acq, samples, 3)`` grid of :func:`biris_hw.io.deskew.deskewed`, NaN
+    for an acquisition without a pose) as one PointCloud2 in ``frame_id`` (``odom``): the
+    fields of :func:`scan_cloud`, the returns of the placed acquisitions in the order of
+    ``scan.points()``, stamped with the scan's first acquisition and logged when the scan was
+    complete (:func:`scan_time`), as the feed logs a scan's cloud.
+
+    Raises:
+        ValueError: ``placed`` is not ``(n_acq, samples, 3)`` for ``scan``.
+    """
+    grid = np.asarray(placed, dtype=np.float64)
+    if grid.shape != (*scan.range_mm.shape, 3):
+        raise ValueError(
+            f"placed must be {(*scan.range_mm.shape, 3)} for this scan, not {grid.shape}"
+        )
+    t0 = float(scan.t[0]) if scan.n_acq else (scan.t_delivered or 0.0)
+    keep = (np.asarray(scan.range_mm) > 0) & np.isfinite(grid).all(axis=2)
+    n_acq, samples = keep.shape
+    counts = keep.sum(axis=1)
+    rows = np.zeros(int(counts.sum()), dtype=_CLOUD_DTYPE)
+    xyz = grid[keep]
+    rows["x"], rows["y"], rows["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    rows["intensity"] = np.asarray(scan.intensity, dtype=np.float32)[keep]
+    per_acq = np.repeat(np.arange(n_acq), counts)
+    rows["time"] = (np.asarray(scan.t, dtype=np.float64) - t0)[per_acq]
+    rows["azimuth"] = (np.asarray(scan.azimuth, dtype=np.float64) * _RAD_PER_COUNT)[per_acq]
+    rows["row"] = np.broadcast_to(np.arange(samples, dtype=np.uint16), (n_acq, samples))[keep]
+    data = _cloud_message(t0, frame_id, rows)
+    return Encoded(topic, POINT_CLOUD2, data, stamp_ns(scan_time(scan)))
+
+
 def _pose_sample(
     t: float, position: Any, rotation: Any, v: float, w: float, seq: int
 ) -> PoseSample:
@@ -1628,6 +1824,16 @@ def occupancy_grid_message(
     return Encoded(topic, OCCUPANCY_GRID, data, stamp_ns(float(t)))
 
 
+MOVING_TOPICS: Mapping[str, str] = {
+    ODOM_TOPIC: ODOMETRY,
+    GRID_TOPIC: OCCUPANCY_GRID,
+}
+"""The topics a recording or the live view adds on a moving robot, beside :data:`TOPICS`:
+``/odom`` when the vehicle's poses are known (which also put ``odom -> vehicle`` on ``/tf`` and
+``/biris/points`` in ``odom``), ``/biris/grid`` with the certainty grid. Only there when asked
+for (:mod:`biris_hw.io.moving_sink`)."""
+
+
 # -- the proximity alarm: biris_msgs/msg/Proximity ------------------------------------------------
 
 PROXIMITY_TOPIC = "/biris/proximity"
@@ -1731,12 +1937,15 @@ def diagnostics(
     """The sensor's status (and any ``extra`` components, e.g. the recorder's drops) as a
     DiagnosticArray, REP 107 style.
 
-    One DiagnosticStatus named ``biris: server`` with ``hardware_id``: level ERROR in a fault
+    One DiagnosticStatus named ``server`` with ``hardware_id``: level ERROR in a fault
     (message ``fault:<kind>``), WARN while initialising, OK otherwise; its values are the state,
     the axes, the acquisition mode and every counter, as strings. ``error`` (the text of a fault
     a feed met) makes it ERROR when no status could be read. A sensor with a crate monitor adds
-    ``biris: VME crate``. Each ``extra`` entry becomes a status ``biris: <name>``, WARN when a
-    value whose key contains ``dropped`` is not ``0``.
+    ``VME crate``. Each ``extra`` entry becomes a status named ``<name>``, WARN when a value
+    whose key contains ``dropped`` is not ``0``.
+
+    The names leave the device out: viewers (Foxglove, Lichtblick, ``rqt_runtime_monitor``)
+    show a status as ``hardware_id: name``, which reads ``biris: server``.
     """
     types = typestore().types
     key_value = types["diagnostic_msgs/msg/KeyValue"]
@@ -1758,7 +1967,7 @@ def diagnostics(
         items.append(
             status_type(
                 level=level,
-                name="biris: server",
+                name="server",
                 message=message,
                 hardware_id=hardware_id,
                 values=values,
@@ -1768,7 +1977,7 @@ def diagnostics(
         items.append(
             status_type(
                 level=_ERROR,
-                name="biris: server",
+                name="server",
                 message=error,
                 hardware_id=hardware_id,
                 values=[],
@@ -1784,7 +1993,7 @@ def diagnostics(
         items.append(
             status_type(
                 level=_WARN if warn else _OK,
-                name=f"biris: {name}",
+                name=str(name),
                 message="dropped data" if warn else "ok",
                 hardware_id=hardware_id,
                 values=values,
@@ -1795,7 +2004,7 @@ def diagnostics(
 
 
 def _crate_diagnostic(status: Mapping[str, Any], hardware_id: str) -> Any:
-    """The VME crate's DiagnosticStatus (``biris: VME crate``), or None without a monitor:
+    """The VME crate's DiagnosticStatus (``VME crate``), or None without a monitor:
     ERROR while the crate reports an alarm, WARN when its last poll failed (the values are
     then the last reading's), OK otherwise. The values: power, fans, temperatures and each
     fitted supply channel's voltage and current."""
@@ -1822,7 +2031,7 @@ def _crate_diagnostic(status: Mapping[str, Any], hardware_id: str) -> Any:
             values.append(key_value(key=f"temperature{sensor}.celsius", value=str(celsius)))
     return types["diagnostic_msgs/msg/DiagnosticStatus"](
         level=level,
-        name="biris: VME crate",
+        name="VME crate",
         message=message,
         hardware_id=hardware_id,
         values=values,

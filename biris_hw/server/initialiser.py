@@ -42,16 +42,40 @@ commands go through the administrator (InitMove, InitCommand) so that they use t
 and notifiers as scans. Every step is bounded: no index where it may be, a command BIRIS never
 completes, or a move that never ends is a HardwareFault, never a hang.
 
+**Boards checked, not assumed.** What the driver assumes a board did is read back
+(:mod:`biris_hw.devices`): the counter after a chip reset (the pan reference is told what it
+reads, not what it should read) and after every clear on the index, the index latch after it is
+cleared. Homing finds the index in one of two ways, by what the board's INDEX_STATUS shows
+(:class:`~biris_hw.devices.IndexKind`, the target file's ``[homing] index``):
+
+- a *latch* (the default, our reading of the Model 7600): coarse moves at full speed, each
+  looked at afterwards, then a bisection crossing the index again for each half;
+- a *live level*, true only while the encoder is on the index (a pulse of ``index_width``
+  counts): a slow sweep that polls it. New ground is swept in :data:`SWEEP_CHUNK`-count moves at
+  the chip's gentlest acceleration (a triangle peaking near a third of a count per sample, about
+  250 counts a second at Appendix B's sample timer) while the level and the counter are read
+  together every :func:`level_poll_s`; ground already searched is crossed at full speed. Every
+  count passed must have been read at a poll (two polls more than ``index_width`` counts apart
+  leave a gap, and the chunk is swept again, at most :data:`GAP_RETRIES` times). Once seen, the
+  pulse is crossed again slowly, upward, and its first count taken from the polls (not at rest:
+  a head stepped one count at a time stops where friction lets it, a count either side). A
+  level board homed as a latch almost never sees its index (the head rarely stops on the
+  pulse): "pan position lost" says to check the key.
+
 **Lost links first.** Before anything is touched, the hardware bundle re-links whatever link to
 the target was lost and can come back (:meth:`BirisHardware.relink <biris_hw.hardware.
 BirisHardware.relink>`: a VM-USB found again by its serial number, a restarted ``biris sim``
 reconnected, a CiA 402 drive whose heartbeat came back set up again), keeping the objects the
 server holds; a link still missing fails the reset at once with a ``bus`` fault that says what to
-restore. Only then are the server's failed tasks run again (``restart_tasks``, the supervisor's
-reset): an interrupt routine restarted on a line still lost would fail again at once, and fail
-this initialisation with it. When the re-link fails they stay down until a reset whose re-link
-succeeds: run again, they would only fail again, and a routine whose failure the supervisor
-records after the next reset has begun would sit out that reset too (it waits for the one after).
+restore. Then the Bit 3 coupler's link to the BIRIS crate is checked, as Bit 3's own drivers do
+(:meth:`~biris_hw.devices.Coupler.check_link`): NO_CONNECT (the crate's power off, the cable
+out) fails the reset with a ``bus`` fault at once, before anything crosses the coupler, and the
+sticky errors are cleared. Only then are the server's failed tasks run again (``restart_tasks``,
+the supervisor's reset): an interrupt routine restarted on a line still lost would fail again at
+once, and fail this initialisation with it. When the re-link or the check fails they stay down
+until a reset whose re-link and check succeed: run again, they would only fail again, and a
+routine whose failure the supervisor records after the next reset has begun would sit out that
+reset too (it waits for the one after).
 
 The registers are reached through the hardware bundle's one set of drivers
 (``BirisHardware.devices``), the same objects the server's tasks use, and only through the axis
@@ -64,17 +88,19 @@ disable and homing on the current position).
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Protocol, cast
 
 from biris_hw.angles import counts_to_deg
 from biris_hw.axes.base import MotionAxis
-from biris_hw.devices import LEVEL2_VECTOR
+from biris_hw.devices import LEVEL2_VECTOR, IndexKind, MotionBoard
 from biris_hw.errors import BirisError, HardwareFault
 from biris_hw.hardware import BirisHardware
-from biris_hw.ipc import Mailbox
+from biris_hw.ipc import Mailbox, Ticket
 from biris_hw.pan_reference import NARROW_WINDOW, index_search_range
-from biris_hw.records import BirisInitRecord
+from biris_hw.records import BirisInitRecord, MotorParams
 from biris_hw.server.cmd_transfer import command_name, status_name
 from biris_hw.server.messages import InitCommand, InitMove, InitSync
 from biris_hw.timebase import StopEvent
@@ -90,7 +116,15 @@ from regs.layout import (
 )
 from regs.tech80 import DEFAULT_IRQ_VECTOR, Axis
 
-__all__ = ["InitResult", "Initialiser", "run_initialiser"]
+__all__ = [
+    "GAP_RETRIES",
+    "SWEEP_ACCEL",
+    "SWEEP_CHUNK",
+    "InitResult",
+    "Initialiser",
+    "level_poll_s",
+    "run_initialiser",
+]
 
 log = logging.getLogger(__name__)
 progress = logging.getLogger("biris_hw.progress")
@@ -119,6 +153,31 @@ BUSY_POLL_S = FIELD_PERIOD_S
 REBASE_ATTEMPTS = 3
 """Re-zeroings of the pan counter allowed to bring the search window within the chip's own
 +-0x1000 (one is always enough for a head within a revolution of true zero)."""
+
+SWEEP_CHUNK = 32
+"""Counts per move of a slow sweep for a live index level (module notes): short, so the
+acceleration alone keeps it slow (a triangle), and so a host that missed polls repeats little."""
+
+SWEEP_ACCEL = 1
+"""R26H/R27H during a slow sweep: 1/256 count per sample squared, the chip's gentlest. A
+:data:`SWEEP_CHUNK` move then peaks at sqrt(32/256) = 0.35 count per sample."""
+
+SWEEP_POLLS_PER_COUNT = 2.5
+"""Polls of the index level per count at a slow sweep's peak speed: margin for the head running
+ahead of its profile, so that consecutive polls read counts at most one apart."""
+
+GAP_RETRIES = 3
+"""Times one chunk of a slow sweep is swept again because polls came too far apart (a busy
+host), before homing gives up."""
+
+
+def level_poll_s(params: MotorParams, width: int = 1) -> float:
+    """Hardware seconds between two polls of a live index level during a slow sweep: the
+    sweep's peak speed (:data:`SWEEP_CHUNK`, :data:`SWEEP_ACCEL`, at ``params``' sample timer)
+    crosses ``width`` counts in :data:`SWEEP_POLLS_PER_COUNT` polls."""
+    peak_counts_per_sample = math.sqrt(SWEEP_CHUNK * SWEEP_ACCEL / 256.0)
+    peak = peak_counts_per_sample / params.sample_period_s
+    return width / (SWEEP_POLLS_PER_COUNT * peak)
 
 
 @dataclass(frozen=True)
@@ -156,11 +215,17 @@ class Initialiser:
         self._position = {Axis.AZIMUTH: 0, Axis.ELEVATION: 0}
         self._tilt_level = 0
         """Where level is on the tilt's count after the chip reset (:meth:`_locate_tilt`)."""
+        board = self.board
+        self._search: _IndexSearch = (
+            _LevelSearch(self, board, board.index_width)
+            if isinstance(board, MotionBoard) and board.index_kind is IndexKind.LEVEL
+            else _LatchSearch(self, model7600=isinstance(board, MotionBoard))
+        )
+        """How the board's index is searched (module notes)."""
 
     # -- steps ---------------------------------------------------------------------------------
     def run(self) -> InitResult:
-        self.relink()
-        self.coupler.clear_errors()
+        self.relink()  # the coupler's link checked, its errors cleared
         self.coupler.enable_interrupts(LEVEL2_VECTOR)
         progress.info("stopping the motors")
         self.configure_axes()  # stops the motors first: nothing runs on while BIRIS is awaited
@@ -173,13 +238,15 @@ class Initialiser:
         return self.boot_biris()
 
     def relink(self) -> None:
-        """Re-link what was lost (see the module notes), then run the failed tasks again.
+        """Re-link what was lost, check the coupler's link to the BIRIS crate (see the module
+        notes), then run the failed tasks again.
 
         Raises:
-            HardwareFault: ``bus``, naming what is still missing; the failed tasks then stay
-                down (see the module notes).
+            HardwareFault: ``bus``, naming what is still missing or that the BIRIS crate is not
+                connected; the failed tasks then stay down (see the module notes).
         """
         self.hw.relink()
+        self.coupler.check_link()
         if self.restart_tasks is not None:
             self.restart_tasks()
 
@@ -255,10 +322,13 @@ class Initialiser:
             (Axis.AZIMUTH, self.azimuth, self.record.motor),
             (Axis.ELEVATION, self.elevation, self.record.tilt_motor),
         ):
-            self.board.reset_chip(which)
+            self.board.reset_chip(which)  # the Model 7600's is read back there, and refused
+            after = axis.actual_position()  # what the count restarted at, read, not assumed
             if which is Axis.AZIMUTH:
                 # after the reset (a crash between them reads as a chip reset, see pan_reference)
-                self.reference.chip_reset(counter)
+                self.reference.chip_reset(counter, after)
+            else:
+                self._tilt_level += after
             axis.configure(params)
             axis.wait_still(self.stop)  # after a reset the motor coasts
             axis.hold_here()
@@ -307,17 +377,30 @@ class Initialiser:
     def _move(self, destination: int, axis: Axis = Axis.AZIMUTH) -> None:
         if destination == self._position[axis]:
             return
+        self._finish_move(self._post_move(destination, axis), destination, axis)
+
+    def _post_move(self, destination: int, axis: Axis) -> Ticket:
+        """Hand the move to the administrator without waiting (a slow sweep polls meanwhile);
+        :meth:`_finish_move` waits for it."""
         # where the chip's count stands: the administrator cannot know it after a chip reset or
         # a re-zeroing, and its watchdog bounds the move by the distance really driven
-        self._send(InitMove(destination, axis, start=self._position[axis]))
+        return self.admin.post(InitMove(destination, axis, start=self._position[axis]))
+
+    def _finish_move(self, ticket: Ticket, destination: int, axis: Axis) -> None:
+        self._wait(ticket)
         self._position[axis] = destination
 
     def _send(self, message: object) -> object:
+        return self._wait(self.admin.post(message))
+
+    def _wait(self, ticket: Ticket) -> object:
         timeout = (self.record.timeout_s * 4.0) / self.hw.time_scale + 5.0
         try:
-            return self.admin.send(message, timeout=timeout)
+            return ticket.wait(timeout)
         except TimeoutError as exc:
-            raise HardwareFault("timeout", f"initialisation step {message} timed out") from exc
+            raise HardwareFault(
+                "timeout", f"initialisation step {ticket.message} timed out"
+            ) from exc
 
     def find_zero_index(self, axis: Axis = Axis.AZIMUTH) -> None:
         """Find the axis's zero index and stand on it as encoder count 0.
@@ -334,13 +417,15 @@ class Initialiser:
         start = self._tilt_level
         half = self._tilt_reach()
         self._move(start, axis)
-        bracket = self._sweep(axis, start - half, start + half, start, TILT_HOMING_CHUNK)
+        low, high = start - half, start + half
+        bracket = self._sweep(axis, low, high, start, TILT_HOMING_CHUNK)
         if bracket is None:
             raise HardwareFault(
                 "motor_stall",
-                f"{axis.name.lower()}: no zero index within {half} counts of tilt",
+                f"{axis.name.lower()}: no zero index within {half} counts of tilt"
+                f"{self._search.hint}",
             )
-        self._stand_on_index(axis, self.elevation, bracket)
+        self._stand_on_index(axis, self.elevation, bracket, low, high)
 
     def _home_pan(self) -> None:
         """Home the pan on TRUE zero's index, never further than the reference allows.
@@ -371,9 +456,8 @@ class Initialiser:
         bracket = self._sweep(Axis.AZIMUTH, low, high, start, HOMING_CHUNK)
         if bracket is None:
             span = f"{counts_to_deg(high - low):.0f} deg searched, encoder counts {low}..{high}"
-            raise self._pan_lost(referenced, f"no zero index ({span})")
-        self._stand_on_index(Axis.AZIMUTH, self.azimuth, bracket)
-        self.reference.homed()
+            raise self._pan_lost(referenced, f"no zero index ({span}{self._search.hint})")
+        self.reference.homed(self._stand_on_index(Axis.AZIMUTH, self.azimuth, bracket, low, high))
 
     def _pan_start(self, referenced: bool, low: int, high: int) -> int:
         """Where the pan search starts: on true zero itself when the counter is referenced (the
@@ -423,55 +507,34 @@ class Initialiser:
         pan.idle()
         pan.wait_still(self.stop)
         counter = pan.actual_position()
-        pan.hold_here(zero_counter=True)
-        self.reference.rezeroed(counter)
-        self._position[Axis.AZIMUTH] = 0
+        pan.hold_here(zero_counter=True)  # read back there: cleared, or refused
+        after = pan.actual_position()
+        self.reference.rezeroed(counter, after)
+        self._position[Axis.AZIMUTH] = after
 
     def _sweep(
         self, axis: Axis, low: int, high: int, start: int, chunk: int
     ) -> tuple[int, int] | None:
         """Coarse search within [low, high] outward from ``start`` (where the head stands):
-        the (low, high) bracket of the first sweep that set the index latch, or None."""
-        board = self.board
-        covered_lo = covered_hi = start
-        reach = chunk
-        while covered_lo > low or covered_hi < high:
-            for target in (min(start + reach, high), max(start - reach, low)):
-                if covered_lo <= target <= covered_hi:
-                    continue  # that side is searched to its end already
-                board.clear_index(axis)
-                self._move(target, axis)
-                if board.index_seen(axis):
-                    # 2 counts of margin at both ends: the head may have stopped on the index
-                    # (it overshot it and came back), and the bisection must start below it
-                    if target > covered_hi:
-                        return (max(covered_hi - 2, low), min(target + 2, high))
-                    return (max(target - 2, low), min(covered_lo + 2, high))
-                covered_lo, covered_hi = min(covered_lo, target), max(covered_hi, target)
-            reach *= 2
-        return None
+        the bracket the index is in, by the board's kind of index (module notes), or None."""
+        return self._search.sweep(axis, low, high, start, chunk)
 
-    def _stand_on_index(self, axis: Axis, driver: MotionAxis, bracket: tuple[int, int]) -> None:
-        """Bisect the bracket to one count, always crossing from below, then stand there as
-        encoder count 0."""
-        board = self.board
-        low, high = bracket
-        while high - low > 1:
-            mid = (low + high) // 2
-            self._move(low, axis)  # going back may cross the index: clear the latch afterwards
-            board.clear_index(axis)
-            self._move(mid, axis)
-            if board.index_seen(axis):
-                high = mid
-            else:
-                low = mid
-        self._move(high, axis)
+    def _stand_on_index(
+        self, axis: Axis, driver: MotionAxis, bracket: tuple[int, int], low: int, high: int
+    ) -> int:
+        """Find the index's count within ``bracket`` (never beyond [low, high]), stand there and
+        make it the origin; returns the counter read back there (0, or within a count)."""
+        at = self._search.locate(axis, bracket, low, high)
+        self._move(at, axis)
         driver.idle()
         driver.wait_still(self.stop)
-        driver.hold_here(zero_counter=True)
-        self._position[axis] = 0
-        board.clear_index(axis)
-        log.info("%s zero index found at encoder count %d", axis.name.lower(), high)
+        driver.hold_here(zero_counter=True)  # read back there: cleared, or refused
+        here = driver.actual_position()
+        self._position[axis] = here
+        if self._search.latched:
+            self.board.clear_index(axis)
+        log.info("%s zero index found at encoder count %d", axis.name.lower(), at)
+        return here
 
     def _command(self, code: BiCommand, param: str = "") -> str:
         reply = self._send(InitCommand(int(code), param))
@@ -505,6 +568,217 @@ class Initialiser:
             raise HardwareFault("protocol", f"frame size {frame_size}: {exc}") from exc
         self.link.set_flags(data_int=True)
         return InitResult(FrameAddressing(range_off, frame_size, azim_off), samples, period)
+
+
+class _IndexSearch(Protocol):
+    """One way of finding an axis's zero index (module notes)."""
+
+    latched: bool
+    """The board latches the index (it must be cleared once homed)."""
+    hint: str
+    """Said with "no zero index": what to check about this way of looking."""
+
+    def sweep(
+        self, axis: Axis, low: int, high: int, start: int, chunk: int
+    ) -> tuple[int, int] | None:
+        """The (low, high) counts the index was seen between, or None within [low, high]."""
+        ...
+
+    def locate(self, axis: Axis, bracket: tuple[int, int], low: int, high: int) -> int:
+        """The count the index is at (crossed from below), found within ``bracket``."""
+        ...
+
+
+class _LatchSearch:
+    """The index is latched (the Model 7600's INDEX_STATUS, a CiA 402 drive's touch probe):
+    coarse moves looked at afterwards, then a bisection. ``model7600``: the latch is our reading
+    of that board, which a "no zero index" then says may be wrong."""
+
+    latched = True
+
+    def __init__(self, init: Initialiser, *, model7600: bool) -> None:
+        self._init = init
+        self._model7600 = model7600
+        self.hint = (
+            '; or the board\'s index is a live level, not a latch: [homing] index = "level" '
+            "in the target file"
+            if model7600
+            else ""
+        )
+
+    def sweep(
+        self, axis: Axis, low: int, high: int, start: int, chunk: int
+    ) -> tuple[int, int] | None:
+        """Sweeps alternately each way, reaching further each time, clearing the latch before
+        each, until one sets it: the (low, high) bracket of the sweep that did."""
+        init, board = self._init, self._init.board
+        covered_lo = covered_hi = start
+        reach = chunk
+        while covered_lo > low or covered_hi < high:
+            for target in (min(start + reach, high), max(start - reach, low)):
+                if covered_lo <= target <= covered_hi:
+                    continue  # that side is searched to its end already
+                if self._model7600:  # away from the index (not seen here): it must clear
+                    cast("MotionBoard", board).clear_index(axis, check=True)
+                else:
+                    board.clear_index(axis)
+                init._move(target, axis)
+                if board.index_seen(axis):
+                    # 2 counts of margin at both ends: the head may have stopped on the index
+                    # (it overshot it and came back), and the bisection must start below it
+                    if target > covered_hi:
+                        return (max(covered_hi - 2, low), min(target + 2, high))
+                    return (max(target - 2, low), min(covered_lo + 2, high))
+                covered_lo, covered_hi = min(covered_lo, target), max(covered_hi, target)
+            reach *= 2
+        return None
+
+    def locate(self, axis: Axis, bracket: tuple[int, int], low: int, high: int) -> int:
+        """Bisect the bracket to one count, always crossing from below."""
+        init, board = self._init, self._init.board
+        lo, hi = bracket
+        checked = not self._model7600
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            init._move(lo, axis)  # going back may cross the index: clear the latch afterwards
+            if not checked:  # the bracket's end, clear of the index: a latch must clear there
+                cast("MotionBoard", board).clear_index(axis, check=True)
+                checked = True
+            else:  # near the index a head at rest dithers a count: the latch may set again
+                board.clear_index(axis)
+            init._move(mid, axis)
+            if board.index_seen(axis):
+                hi = mid
+            else:
+                lo = mid
+        return hi
+
+
+class _LevelSearch:
+    """INDEX_STATUS is the index's live level: a slow sweep that polls it, then a second slow
+    crossing, upward, to place the index's first count (module notes)."""
+
+    latched = False
+    hint = (
+        "; the board's index is taken to be a live level polled during a slow sweep "
+        '([homing] index = "level"): check the index input and index_width'
+    )
+
+    def __init__(self, init: Initialiser, board: MotionBoard, width: int) -> None:
+        self._init = init
+        self._board = board
+        self._width = width
+
+    def sweep(
+        self, axis: Axis, low: int, high: int, start: int, chunk: int
+    ) -> tuple[int, int] | None:
+        """Outward from ``start`` as the latch search goes, but each new stretch swept slowly
+        while the level is polled; stretches already searched are crossed at full speed. The
+        bracket is the counts read at the polls either side of the first sight."""
+        init = self._init
+        if self._board.index_seen(axis):  # standing on it
+            return (start, start)
+        covered_lo = covered_hi = start
+        reach = chunk
+        while covered_lo > low or covered_hi < high:
+            for target in (min(start + reach, high), max(start - reach, low)):
+                if covered_lo <= target <= covered_hi:
+                    continue
+                edge = covered_hi if target > covered_hi else covered_lo
+                init._move(edge, axis)
+                seen = self._slow(axis, edge, target, first_only=True)
+                if seen:
+                    return (min(seen), max(seen))
+                covered_lo, covered_hi = min(covered_lo, target), max(covered_hi, target)
+            reach *= 2
+        return None
+
+    def locate(self, axis: Axis, bracket: tuple[int, int], low: int, high: int) -> int:
+        """Cross the bracket again slowly, upward, from ``index_width`` + 2 counts below it, and
+        take the first count of the pulse: the first count read with the level set, unless the
+        last one read with it, less the width, is higher (a count read at a poll may lag the
+        head by a sample of the chip's, the direction it moves)."""
+        init, width = self._init, self._width
+        below = max(low, bracket[0] - width - 2)
+        above = min(high, bracket[1] + width + 2)
+        init._move(below, axis)
+        seen = self._slow(axis, below, above, first_only=False)
+        if not seen:
+            raise HardwareFault(
+                "motor_stall",
+                f"{axis.name.lower()}: the index level seen between counts {bracket[0]} and "
+                f"{bracket[1]} did not show again crossing {below}..{above} (a noisy index "
+                f"input?); the axis is not homed",
+            )
+        return max(seen[0], seen[-1] - width + 1)
+
+    def _slow(self, axis: Axis, start: int, target: int, *, first_only: bool) -> list[int]:
+        """Sweep from ``start`` (where the head stands) to ``target`` slowly, polling: the
+        counts read with the level set, in order (with ``first_only``, the count read at the
+        poll before the first sight too, then the sweep ends with that chunk)."""
+        init = self._init
+        driver = init.azimuth if axis is Axis.AZIMUTH else init.elevation
+        params = init.record.motor if axis is Axis.AZIMUTH else init.record.tilt_motor
+        driver.configure(replace(params, max_vel=1, max_accel=SWEEP_ACCEL))
+        seen: list[int] = []
+        try:
+            here = start
+            step = SWEEP_CHUNK if target > start else -SWEEP_CHUNK
+            while here != target:
+                nxt = min(here + step, target) if step > 0 else max(here + step, target)
+                seen += self._chunk(axis, here, nxt, level_poll_s(params, self._width), first_only)
+                if seen and first_only:
+                    break
+                here = nxt
+            return seen
+        finally:
+            driver.configure(params)
+
+    def _chunk(
+        self, axis: Axis, start: int, target: int, poll: float, first_only: bool
+    ) -> list[int]:
+        """One slow move from ``start`` to ``target`` with the level polled every ``poll``
+        hardware seconds; swept again when the polls left a gap (module notes)."""
+        init = self._init
+        for attempt in range(GAP_RETRIES + 1):
+            if attempt:
+                init._move(start, axis)  # back, at the slow speed: a short move
+            ticket = init._post_move(target, axis)
+            last: int | None = None
+            gap: tuple[int, int] | None = None
+            seen: list[int] = []
+            while True:
+                finished = ticket.done
+                level, counter = self._board.index_and_position(axis)
+                if level:
+                    if not seen and first_only and last is not None:
+                        seen.append(last)
+                    seen.append(counter)
+                elif last is not None and abs(counter - last) > self._width and gap is None:
+                    gap = (last, counter)
+                last = counter
+                if finished:
+                    break
+                init.hw.timebase.sleep(poll, what="the index level's next poll")
+            init._finish_move(ticket, target, axis)
+            if seen or gap is None:
+                return seen
+            log.warning(
+                "%s: the index level was not polled between counts %d and %d (the host was "
+                "late); sweeping %d..%d again",
+                axis.name.lower(),
+                gap[0],
+                gap[1],
+                start,
+                target,
+            )
+        raise HardwareFault(
+            "timeout",
+            f"{axis.name.lower()}: the index level could not be polled often enough to see a "
+            f"{self._width}-count pulse between counts {start} and {target} "
+            f"({GAP_RETRIES + 1} sweeps, every one with a gap): the host is too busy; reset to "
+            f"try again",
+        )
 
 
 def _position_lost(detail: str) -> HardwareFault:

@@ -38,6 +38,21 @@ never writes the next command before it has serviced BIRIS_CMD.
 A BusError while reading the coupler or COMMAND is itself a failed cycle across the coupler, so
 it raises BIT3_BERR and the routine keeps running.
 
+**The BIRIS crate's connection** (beyond the report). LOCAL_STATUS also says whether BIRIS can be
+reached at all: NO_CONNECT (bit 0: the BIRIS crate's power is off, or the cable is out) and the
+sticky TIMEOUT error (bit 2: an access across the coupler got no answer). Either, newly set, is
+the end of every exchange with BIRIS, so the routine raises ``HardwareFault("bus")`` naming it,
+which its supervisor reports to every caller at once (and the routine waits for the next reset,
+whose initialiser checks the link before anything else: :meth:`~biris_hw.devices.Coupler.
+check_link`). A TIMEOUT the first look finds after the routine begins to serve is old news left
+to that check, which clears it (a sticky bit latched before a power cycle); NO_CONNECT is a
+state and is reported whenever seen. NO_CONNECT raises no interrupt of its own, and a BIRIS
+without power raises none either, so the routine does not wait for one: it reads LOCAL_STATUS
+whenever :data:`COUPLER_WATCH_S` of hardware time has passed without its having read it, which
+bounds how long a powered-off crate goes unnoticed by every caller, idle or mid-scan. While
+interrupts keep coming (a scan's data, 30 a second) each of them reads LOCAL_STATUS anyway and
+no extra read is made; idle, the watch costs four reads of a host-side register a second.
+
 **Failure.** The server runs both routines under its supervisor
 (:meth:`~biris_hw.irq.Demultiplexer.serve`). A physical line that is closed under a routine, or
 that fails, means the target has gone: the supervisor reports a ``bus`` fault. A HardwareFault a
@@ -79,12 +94,12 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 
 from biris_hw.axes.base import MotionController
 from biris_hw.bus.base import BusWindow
-from biris_hw.devices import LEVEL2_PREFETCH, LEVEL3_PREFETCH, MotionBoard
-from biris_hw.errors import BusError
+from biris_hw.devices import LEVEL2_PREFETCH, LEVEL3_PREFETCH, MotionBoard, coupler_status_text
+from biris_hw.errors import BusError, HardwareFault
 from biris_hw.irq.base import InterruptLine
 from biris_hw.irq.demux import Demultiplexer
 from biris_hw.timebase import ScaledTime, TimeBase
@@ -93,6 +108,7 @@ from regs.bit3 import Bit3Reg, LocalStatus
 from regs.tech80 import Axis, AxisBit
 
 __all__ = [
+    "COUPLER_WATCH_S",
     "LEVEL2_LOGICALS",
     "LEVEL2_PREFETCH",
     "LEVEL3_LOGICALS",
@@ -132,6 +148,15 @@ LEVEL3_THREAD = "level3_isr"
 
 _PERR = int(LocalStatus.PARITY_ERROR)
 _BERR = int(LocalStatus.REMOTE_BUS_ERROR)
+_TIMEOUT = int(LocalStatus.TIMEOUT)
+_LINK = int(LocalStatus.NO_CONNECT) | _TIMEOUT
+
+COUPLER_WATCH_S = 0.9
+"""Most hardware seconds the level-2 routine lets pass without reading the coupler's
+LOCAL_STATUS (module notes): a BIRIS crate that loses power is a ``bus`` fault to every caller
+within this, plus one administrator case: under the 1 s of hardware time issue 26 asks for,
+at about one read a second, what an idle sensor can spare (the idle benchmark's bus reads: the
+encoders' once a second at rest, and this)."""
 
 
 def prefetched(line: InterruptLine, n: int) -> tuple[int, ...] | None:
@@ -150,7 +175,8 @@ class Level2Demux(Demultiplexer[Logical]):
     """Level 2: BIRIS_DATA_DEV, BIRIS_CMD, BIT3_PERR, BIT3_BERR (decision order: module doc).
 
     ``coupler`` is the Bit 3 register window, ``biris`` BIRIS memory, and ``biexec_offset``
-    where BIEXEC_COM sits in it.
+    where BIEXEC_COM sits in it. ``watch_s``: hardware seconds between two reads of
+    LOCAL_STATUS at most (:data:`COUPLER_WATCH_S`; None: only when an interrupt comes).
     """
 
     def __init__(
@@ -162,8 +188,15 @@ class Level2Demux(Demultiplexer[Logical]):
         name: str = LEVEL2_THREAD,
         *,
         timebase: TimeBase | None = None,
+        watch_s: float | None = COUPLER_WATCH_S,
     ) -> None:
         super().__init__(line, LEVEL2_LOGICALS, name, timebase=timebase)
+        if watch_s is not None and not watch_s > 0.0:
+            raise ValueError(f"watch_s must be positive, not {watch_s}")
+        self._watch_s = watch_s
+        self._clock: TimeBase = timebase if timebase is not None else ScaledTime()
+        self._next_watch = 0.0  # hardware time of the next look at LOCAL_STATUS, if none before
+        self._first_look = True  # the first look since the routine began to serve
         self._coupler = coupler
         self._biris = biris
         self._command_offset = biexec_offset + OFF_COMMAND
@@ -207,6 +240,30 @@ class Level2Demux(Demultiplexer[Logical]):
     def set_continuous(self, on: bool) -> None:
         """Set or clear the flag; a plain store, so a notifier may call it at any time."""
         self._continuous = bool(on)
+
+    def _waiter(self, line_fd: int) -> Callable[[], Collection[int]]:
+        """The frame's wait, bounded so that LOCAL_STATUS is read at least every ``watch_s``
+        (module notes); the look is made here, in the routine's thread, before the wait
+        returns (a HardwareFault from it ends the routine, as from ``_service``)."""
+        self._first_look = True
+        if self._watch_s is None:
+            return super()._waiter(line_fd)
+        fds = (self._stop_fd, line_fd, self._look_fd)
+        clock = self._clock
+        what = f"{self.name}: its physical interrupt line or the coupler's next look"
+        self._next_watch = clock.now() + self._watch_s
+
+        def ready() -> Collection[int]:
+            left = self._next_watch - clock.now()
+            got = clock.poll(fds, max(0.0, left), what=what) if left > 0.0 else []
+            if not got and clock.now() >= self._next_watch:
+                # read here, not in _coupler_errors: a coupler that cannot be read at all is
+                # a target gone (the BusError ends the routine as a ``bus`` fault, once),
+                # not a BIT3_BERR raised again at every look
+                self._coupler_errors(self._coupler.read8(Bit3Reg.LOCAL_STATUS))
+            return got
+
+        return ready
 
     def _service(self, count: int) -> None:
         pre = prefetched(self._line, len(LEVEL2_PREFETCH))
@@ -257,7 +314,13 @@ class Level2Demux(Demultiplexer[Logical]):
 
     def _coupler_errors(self, status: int | None = None) -> bool:
         """Raise the error interrupts newly shown in LOCAL_STATUS (``status`` when the line
-        read it at interrupt time); True if any was raised."""
+        read it at interrupt time); True if any was raised.
+
+        Raises:
+            HardwareFault: ``bus``, when NO_CONNECT or TIMEOUT is newly set (module notes).
+        """
+        if self._watch_s is not None:
+            self._next_watch = self._clock.now() + self._watch_s
         try:
             if status is None:
                 status = self._coupler.read8(Bit3Reg.LOCAL_STATUS)
@@ -265,14 +328,35 @@ class Level2Demux(Demultiplexer[Logical]):
             log.error("level 2: coupler status unreadable (%s); raising BIT3_BERR", exc)
             self._raise(Logical.BIT3_BERR)
             return True
-        errors = status & (_PERR | _BERR)
+        errors = status & (_PERR | _BERR | _LINK)
         new = errors & ~self._seen_errors
         self._seen_errors = errors  # a cleared bit is forgotten, so its next setting is new
+        if self._first_look:
+            # a TIMEOUT latched before this routine ran is the initialiser's to clear (it
+            # checks the link at every start and reset)
+            self._first_look = False
+            new &= ~_TIMEOUT
+        if new & _LINK:
+            raise HardwareFault("bus", _link_text(status))
         if new & _PERR:
             self._raise(Logical.BIT3_PERR)
         if new & _BERR:
             self._raise(Logical.BIT3_BERR)
         return bool(new)
+
+
+def _link_text(status: int) -> str:
+    """What a LOCAL_STATUS with NO_CONNECT or TIMEOUT means, for the fault's message."""
+    what = coupler_status_text(status)
+    if status & LocalStatus.NO_CONNECT:
+        return (
+            f"the Bit 3 coupler lost the BIRIS crate (LOCAL_STATUS {what}): its power is off "
+            f"or the cable is out; restore it, then reset"
+        )
+    return (
+        f"an access across the Bit 3 coupler timed out (LOCAL_STATUS {what}): BIRIS does not "
+        f"answer; check the BIRIS crate's power and the cable, then reset"
+    )
 
 
 _AXES = (

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,22 +26,32 @@ from biris_hw.errors import (
 __all__ = [
     "BLOCKING_OPS",
     "CONTROL_OPS",
+    "MAX_NESTING",
     "MAX_REQUEST",
     "MAX_WAIT_S",
     "OPS",
     "READ_OPS",
     "RESET_WAIT_S",
+    "AuthLimited",
     "Keys",
     "ServiceClosing",
     "UnknownConnection",
+    "check_client",
     "check_token",
     "error_payload",
+    "parse_request",
     "raise_error",
 ]
 
 MAX_REQUEST = 4096
 """Largest request payload the service parses (bytes): every request is a few dozen bytes of JSON,
 so anything bigger is refused unread."""
+
+MAX_NESTING = 16
+"""Most JSON objects and arrays one request may hold, all together (outside strings), and so the
+deepest it may nest: a request is one object with at most one more inside (``params``).
+Counted before the JSON is parsed, so that 4,000 nested ``[`` cost a byte count, not the
+parser's recursion."""
 
 MAX_WAIT_S = 5.0
 """Longest a blocking request (ready_for_data, wait_idle) is held by the service; a client that
@@ -96,6 +107,51 @@ def check_token(token: object) -> str:
     if not isinstance(token, str) or not _TOKEN.match(token):
         raise BadRequest(f"conn: expected the connection token that open returned, not {token!r}")
     return token
+
+
+def check_client(request: Mapping[str, Any]) -> str:
+    """A request's ``client``: a string usable as a key chunk.
+
+    Raises:
+        BadRequest: missing, not a string, or not a name (a request of nobody is served as
+            nobody's: refused).
+    """
+    ident = request.get("client")
+    if not isinstance(ident, str):
+        raise BadRequest(f"client: expected the client's id (a string), not {ident!r}")
+    if not _NAME.match(ident):
+        raise BadRequest(
+            f"client: {ident!r} is not 1 to 64 letters, digits, '-' or '_' (one key chunk)"
+        )
+    return ident
+
+
+_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"?', re.DOTALL)
+"""A JSON string (escapes included), whose brackets are text, not structure; one left open runs
+to the end. Every match succeeds where it starts, so a scan is linear in the payload."""
+
+
+def parse_request(raw: bytes, op: str) -> dict[str, Any]:
+    """A request's JSON object, read within the bounds every request keeps.
+
+    Raises:
+        BadRequest: over :data:`MAX_REQUEST` bytes, more than :data:`MAX_NESTING` objects and
+            arrays, not JSON (invalid UTF-8, a syntax error, a number out of range), or not an
+            object. Nothing else: whatever the bytes, the caller has an answer to send.
+    """
+    if len(raw) > MAX_REQUEST:
+        raise BadRequest(f"{op}: request of {len(raw)} bytes exceeds {MAX_REQUEST}")
+    if raw.count(b"[") + raw.count(b"{") > MAX_NESTING:
+        structure = _STRING.sub(b"", raw)  # only a request with many brackets pays for this
+        if structure.count(b"[") + structure.count(b"{") > MAX_NESTING:
+            raise BadRequest(f"{op}: request holds more than {MAX_NESTING} JSON objects and arrays")
+    try:
+        request = json.loads(raw)
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
+        raise BadRequest(f"{op}: request is not JSON ({exc})") from None
+    if not isinstance(request, dict):
+        raise BadRequest(f"{op}: request must be a JSON object")
+    return request
 
 
 def check_name(name: str, what: str) -> str:
@@ -215,6 +271,12 @@ class BadRequest(RequestError):
 class Busy(RequestError):
     """Too many requests at once (from one client, of one kind, or in all): refused unread,
     nothing was done; asking again later may succeed."""
+
+
+class AuthLimited(Busy):
+    """Too many failed authentications lately, by this client or on the service as a whole:
+    the credentials were not checked and nothing was done (a password guesser gets a few
+    guesses a second, not thousands). Asking again later may succeed."""
 
 
 class UnknownConnection(ConnectionClosed):

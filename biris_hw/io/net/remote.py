@@ -34,6 +34,18 @@ that stops answering is noticed whatever the caller's timeout.
 A client that is not closed is closed when it is garbage-collected and when the interpreter
 exits, before the interpreter waits for threads (:mod:`biris_hw.io.net.lifetime`): Zenoh's
 handler threads would otherwise keep the process alive.
+
+**A service that cannot be found** is said with its reason, as soon as the reason is certain:
+the endpoints are probed before Zenoh starts (:mod:`biris_hw.io.net.probe`), and a TLS
+handshake that fails on every one (a certificate refused, with OpenSSL's reason; a ``tls/``
+endpoint on a port without TLS) is raised at once; a client that has heard nothing of its
+service :data:`LOOK_S` after its session opened looks at why: no Zenoh link (a ``tcp/``
+endpoint on a TLS port), or services of other names answering on its endpoints (named). A
+refused connection is waited through (a service may be starting as its client does) and named
+if the service has not answered by the timeout; the command line, which starts no service,
+says it at once (:func:`~biris_hw.io.net.probe.reachable`). Each is a ConnectionClosed, as "no
+service answered" is. The session is a Zenoh peer with no listener (:func:`make_config`'s
+``client``): a client opens no port.
 """
 
 from __future__ import annotations
@@ -55,7 +67,7 @@ import zenoh
 from biris_hw.angles import RealLike, counts_to_deg, destination_counts
 from biris_hw.client import POLL, D, checked_timeout
 from biris_hw.data import ConnectionKind, DeliveryPolicy, Direction, Point, Scan
-from biris_hw.errors import BirisError, ConnectionClosed, ConnectionLost, RequestError
+from biris_hw.errors import AccessDenied, BirisError, ConnectionClosed, ConnectionLost, RequestError
 from biris_hw.io import codec
 from biris_hw.io.net.keys import (
     CONTROL_OPS,
@@ -67,9 +79,10 @@ from biris_hw.io.net.keys import (
     raise_error,
 )
 from biris_hw.io.net.lifetime import SessionLife, close_at_exit, weak_callback
+from biris_hw.io.net.probe import probe_all, speaks_tls
 from biris_hw.io.net.reconnect import LOST_PAUSE_S, LinkWatch, Missed, Outage
 from biris_hw.io.net.warm import warm
-from biris_hw.io.net.zconfig import make_config
+from biris_hw.io.net.zconfig import make_config, zenoh_message
 from biris_hw.records import BirisInitRecord, MotorParams
 from biris_hw.sensor import ConnectionBase
 from biris_hw.status import ServerStatus, StatusChanges, check_change
@@ -89,6 +102,18 @@ CLOSE_REPLY_S = 1.0
 leaves behind when the client's token goes, so a close never waits long for a lost one."""
 
 CONNECT_TIMEOUT_S = 10.0
+
+LOOK_S = 1.0
+"""How long after its session opens a client that has heard nothing of its service looks at
+why (:meth:`RemoteSensor._look`): no Zenoh link to any endpoint, or other services answering
+there. A service that is there answers in milliseconds."""
+
+_LOOK_AGAIN_S = 0.25
+"""Between two such looks, until the service answers or the timeout is over."""
+
+_DENIED = ("needs a controller's credentials", "needs a reader's credentials")
+"""The service's words for credentials it does not accept, the same whether none, wrong ones or
+a reader's were sent: the client says which it sent."""
 
 MAX_REOPENS = 3
 """Reopens one call may make before it gives up: a service that refuses each new connection as
@@ -236,11 +261,15 @@ class RemoteSensor:
             connect=endpoints,
             multicast=(not endpoints) if multicast is None else multicast,
             options=options,
+            client=True,
         )
+        self._probe_options = options
+        """The Zenoh options the endpoints are probed with (TLS files)."""
+        self._refuse_tls(endpoints)
         try:
             self._session = zenoh.open(config)
         except Exception as exc:  # zenoh.ZError: a malformed endpoint, a TLS file missing...
-            raise RequestError(f"cannot start the Zenoh session: {exc}") from exc
+            raise RequestError(f"cannot start the Zenoh session: {zenoh_message(exc)}") from exc
         self._life = SessionLife(self._session, f"the remote sensor {self.name!r}")
         try:
             # held weakly by Zenoh's threads: an unclosed client can be collected, and closed
@@ -251,11 +280,7 @@ class RemoteSensor:
             self._token = self._session.liveliness().declare_token(
                 self.keys.client_token(self.client)
             )
-            if not self._alive.wait(timeout):
-                where = ", ".join(endpoints) or "multicast scouting"
-                raise ConnectionClosed(
-                    f"no BIRIS service {self.name!r} answered within {timeout:g} s ({where})"
-                )
+            self._await_service(timeout, endpoints)
             self._status_sub = self._session.declare_subscriber(
                 self.keys.status, weak_callback(self._on_status_sample)
             )
@@ -266,6 +291,106 @@ class RemoteSensor:
             raise
         self._finalizer = self._life.collect_with(self)
         close_at_exit(self)
+
+    def _refuse_tls(self, endpoints: Sequence[str]) -> None:
+        """Probe the endpoints (:mod:`biris_hw.io.net.probe`) and raise at once when the TLS
+        handshake fails on every one: a certificate refused (its reason said), a ``tls/``
+        endpoint on a port without TLS. Waiting would not change that; a refused connection
+        might (a service starting as its client does), and is said only if the service has
+        not answered by the timeout (:meth:`_not_found`), as the command line says it at once
+        (:func:`~biris_hw.io.net.probe.reachable`).
+
+        Raises:
+            ConnectionClosed: every endpoint's TLS handshake failed.
+            RequestError: a malformed endpoint, TLS files that cannot be used.
+        """
+        if not endpoints:
+            return
+        found = probe_all(endpoints, self._probe_options)
+        if all(p.verdict in ("tls", "no_tls") for p in found):
+            reasons = "; ".join(map(str, found))
+            raise ConnectionClosed(f"no BIRIS service {self.name!r} can be reached: {reasons}")
+
+    def _await_service(self, timeout: float, endpoints: Sequence[str]) -> None:
+        """Wait up to ``timeout`` for the service's token; look at why it has not come from
+        :data:`LOOK_S` on, and raise as soon as the reason is certain.
+
+        Raises:
+            ConnectionClosed: no such service (with what was seen instead).
+        """
+        start = time.monotonic()
+        deadline = start + timeout
+        look_at = start + LOOK_S
+        others_before: list[str] = []
+        while not self._alive.wait(max(0.0, min(deadline, look_at) - time.monotonic())):
+            now = time.monotonic()
+            if now >= deadline:
+                break
+            look_at = now + _LOOK_AGAIN_S
+            if self._linked():
+                if not endpoints:
+                    continue  # scouting: others may still come
+                others = self._services_seen()
+                if others and others == others_before:  # twice: the link's whole picture
+                    where = ", ".join(endpoints)
+                    raise ConnectionClosed(
+                        f"no BIRIS service {self.name!r} on {where}: the service there is "
+                        f"{_names(others)} (--connect {others[0]}; `biris list` lists them)"
+                    )
+                others_before = others
+                continue
+            for each in endpoints:  # not linked: a TLS port spoken to in plain TCP?
+                if each.startswith("tcp/") and speaks_tls(each):
+                    raise ConnectionClosed(
+                        f"no BIRIS service {self.name!r} can be reached: {each} is a TLS port: "
+                        f"connect to tls/{each[4:]} (with --tls-ca FILE)"
+                    )
+        if self._alive.is_set():
+            return
+        raise ConnectionClosed(self._not_found(timeout, endpoints))
+
+    def _linked(self) -> bool:
+        """The session has a Zenoh link to some peer or router."""
+        try:
+            info = self._session.info
+            return any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid())
+        except Exception:  # an unstable Zenoh API: then nothing is concluded from links
+            return True
+
+    def _services_seen(self) -> list[str]:
+        """Names of the BIRIS services whose liveliness token this session sees (ours aside)."""
+        names: set[str] = set()
+        try:
+            replies = self._session.liveliness().get(Keys("*").service_token, timeout=0.5)
+            for reply in replies:
+                if reply.ok is not None:
+                    parts = str(reply.ok.key_expr).split("/")
+                    if len(parts) > 1 and parts[1] != self.name:
+                        names.add(parts[1])
+        except Exception:  # closed meanwhile: nothing seen
+            return []
+        return sorted(names)
+
+    def _not_found(self, timeout: float, endpoints: Sequence[str]) -> str:
+        """Why no service of our name answered within ``timeout``, with what was seen."""
+        where = ", ".join(endpoints) or "multicast scouting"
+        text = f"no BIRIS service {self.name!r} answered within {timeout:g} s ({where})"
+        with contextlib.suppress(RequestError):
+            failed = [p for p in probe_all(endpoints, self._probe_options) if p.failed]
+            if failed and len(failed) == len(endpoints):
+                return f"{text}: {'; '.join(map(str, failed))}"
+        others = self._services_seen()
+        if others:
+            return f"{text}; answering: {_names(others)} (`biris list` lists them)"
+        if not self._linked():
+            if endpoints:
+                return (
+                    f"{text}: no Zenoh session could be set up although the port accepts "
+                    "connections (a service behind link authentication, --link-user? mutual "
+                    "TLS? not a Zenoh endpoint?)"
+                )
+            return f"{text}: scouting found no Zenoh peer (give --endpoint tcp/HOST:PORT)"
+        return text
 
     def _learn(self) -> None:
         """Ask the service what it serves (a recording? paced? its init record) and take its
@@ -547,8 +672,32 @@ class RemoteSensor:
                 # a recording played to its end) is final and raised as it is.
                 unread = kind == "UnknownConnection" or message in _UNKNOWN
                 raise _Released(f"{op}: {message}", unread)
-        raise_error(payload, op)
+        try:
+            raise_error(payload, op)
+        except AccessDenied as exc:
+            raise self._denied(op, exc) from None
         raise AssertionError("unreachable")  # raise_error always raises
+
+    def _denied(self, op: str, exc: AccessDenied) -> AccessDenied:
+        """The service's AccessDenied, saying whose credentials it refused when some were sent:
+        its own words for that are the same as for none (``needs a controller's
+        credentials``), so the client says what it knows -- that ``user``'s were sent -- and the
+        likely reasons; a service that says why keeps its words, in brackets."""
+        user = self._credentials.get("user")
+        control = op in CONTROL_OPS
+        if user is None or not (control or self.reader_credentials):
+            return exc
+        text = str(exc)
+        if any(words in text for words in _DENIED):
+            why = "a wrong password or an unknown user"
+            if control:
+                why += ", or a reader's rather than a controller's"
+        else:
+            why = text.removeprefix(f"{op}: ").removesuffix("; nothing was done")
+        done = "; nothing was done" if control else ""
+        return AccessDenied(
+            f"{op}: the service refused the credentials of user {user!r} ({why}){done}"
+        )
 
     def _json(
         self,
@@ -1093,6 +1242,10 @@ if TYPE_CHECKING:
 
     def _is_a_sensor(remote: RemoteSensor) -> Sensor:
         return remote  # mypy holds RemoteSensor to biris_hw.sensor.Sensor
+
+
+def _names(names: Sequence[str]) -> str:
+    return ", ".join(repr(n) for n in names)
 
 
 def connect(

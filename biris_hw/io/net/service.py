@@ -9,19 +9,25 @@ loses the oldest buffers and counts them -- holds for a remote one by constructi
 
 Threads and why:
 
-* Zenoh delivers queries on its own thread; that thread only reads and admits them (size,
-  JSON, the connection token, credentials, rate and in-flight limits per client, a cap on new
-  clients and on blocking reads in all), so a flood is answered "Busy" cheaply and never queues
-  behind the sensor. Admitted requests run on one of two bounded pools (a full queue is "Busy"
-  too): control operations on a small pool of their own, which blocking reads never reach, so
+* Zenoh hands each query to :meth:`Service._on_query` on the network thread that received it
+  (a direct callback, not one queue for all peers: a flooding peer's backlog waits on its own
+  link, not in front of everyone's requests). That call only reads and admits the query (size,
+  nesting and JSON, the client's id, the connection token, credentials -- failed ones limited
+  per client and for the service --, rate and in-flight limits per client, a cap on new
+  clients and on blocking reads in all) and answers at once what it refuses, from replies made
+  in advance where it can: a flood is answered "Busy" cheaply and never queues behind the
+  sensor. Whatever a query holds, it is answered. Admitted requests run on one of two bounded
+  pools (a full one is "Busy" too), which serve waiting requests one client at a time, in
+  turn: control operations on a small pool of their own, which blocking reads never reach, so
   that no number of readers waiting in READY_FOR_DATA or wait_idle (each held at most
   :data:`~biris_hw.io.net.keys.MAX_WAIT_S`) can delay a controller's ``stop_scan``; everything
   else on the shared pool, where blocking reads are capped (:data:`MAX_BLOCKING`) below its
   size so that quick reads always find a worker.
 * A janitor thread releases the connections of clients whose liveliness token went (after
-  checking that no token of that client is left: anyone may withdraw a token of the same key),
-  forgets idle clients, and, with ``stop_when_controllers_leave``, stops the head when the last
-  controller has gone.
+  checking that no token of that client is left: anyone may withdraw a token of the same key)
+  and of clients that never declared one and have asked nothing for :data:`CLIENT_LEASE_S`
+  (their requests renew a lease), forgets idle clients, and, with
+  ``stop_when_controllers_leave``, stops the head when the last controller has gone.
 * The publications come from the process's one feed of the sensor (:mod:`biris_hw.io.feed`),
   whose reader reads every acquisition and every buffer once and encodes each once, for the
   service and for a recorder or a live view of the same sensor in the process alike. The
@@ -38,9 +44,11 @@ Threads and why:
 What a supervisor reads in the log (logger ``biris_hw.io.net.service``): the service up (name,
 endpoints, who may do what) and down at INFO; each client's first request ("connected"), the
 first control operation it is granted (with the controller's name), a reset it asks for, and
-its leaving (its token withdrawn, its connections released) at INFO; refusals -- access
-refused, Busy -- at WARNING, at most one line per :data:`REFUSAL_LOG_S` for each kind (a
-flood of wrong passwords does not flood the log: the lines count what they left out); and
+its leaving (its token withdrawn or its lease run out, its connections released) at INFO;
+refusals -- access refused, authentications limited, Busy -- at WARNING, at most one line per
+:data:`REFUSAL_LOG_S` for each kind (a flood of wrong passwords does not flood the log: the
+lines count what they left out); a request that met a bug in the service, at ERROR, as
+rarely; and
 acquisitions or scans that could not be published, at WARNING, once per status period at most.
 The sensor's own faults, resets and recoveries are its watcher's to say
 (:class:`biris_hw.commands.reset.AutoReset` in ``biris serve``).
@@ -48,8 +56,9 @@ The sensor's own faults, resets and recoveries are its watcher's to say
 
 from __future__ import annotations
 
-import concurrent.futures
+import collections
 import contextlib
+import functools
 import hmac
 import json
 import logging
@@ -77,20 +86,22 @@ from biris_hw.io import codec, feed
 from biris_hw.io.net.keys import (
     BLOCKING_OPS,
     CONTROL_OPS,
-    MAX_REQUEST,
     MAX_WAIT_S,
     OPS,
+    AuthLimited,
     BadRequest,
     Busy,
     Keys,
     ServiceClosing,
     UnknownConnection,
+    check_client,
     check_name,
     check_token,
     error_payload,
+    parse_request,
 )
 from biris_hw.io.net.warm import warm_all
-from biris_hw.io.net.zconfig import make_config
+from biris_hw.io.net.zconfig import make_config, zenoh_message
 from biris_hw.records import MotorParams
 from biris_hw.sensor import Connection, Sensor
 
@@ -129,6 +140,39 @@ NEW_CLIENT_BURST = 64.0
 CLIENT_IDLE_S = 60.0
 """A client that holds no connection and has asked nothing for this long is forgotten."""
 
+CLIENT_LEASE_S = 10.0
+"""A client whose liveliness token the service does not see (it never declared one, or access
+control keeps it from the service) holds its connections on a lease that each of its requests
+renews: asking nothing for this long, with nothing in flight, it is let go and its connections
+closed. Longer than :data:`~biris_hw.io.net.keys.MAX_WAIT_S`, so that a reader that waits in
+READY_FOR_DATA again and again never lapses. A client whose token the service sees keeps its
+connections until the token goes."""
+
+LEASE_CHECK_S = 1.0
+"""How often the janitor looks for lapsed leases: a client that went quiet without a token is
+let go within :data:`CLIENT_LEASE_S` + this."""
+
+MAX_LIVE_TOKENS = 4 * MAX_CLIENTS
+"""Client tokens the service keeps track of; beyond (a peer declaring tokens by the thousand),
+a further client is treated as one without a token (on a lease)."""
+
+AUTH_FAILURES_PER_CLIENT = 5.0
+"""Failed authentications one client may have in a burst; then :data:`AUTH_RATE_PER_CLIENT`.
+Beyond, its credentials are not checked at all (AuthLimited, a Busy): a guesser learns nothing."""
+
+AUTH_RATE_PER_CLIENT = 0.2
+
+AUTH_FAILURES = 20.0
+"""Failed authentications all clients together may have in a burst; then :data:`AUTH_RATE`.
+Zenoh does not tell a queryable which peer sent a query, and a client id costs nothing, so
+this bound, not the per-client one, is what holds a guesser with many ids: at most a few
+guesses a second in all (a 6-letter lowercase password: a year on average, not a day). A
+client that has authenticated before, asking about a connection it holds (its token is a
+secret only it has), is not held by it: a guesser cannot lock out a controller already
+working."""
+
+AUTH_RATE = 3.0
+
 MAX_BLOCKING = 32
 """Blocking reads (ready_for_data, wait_idle with a timeout) held at once, all clients together;
 beyond, Busy. Below :data:`READ_WORKERS`, so that quick reads always find a worker."""
@@ -164,6 +208,61 @@ _PUBLISHED = frozenset(
 """What the service takes from the feed: the lossless payloads, as it publishes them."""
 
 
+def _refusal(exc: BirisError) -> tuple[BirisError, bytes]:
+    """A refusal and its reply, made once: a flood is answered without building either."""
+    return exc, error_payload(exc)
+
+
+_TOO_MANY = _refusal(
+    Busy(
+        f"too many requests from this client (at most {MAX_INFLIGHT_PER_CLIENT} at once, "
+        f"{RATE_PER_CLIENT:g}/s): not done"
+    )
+)
+_TOO_MANY_NEW = _refusal(Busy(f"too many new clients (at most {NEW_CLIENT_RATE:g}/s): not done"))
+_TOO_MANY_BLOCKING = _refusal(Busy(f"{MAX_BLOCKING} blocking reads are held already: not done"))
+_GUESSING = _refusal(
+    AuthLimited(
+        "too many failed authentications by this client: credentials not checked, nothing done"
+    )
+)
+_READ_FULL = _refusal(Busy("the service's read queue is full: not done"))
+_CONTROL_FULL = _refusal(Busy("the service's control queue is full: not done"))
+_GUESSING_ALL = _refusal(
+    AuthLimited(
+        "too many failed authentications on this service lately: credentials not checked, "
+        "nothing done"
+    )
+)
+
+
+@dataclass
+class _Bucket:
+    """A token bucket: ``size`` tokens, refilled at ``rate`` a second."""
+
+    size: float
+    rate: float
+    tokens: float = -1.0
+    refilled: float = field(default_factory=time.monotonic)
+
+    def __post_init__(self) -> None:
+        if self.tokens < 0:
+            self.tokens = self.size
+
+    def has(self, now: float) -> bool:
+        """Whether a token is there (refilled up to ``now``), without taking it."""
+        self.tokens = min(self.size, self.tokens + (now - self.refilled) * self.rate)
+        self.refilled = now
+        return self.tokens >= 1.0
+
+    def take(self, now: float) -> bool:
+        """Take a token if one is there."""
+        if not self.has(now):
+            return False
+        self.tokens -= 1.0
+        return True
+
+
 @dataclass
 class _Client:
     """What the service knows of one remote client."""
@@ -172,16 +271,21 @@ class _Client:
     connections: dict[str, Connection[Any]] = field(default_factory=dict)
     """By connection token (what ``open`` returned)."""
     inflight: int = 0
-    tokens: float = BURST
-    refilled: float = field(default_factory=time.monotonic)
+    requests: _Bucket = field(default_factory=lambda: _Bucket(BURST, RATE_PER_CLIENT))
+    failures: _Bucket = field(
+        default_factory=lambda: _Bucket(AUTH_FAILURES_PER_CLIENT, AUTH_RATE_PER_CLIENT)
+    )
+    """Failed authentications it may still have."""
     refused: int = 0
     """Requests answered Busy (a flood)."""
     seen: float = field(default_factory=time.monotonic)
-    """When it last asked anything."""
+    """When it last asked anything (its lease runs from here)."""
     released: bool = False
-    """Its token went (or the service closed): it may hold nothing any more."""
+    """Its token went, its lease ran out, or the service closed: it may hold nothing any more."""
     controller: bool = False
     """It has been granted a control operation (counts for ``stop_when_controllers_leave``)."""
+    trusted: bool = False
+    """Its credentials have passed a check."""
 
     def idle(self, now: float, older_than: float) -> bool:
         """Holds nothing, asks nothing, and has not asked for ``older_than`` seconds."""
@@ -192,14 +296,15 @@ class _Client:
             and now - self.seen >= older_than
         )
 
+    def lapsed(self, now: float) -> bool:
+        """Holds connections on a lease (no token seen) that has run out."""
+        return bool(self.connections) and self.inflight == 0 and now - self.seen >= CLIENT_LEASE_S
+
     def admit(self, now: float) -> bool:
         """Take one request token and an in-flight slot, or say no (and count it)."""
-        self.tokens = min(BURST, self.tokens + (now - self.refilled) * RATE_PER_CLIENT)
-        self.refilled = now
-        if self.tokens < 1.0 or self.inflight >= MAX_INFLIGHT_PER_CLIENT:
+        if self.inflight >= MAX_INFLIGHT_PER_CLIENT or not self.requests.take(now):
             self.refused += 1
             return False
-        self.tokens -= 1.0
         self.inflight += 1
         return True
 
@@ -236,37 +341,96 @@ def _credentials(table: Mapping[str, str] | None, what: str) -> dict[str, str] |
     return checked
 
 
-class _Pool:
-    """A thread pool with a bounded queue: :meth:`submit` says False rather than queue more."""
+_Task = tuple[Callable[..., object], tuple[Any, ...]]
+
+
+class _FairPool:
+    """Worker threads that serve waiting requests one client at a time, in turn (round robin),
+    each client's own in the order they came: a client with many requests waiting delays
+    another's by at most one of its own per turn, where a first-come queue would put the other
+    behind all of them. Bounded: :meth:`submit` says False rather than hold more than
+    ``workers + waiting`` requests. Workers are started as they are needed."""
 
     def __init__(self, workers: int, waiting: int, name: str) -> None:
-        self._executor = concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix=name)
-        self._slots = threading.BoundedSemaphore(workers + waiting)
+        self._workers = workers
+        self._room = workers + waiting
+        self._name = name
+        self._cond = threading.Condition()
+        self._waiting: dict[str, collections.deque[_Task]] = {}
+        """Per client: its requests not yet taken by a worker."""
+        self._turns: collections.deque[str] = collections.deque()
+        """Clients with requests waiting, in the order they are served."""
+        self._held = 0
+        """Requests waiting or running."""
+        self._idle = 0
+        """Workers waiting for a request, not yet woken for one."""
+        self._threads: list[threading.Thread] = []
+        self._closed = False
 
-    def submit(self, fn: Callable[..., None], *args: Any) -> bool:
-        """Run ``fn(*args)`` on a worker; False (nothing done) when the queue is full.
+    def submit(self, client: str, fn: Callable[..., object], *args: Any) -> bool:
+        """Run ``fn(*args)`` on a worker in ``client``'s turn; False (nothing done) when full.
 
         Raises:
             RuntimeError: the pool is shut down.
         """
-        if not self._slots.acquire(blocking=False):
-            return False
-
-        def run() -> None:
-            try:
-                fn(*args)
-            finally:
-                self._slots.release()
-
-        try:
-            self._executor.submit(run)
-        except RuntimeError:
-            self._slots.release()
-            raise
+        with self._cond:
+            if self._closed:
+                raise RuntimeError("the pool is shut down")
+            if self._held >= self._room:
+                return False
+            self._held += 1
+            waiting = self._waiting.get(client)
+            if waiting is None:
+                waiting = self._waiting[client] = collections.deque()
+                self._turns.append(client)
+            waiting.append((fn, args))
+            if self._idle:
+                self._idle -= 1  # this one is woken for it
+                self._cond.notify()
+            elif len(self._threads) < self._workers:
+                worker = threading.Thread(
+                    target=self._serve, name=f"{self._name}-{len(self._threads)}", daemon=True
+                )
+                self._threads.append(worker)
+                worker.start()
         return True
 
+    def _next(self) -> _Task | None:
+        """The next request in turn (waited for), or None once shut down with none left."""
+        with self._cond:
+            while not self._turns:
+                if self._closed:
+                    return None
+                self._idle += 1
+                self._cond.wait()
+            client = self._turns.popleft()
+            waiting = self._waiting[client]
+            task = waiting.popleft()
+            if waiting:
+                self._turns.append(client)  # its next one after everyone else's
+            else:
+                del self._waiting[client]
+            return task
+
+    def _serve(self) -> None:
+        while (task := self._next()) is not None:
+            fn, args = task
+            try:
+                fn(*args)
+            except Exception:  # the task answers its own errors: this is a bug
+                log.exception("a request's worker failed")
+            finally:
+                with self._cond:
+                    self._held -= 1
+
     def shutdown(self) -> None:
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        """Take no more; serve what waits (each is answered), then end the workers."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+            threads = list(self._threads)
+        for thread in threads:
+            thread.join()
 
 
 class Service:
@@ -326,14 +490,26 @@ class Service:
         """Publications made, per key expression (the counter each publication carries): one
         per direction for scans, since a subscriber counts gaps per key."""
         self.requests = 0
+        """Queries received (whatever became of them). The counters are kept under the
+        service's lock: queries are admitted on several of Zenoh's threads at once."""
         self.refused_busy = 0
+        """Requests answered Busy (AuthLimited among them)."""
         self.refused_bad = 0
+        """Requests that could not be read (BadRequest)."""
         self.refused_access = 0
-        """Requests refused for want of the right credentials (AccessDenied)."""
+        """Requests refused for want of the right credentials (AccessDenied): failed
+        authentications."""
+        self.refused_auth_limited = 0
+        """Requests whose credentials were not checked: too many failed authentications
+        lately (AuthLimited)."""
+        self.internal_errors = 0
+        """Requests that met a bug in the service (answered InternalError)."""
+        self.expired_clients = 0
+        """Clients without a token let go when their lease ran out."""
         self.listen = list(listen)
         """The endpoints given to listen on (what the log says)."""
         self._refusals = Quieter(REFUSAL_LOG_S)
-        """How often a refusal is logged (:meth:`_say_refused`)."""
+        """How often a refusal (or a bug) is logged (:meth:`_refused`)."""
         self._dropped_said = (0, 0)
         """Acquisitions and scans not published, as the log last said them."""
         self.released_clients = 0
@@ -342,11 +518,17 @@ class Service:
         self._clients: dict[str, _Client] = {}
         self._conns: dict[str, tuple[_Client, Connection[Any]]] = {}
         """Every remote client's connection by its token (what requests name)."""
+        self._live: set[str] = set()
+        """Client ids whose liveliness token the service sees declared."""
         self._blocking = 0
-        self._new_tokens = NEW_CLIENT_BURST
-        self._new_refilled = time.monotonic()
+        self._new_clients = _Bucket(NEW_CLIENT_BURST, NEW_CLIENT_RATE)
+        self._failures = _Bucket(AUTH_FAILURES, AUTH_RATE)
+        """Failed authentications all clients together may still have."""
         self._chores: queue.Queue[str | None] = queue.Queue()
         """Client ids whose token went, for the janitor (None: stop)."""
+        self._sayer: queue.Queue[tuple[zenoh.Query, _Answer] | None] = queue.Queue()
+        """Refusals due a log line, for the sayer: the line, then the reply (None: stop). As
+        few as the lines are (one per kind of refusal and :data:`REFUSAL_LOG_S`)."""
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -355,15 +537,15 @@ class Service:
         # before anything is served: the codec's first use costs ~0.1 s of interpreter time, which
         # on the feed thread would have stalled the server's threads at the first acquisition
         warm_all()
-        self._pool = _Pool(READ_WORKERS, READ_QUEUE, "biris-net")
-        self._control = _Pool(CONTROL_WORKERS, CONTROL_QUEUE, "biris-net-control")
+        self._pool = _FairPool(READ_WORKERS, READ_QUEUE, "biris-net")
+        self._control = _FairPool(CONTROL_WORKERS, CONTROL_QUEUE, "biris-net-control")
         config = make_config(listen=listen, connect=connect, multicast=multicast, options=options)
         try:
             self._session = zenoh.open(config)
         except Exception as exc:  # zenoh.ZError: an endpoint in use, a TLS file missing...
             self._pool.shutdown()
             self._control.shutdown()
-            raise RequestError(f"cannot start the Zenoh session: {exc}") from exc
+            raise RequestError(f"cannot start the Zenoh session: {zenoh_message(exc)}") from exc
         try:
             self._declare()
         except BaseException:
@@ -383,13 +565,16 @@ class Service:
         self._pub_fault = session.declare_publisher(
             keys.fault, congestion_control=zenoh.CongestionControl.BLOCK
         )
-        self._queryable = session.declare_queryable(keys.rpcs, self._on_query)
+        self._queryable = session.declare_queryable(keys.rpcs, _direct(self._on_query))
         self._clients_sub = session.liveliness().declare_subscriber(
             keys.client_tokens, self._on_client_token, history=True
         )
         janitor = threading.Thread(target=self._janitor, name="biris-net-janitor", daemon=True)
         janitor.start()
         self._threads.append(janitor)
+        sayer = threading.Thread(target=self._say_and_answer, name="biris-net-say", daemon=True)
+        sayer.start()
+        self._threads.append(sayer)
         try:
             self._sink = feed.attach(
                 self.server,
@@ -430,6 +615,7 @@ class Service:
                 with contextlib.suppress(Exception):
                     thing.undeclare()
         self._chores.put(None)
+        self._sayer.put(None)
         with self._lock:
             clients = list(self._clients.values())
             self._clients.clear()
@@ -504,40 +690,45 @@ class Service:
                 now[1],
             )
 
-    def _say_refused(self, kind: str, text: str) -> None:
-        """A refusal's log line, at most one per :data:`REFUSAL_LOG_S` for each ``kind``; the
-        next says how many were left out (a flood must not flood the log)."""
-        with self._lock:
-            unsaid = self._refusals.allow(kind, time.monotonic())
-        if unsaid is None:
-            return
-        more = f" ({unsaid} more refused since the last line)" if unsaid else ""
-        log.warning("%s: %s%s", kind, text, more)
-
     # -- clients ---------------------------------------------------------------------------------
     def _on_client_token(self, sample: zenoh.Sample) -> None:
-        if sample.kind != zenoh.SampleKind.DELETE:
-            return
+        """A client's token came (it holds its connections until the token goes) or went (the
+        janitor checks and releases: not on Zenoh's thread)."""
         ident = str(sample.key_expr).rsplit("/", 1)[-1]
         with self._lock:
+            if sample.kind != zenoh.SampleKind.DELETE:
+                if len(self._live) < MAX_LIVE_TOKENS:
+                    self._live.add(ident)
+                return
+            self._live.discard(ident)  # on a lease until the janitor has looked
             known = ident in self._clients
         if known and not self._stop.is_set():
-            self._chores.put(ident)  # the janitor checks and releases: not on Zenoh's thread
+            self._chores.put(ident)
 
     def _janitor(self) -> None:
-        """Release vanished clients, forget idle ones, and keep the dead-man's watch."""
+        """Release vanished clients, let go of lapsed leases, forget idle clients, and keep
+        the dead-man's watch."""
+        now = time.monotonic()
+        next_lease, next_idle = now + LEASE_CHECK_S, now + CLIENT_IDLE_S / 4
         while not self._stop.is_set():
             try:
-                ident = self._chores.get(timeout=CLIENT_IDLE_S / 4)
+                ident = self._chores.get(timeout=max(0.0, next_lease - time.monotonic()))
             except queue.Empty:
-                self._forget_idle(CLIENT_IDLE_S)
-                continue
+                ident = ""
             if ident is None:
                 return
             try:
-                self._release(ident)
+                if ident:
+                    self._release(ident)
+                now = time.monotonic()
+                if now >= next_lease:
+                    self._expire_leases(now)
+                    next_lease = now + LEASE_CHECK_S
+                if now >= next_idle:
+                    self._forget_idle(CLIENT_IDLE_S)
+                    next_idle = now + CLIENT_IDLE_S / 4
             except Exception:  # the janitor must outlive any one client
-                log.exception("releasing client %s failed", ident)
+                log.exception("the janitor's round failed (client %s)", ident or "-")
 
     def _token_alive(self, ident: str) -> bool:
         """Whether some peer still declares client ``ident``'s token. Anyone may declare and
@@ -555,22 +746,61 @@ class Service:
         alive = self._token_alive(ident)
         self.token_checks += 1
         if alive:
+            with self._lock:
+                self._live.add(ident)
             log.warning("a token of client %s was withdrawn, but the client remains", ident)
             return
         with self._lock:
-            client = self._clients.pop(ident, None)
-            if client is None or self._stop.is_set():
-                return
-            client.released = True
-            for token in client.connections:
-                self._conns.pop(token, None)
+            client = self._clients.get(ident)
+        if client is None or self._stop.is_set():
+            return
+        self._let_go([client], "left", released=True)
+
+    def _expire_leases(self, now: float) -> int:
+        """Let go of the clients without a token that have asked nothing for
+        :data:`CLIENT_LEASE_S` (their connections closed)."""
+        with self._lock:
+            lapsed = [
+                c for c in self._clients.values() if c.ident not in self._live and c.lapsed(now)
+            ]
+        if not lapsed:
+            return 0
+        return self._let_go(
+            lapsed, f"let go: no liveliness token, quiet {CLIENT_LEASE_S:g} s", released=False
+        )
+
+    def _let_go(self, clients: Sequence[_Client], why: str, *, released: bool) -> int:
+        """Forget ``clients`` and close their connections; the dead-man's stop if the last
+        controller was among them. How many were let go (not already), counted as released
+        (their token went) or expired (their lease ran out) before anything is said."""
+        with self._lock:
+            gone = []
+            for client in clients:
+                if self._clients.get(client.ident) is not client:
+                    continue  # let go already
+                del self._clients[client.ident]
+                client.released = True
+                for token in client.connections:
+                    self._conns.pop(token, None)
+                gone.append(client)
+            if released:
+                self.released_clients += len(gone)
+            else:
+                self.expired_clients += len(gone)
             controllers_left = any(c.controller for c in self._clients.values())
-        self.released_clients += 1
-        held = len(client.connections)
-        log.info("client %s left%s", ident, f": closing its {held} connection(s)" if held else "")
-        self._close_all(client)
-        if client.controller and not controllers_left and self.stop_when_controllers_leave:
-            self._dead_man(ident)
+        for client in gone:
+            held = len(client.connections)
+            log.info(
+                "client %s %s%s",
+                client.ident,
+                why,
+                f": closing its {held} connection(s)" if held else "",
+            )
+            self._close_all(client)
+        controllers = [c for c in gone if c.controller]
+        if controllers and not controllers_left and self.stop_when_controllers_leave:
+            self._dead_man(controllers[-1].ident)
+        return len(gone)
 
     def _dead_man(self, ident: str) -> None:
         """The last controller has gone: stop the head rather than let it sweep for ever."""
@@ -605,107 +835,228 @@ class Service:
         with self._lock:
             return {c.ident: len(c.connections) for c in self._clients.values()}
 
+    def counters(self) -> dict[str, int]:
+        """What the service has counted: requests, refusals by kind, clients and connections
+        (what a ``status`` request with ``"counters": true`` is told in its attachment)."""
+        with self._lock:
+            return {
+                "requests": self.requests,
+                "refused_busy": self.refused_busy,
+                "refused_bad": self.refused_bad,
+                "refused_access": self.refused_access,
+                "refused_auth_limited": self.refused_auth_limited,
+                "internal_errors": self.internal_errors,
+                "clients": len(self._clients),
+                "connections": len(self._conns),
+                "released_clients": self.released_clients,
+                "expired_clients": self.expired_clients,
+            }
+
     def _client(self, ident: str, now: float) -> _Client:
         """The account of client ``ident``, opened if new and there is room (under the lock).
 
         Raises:
-            Busy: too many new clients lately, or every account is in use.
+            _Refused: too many new clients lately (Busy).
+            Busy: every account is in use.
         """
         client = self._clients.get(ident)
         if client is not None:
             return client
-        self._new_tokens = min(
-            NEW_CLIENT_BURST, self._new_tokens + (now - self._new_refilled) * NEW_CLIENT_RATE
-        )
-        self._new_refilled = now
-        if self._new_tokens < 1.0:
-            raise Busy(f"too many new clients (at most {NEW_CLIENT_RATE:g}/s): not done")
+        if not self._new_clients.has(now):
+            raise _Refused(*_TOO_MANY_NEW)
         if len(self._clients) >= MAX_CLIENTS:
             for key in [k for k, c in self._clients.items() if c.idle(now, 0.0)]:
                 del self._clients[key]
             if len(self._clients) >= MAX_CLIENTS:
                 raise Busy(f"the service serves {MAX_CLIENTS} clients already: not done")
-        self._new_tokens -= 1.0
+        self._new_clients.take(now)
         client = self._clients[ident] = _Client(ident)
         return client
 
     # -- requests --------------------------------------------------------------------------------
     def _on_query(self, query: zenoh.Query) -> None:
-        """Admit a query on Zenoh's thread (cheap checks only), or answer it at once."""
-        self.requests += 1
-        ident = "?"
-        op = "?"
-        user = ""
-        granted: str | None = None
-        new = False
+        """Admit a query (on the Zenoh thread that received it: cheap checks only) and hand it
+        to a pool, or answer it at once. Every query is answered, whatever it holds: refused
+        here, or replied to by the worker that serves it.
+
+        Nothing is logged on Zenoh's thread (a log record names its thread, and Python would
+        keep a stand-in for Zenoh's for good): a refusal due a log line is handed to the
+        service's sayer, which writes the line, then answers (in that order, as a worker
+        does); the lines of admitted requests are written by their worker."""
+        try:
+            refusal = self._admit(query)
+        except Exception as exc:  # a bug: the query is answered all the same, the service serves on
+            with self._lock:
+                self.internal_errors += 1
+                unsaid = self._refusals.allow("internal error", time.monotonic())
+            say = None if unsaid is None else _say_bug("admitting a request", exc, unsaid)
+            refusal = _Answer(exc, None, say)
+        if refusal is None:
+            return
+        if refusal.say is None:
+            self._reply_err(query, refusal.error, refusal.payload)
+        else:
+            self._sayer.put((query, refusal))
+
+    def _say_and_answer(self) -> None:
+        """The sayer's thread: for each refusal handed over, its log line, then its reply."""
+        while True:
+            item = self._sayer.get()
+            if item is None:
+                break
+            self._answer(*item)
+        while True:  # whatever came as the service closed: answered all the same
+            try:
+                item = self._sayer.get_nowait()
+            except queue.Empty:
+                return
+            if item is not None:
+                self._answer(*item)
+
+    def _answer(self, query: zenoh.Query, refusal: _Answer) -> None:
+        try:
+            if refusal.say is not None:
+                refusal.say()
+        finally:
+            self._reply_err(query, refusal.error, refusal.payload)
+
+    def _admit(self, query: zenoh.Query) -> _Answer | None:
+        """Read, check and hand ``query`` to a worker: None; else the refusal to answer,
+        counted (and its log line, if one is due)."""
+        op = ident = "?"
+        user: object = None
+        now = time.monotonic()
+        with self._lock:
+            self.requests += 1
         try:
             op, request = self._read(query)
-            user = str(request.get("user"))[:64]  # for the log: a refusal names whom it refused
-            try:
-                ident = check_name(str(request.get("client")), "client")
-            except RequestError as exc:
-                raise BadRequest(str(exc)) from None
+            user = request.get("user")
+            ident = check_client(request)
             token = None if op in ("open", "status") else check_token(request.get("conn"))
             blocking = op in BLOCKING_OPS and request.get("timeout", MAX_WAIT_S) != 0
             control = op in CONTROL_OPS
-            self._authorise(op, request)
-            now = time.monotonic()
+            # a recording refuses every control operation itself, whoever asks
+            checked = not self.playback if control else self.readers is not None
+            notes: list[tuple[str, tuple[object, ...]]] = []
             with self._lock:
                 if self._stop.is_set():
                     raise ServiceClosing("the service is closing")
                 conn: Connection[Any] | None = None
-                if token is None:
-                    new = ident not in self._clients
-                    client = self._client(ident, now)
-                else:  # the token names the connection, and so its owner, whoever asks
-                    found = self._conns.get(token)
-                    if found is None:
-                        raise UnknownConnection("that connection is closed (or was never opened)")
+                found = None if token is None else self._conns.get(token)
+                if found is not None:  # the token names the connection, and so its owner
                     client, conn = found
+                elif token is None or checked:  # credentials go before a connection's check
+                    if ident not in self._clients:
+                        notes.append(("client %s connected (%s)", (ident, op)))
+                    client = self._client(ident, now)
+                else:
+                    raise _unknown()
                 client.seen = now
+                if checked:
+                    self._may_check(client, conn is not None, now)
+            if checked:
+                self._check_credentials(op, request, client, now)
+            if token is not None and conn is None:
+                raise _unknown()
+            with self._lock:
                 if not client.admit(now):
-                    raise Busy(
-                        f"too many requests from client {client.ident} (at most "
-                        f"{MAX_INFLIGHT_PER_CLIENT} at once, {RATE_PER_CLIENT:g}/s): not done"
-                    )
+                    raise _Refused(*_TOO_MANY)
                 if blocking and self._blocking >= MAX_BLOCKING:
                     client.inflight -= 1
-                    raise Busy(f"{MAX_BLOCKING} blocking reads are held already: not done")
+                    raise _Refused(*_TOO_MANY_BLOCKING)
                 if blocking:
                     self._blocking += 1
                 if control and not self.playback:
                     if not client.controller:
-                        granted = user
+                        who = user[:64] if isinstance(user, str) else _shown(user)
+                        notes.append(("client %s controls the sensor as %r", (ident, who)))
                     client.controller = True
+        except _Refused as refused:
+            return self._refused(refused.error, refused.payload, op, ident, user)
         except BirisError as exc:
-            if isinstance(exc, Busy):
-                self.refused_busy += 1
-                self._say_refused("busy", f"client {ident}, {op}: {exc}")
-            elif isinstance(exc, BadRequest):
-                self.refused_bad += 1
-            elif isinstance(exc, AccessDenied):
-                self.refused_access += 1
-                self._say_refused("access refused", f"client {ident} (user {user}): {exc}")
-            self._reply_err(query, exc)
-            return
-        if new:
-            log.info("client %s connected (%s)", ident, op)
-        if granted is not None:
-            log.info("client %s controls the sensor as %r", ident, granted)
+            return self._refused(exc, None, op, ident, user)
         pool = self._control if control else self._pool
         try:
-            queued = pool.submit(self._work, query, op, request, client, conn, blocking)
+            queued = pool.submit(
+                ident, self._work, query, op, request, client, conn, blocking, notes
+            )
         except RuntimeError:  # shut down meanwhile
             self._done(client, blocking)
-            self._reply_err(query, ServiceClosing("the service is closing"))
-            return
-        if not queued:
-            self._done(client, blocking)
-            self.refused_busy += 1
-            what = "control" if control else "read"
-            refusal = Busy(f"the service's {what} queue is full: not done")
-            self._say_refused("busy", f"client {ident}, {op}: {refusal}")
-            self._reply_err(query, refusal)
+            return _Answer(ServiceClosing("the service is closing"), None, None)
+        if queued:
+            return None
+        self._done(client, blocking)
+        return self._refused(*(_CONTROL_FULL if control else _READ_FULL), op, ident, user)
+
+    def _may_check(self, client: _Client, named_conn: bool, now: float) -> None:
+        """Whether ``client``'s credentials may be checked now (under the lock): not after
+        too many failures of its own, nor, unless it has authenticated before and asks about a
+        connection it holds, after too many on the service as a whole.
+
+        Raises:
+            _Refused: AuthLimited; the credentials are not looked at.
+        """
+        if not client.failures.has(now):
+            raise _Refused(*_GUESSING)
+        if not (client.trusted and named_conn) and not self._failures.has(now):
+            raise _Refused(*_GUESSING_ALL)
+
+    def _check_credentials(
+        self, op: str, request: Mapping[str, Any], client: _Client, now: float
+    ) -> None:
+        """The request's credentials against the service's (a failure is spent from the
+        client's and the service's allowance).
+
+        Raises:
+            AccessDenied: they do not let ``client`` do ``op``.
+        """
+        user, password = request.get("user"), request.get("password")
+        if op in CONTROL_OPS:
+            passed = self._known(self.controllers, user, password)
+        else:
+            passed = self._known(self.readers or {}, user, password) or self._known(
+                self.controllers, user, password
+            )
+        with self._lock:
+            if passed:
+                client.trusted = True
+                return
+            client.failures.take(now)
+            self._failures.take(now)
+        if op in CONTROL_OPS:
+            raise AccessDenied(f"{op}: needs a controller's credentials; nothing was done")
+        raise AccessDenied(f"{op}: this service needs a reader's credentials")
+
+    def _refused(
+        self, error: BirisError, payload: bytes | None, op: str, ident: str, user: object
+    ) -> _Answer:
+        """A refusal counted by its kind, with its log line if one is due (at most one per
+        kind and :data:`REFUSAL_LOG_S`, the next counting those left out)."""
+        kind = None
+        with self._lock:
+            if isinstance(error, Busy):
+                self.refused_busy += 1
+                if isinstance(error, AuthLimited):
+                    self.refused_auth_limited += 1
+                    kind = "authentication limited"
+                else:
+                    kind = "busy"
+            elif isinstance(error, BadRequest):
+                self.refused_bad += 1
+            elif isinstance(error, AccessDenied):
+                self.refused_access += 1
+                kind = "access refused"
+            unsaid = None if kind is None else self._refusals.allow(kind, time.monotonic())
+        if kind is None or unsaid is None:
+            return _Answer(error, payload, None)
+        if kind == "busy":
+            text = f"client {ident}, {op}: {error}"
+        elif kind == "access refused":
+            text = f"client {ident} (user {_shown(user)}): {error}"
+        else:
+            text = f"client {ident} (user {_shown(user)}), {op}: {error}"
+        more = f" ({unsaid} more refused since the last line)" if unsaid else ""
+        return _Answer(error, payload, functools.partial(log.warning, "%s: %s%s", kind, text, more))
 
     def _done(self, client: _Client, blocking: bool) -> None:
         with self._lock:
@@ -714,28 +1065,23 @@ class Service:
             if blocking:
                 self._blocking -= 1
 
-    def _read(self, query: zenoh.Query) -> tuple[str, dict[str, Any]]:
+    @staticmethod
+    def _read(query: zenoh.Query) -> tuple[str, dict[str, Any]]:
+        """The operation a query names and its request (BadRequest for anything unreadable)."""
         op = str(query.key_expr).rsplit("/", 1)[-1]
         if op not in OPS:
             raise BadRequest(f"unknown operation {op!r}; known: {', '.join(sorted(OPS))}")
         payload = query.payload
-        raw = payload.to_bytes() if payload is not None else b"{}"
-        if len(raw) > MAX_REQUEST:
-            raise BadRequest(f"{op}: request of {len(raw)} bytes exceeds {MAX_REQUEST}")
-        try:
-            request = json.loads(raw)
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise BadRequest(f"{op}: request is not JSON ({exc})") from None
-        if not isinstance(request, dict):
-            raise BadRequest(f"{op}: request must be a JSON object")
-        return op, request
+        return op, parse_request(payload.to_bytes() if payload is not None else b"{}", op)
 
     @staticmethod
-    def _reply_err(query: zenoh.Query, exc: BaseException) -> None:
+    def _reply_err(query: zenoh.Query, exc: BaseException, payload: bytes | None = None) -> None:
+        """Answer ``query`` with the error reply of ``exc`` (``payload``: that reply, made
+        already)."""
         try:
-            query.reply_err(error_payload(exc), encoding=JSON)
-        except Exception as err:  # the querier has gone: nothing to tell
-            log.debug("error reply not sent: %s", err)
+            query.reply_err(error_payload(exc) if payload is None else payload, encoding=JSON)
+        except Exception:  # the querier has gone: nothing to tell (and nothing logged: this
+            pass  # may be Zenoh's thread)
         finally:
             query.drop()  # type: ignore[no-untyped-call]
 
@@ -747,43 +1093,41 @@ class Service:
         client: _Client,
         conn: Connection[Any] | None,
         blocking: bool,
+        notes: Sequence[tuple[str, tuple[object, ...]]] = (),
     ) -> None:
+        """Serve an admitted request (a worker's thread): its log lines, then its reply."""
         try:
+            for text, args in notes:
+                log.info(text, *args)
             payload, encoding, attachment = self._dispatch(op, request, client, conn)
             query.reply(self.keys.rpc(op), payload, encoding=encoding, attachment=attachment)
         except (BirisError, TimeoutError) as exc:
+            if isinstance(exc, Busy):  # open: every connection the service allows is held
+                with self._lock:
+                    self.refused_busy += 1
             self._reply_err(query, exc)
             return
         except Exception as exc:  # a bug here must still answer, and keep the service up
-            log.exception("request %s failed", op)
+            with self._lock:
+                self.internal_errors += 1
+                unsaid = self._refusals.allow("internal error", time.monotonic())
+            if unsaid is not None:
+                _say_bug(f"request {op}", exc, unsaid)()
             self._reply_err(query, exc)
             return
         finally:
             self._done(client, blocking)
         query.drop()  # type: ignore[no-untyped-call]
 
-    def _authorise(self, op: str, request: Mapping[str, Any]) -> None:
-        user, password = request.get("user"), request.get("password")
-        if op in CONTROL_OPS:
-            if self.playback:
-                return  # the recording refuses every one of them itself, changing nothing
-            if not self._known(self.controllers, user, password):
-                raise AccessDenied(f"{op}: needs a controller's credentials; nothing was done")
-        elif self.readers is not None and not (
-            self._known(self.readers, user, password)
-            or self._known(self.controllers, user, password)
-        ):
-            raise AccessDenied(f"{op}: this service needs a reader's credentials")
-
     @staticmethod
     def _known(table: Mapping[str, str], user: object, password: object) -> bool:
         if not isinstance(user, str) or not isinstance(password, str):
             return False
         expected = table.get(user)
-        # compared in constant time (and a missing user costs the same as a wrong password)
-        return hmac.compare_digest((expected or "\0").encode(), password.encode()) and bool(
-            expected
-        )
+        # compared in constant time (and a missing user costs the same as a wrong password);
+        # a password is any JSON string, lone surrogates included
+        given = password.encode("utf-8", "surrogatepass")
+        return hmac.compare_digest((expected or "\0").encode(), given) and bool(expected)
 
     def _dispatch(
         self,
@@ -853,16 +1197,25 @@ class Service:
     ) -> tuple[bytes, zenoh.Encoding, bytes | None]:
         """``status``: the sensor's status, and in the attachment (JSON) its clock; with
         ``"info": true`` also what a client learns once when it connects (a recording? paced?
-        the init record), which :class:`~biris_hw.io.net.RemoteSensor` exposes as its own."""
+        the init record), which :class:`~biris_hw.io.net.RemoteSensor` exposes as its own, and
+        how many clients hold connections and how many controllers are there (``biris
+        list``); with ``"counters": true`` the service's :meth:`counters` (``"service"``)."""
         server = self.server
         status = server.status()
         info: dict[str, Any] = {"clock": server.clock()}
+        if request.get("counters") is True:
+            info["service"] = self.counters()
         if request.get("info") is True:
             record = server.record
+            with self._lock:
+                clients = sum(1 for c in self._clients.values() if c.connections)
+                controllers = sum(1 for c in self._clients.values() if c.controller)
             info.update(
                 playback=self.playback,
                 paced=server.paced,
                 record=None if record is None else record.to_dict(),
+                clients=clients,
+                controllers=controllers,
             )
         return codec.encode_status(status), _cdr(codec.STATUS), json.dumps(info).encode()
 
@@ -935,6 +1288,54 @@ _SIMPLE = frozenset(
         "reset",
     }
 )
+
+
+@dataclass(frozen=True)
+class _Answer:
+    """A refusal to answer: its error, its reply if made in advance, and the log line to write
+    first (None: no line is due)."""
+
+    error: BaseException
+    payload: bytes | None
+    say: Callable[[], None] | None
+
+
+def _say_bug(what: str, exc: BaseException, unsaid: int) -> Callable[[], None]:
+    """The log line of a bug met while serving, with its traceback."""
+    more = f" ({unsaid} more since the last line)" if unsaid else ""
+    return functools.partial(log.error, "%s failed%s", what, more, exc_info=exc)
+
+
+class _Refused(Exception):
+    """A refusal made in advance (:func:`_refusal`), raised afresh each time it is given."""
+
+    def __init__(self, error: BirisError, payload: bytes) -> None:
+        super().__init__(str(error))
+        self.error = error
+        self.payload = payload
+
+
+def _unknown() -> UnknownConnection:
+    return UnknownConnection("that connection is closed (or was never opened)")
+
+
+def _shown(value: object) -> str:
+    """A client's word (a user name) fit for a log line: as it is if it is a short printable
+    string, else its repr cut short."""
+    if isinstance(value, str) and len(value) <= 64 and value.isprintable():
+        return value
+    return repr(value)[:64]
+
+
+def _direct(callback: Callable[[zenoh.Query], None]) -> Any:
+    """``callback`` as Zenoh's handler, called on the network thread that received each query
+    (``indirect=False``): the default hands every query to one Python thread through one
+    queue, where a flooding peer's backlog would stand in front of everyone's requests. A Zenoh
+    without the option takes the callback as it is."""
+    try:
+        return zenoh.handlers.Callback(callback, indirect=False)
+    except TypeError:
+        return callback
 
 
 def _json(value: object) -> tuple[bytes, zenoh.Encoding, None]:

@@ -155,8 +155,8 @@ def subscribe_poses(
     subscription = PoseSubscription(buffer, msgtype, frame_id, child_frame_id)
     life = None
     if session is None:
-        config = make_config(
-            connect=list(connect), multicast=not connect, options=zenoh_options or {}
+        config = make_config(  # a subscriber listens nowhere (as every client)
+            connect=list(connect), multicast=not connect, options=zenoh_options or {}, client=True
         )
         try:
             session = zenoh.open(config)

@@ -22,6 +22,12 @@ network to a remote sensor is named in both. The file is valid however the run e
 which :class:`~biris_hw.io.record.ReplayServer` plays up to its last complete chunk (at most
 :data:`FLUSH_S` of data, or a chunk, lost). ``close()`` returns within :data:`CLOSE_TIMEOUT_S`
 whatever the backlog, and an unclosed Recorder is closed when it is collected or at exit.
+
+On a moving robot (``poses=``, and ``grid=``) the recording also carries the vehicle's
+``/odom``, ``odom -> vehicle`` on ``/tf``, ``/biris/points`` in ``odom`` (each scan deskewed)
+and the certainty grid on ``/biris/grid``, made by a
+:class:`~biris_hw.io.moving_sink.MovingEncoder` in the sink's thread; acquisitions without a
+pose are counted in the summary and the end record.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from biris_hw._version import __version__
 from biris_hw.data import Scan
 from biris_hw.geometry import Frame, Mount
 from biris_hw.io import codec, feed
+from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed
 from biris_hw.io.record.mcapfile import CHUNK_SIZE, McapFile, RecordError
 from biris_hw.sensor import Sensor
 
@@ -77,13 +84,14 @@ _WRITTEN = (codec.POINT_CLOUD2, codec.TF_MESSAGE, codec.DIAGNOSTIC_ARRAY, codec.
 """Every type a recording holds (besides the status, warmed with them)."""
 
 
-def _write(file: McapFile, message: codec.Encoded) -> None:
+def _write(file: McapFile, message: codec.Encoded, log_time_ns: int | None = None) -> None:
+    """Write ``message``, logged at its own time or at ``log_time_ns``."""
     if not file.write(
         message.topic,
         message.msgtype,
         codec.schema_text(message.msgtype),
         message.data,
-        message.log_time_ns,
+        message.log_time_ns if log_time_ns is None else log_time_ns,
     ):
         assert file.error is not None
         raise file.error
@@ -145,6 +153,17 @@ class RecordSummary:
     """False when close() returned before a blocked write did: the file has no footer yet (it
     is finished if that write returns while the process lives; else it plays up to its last
     complete chunk)."""
+    moving: bool = False
+    """Recorded with the vehicle's poses (``/odom``, ``/biris/points`` in ``odom``)."""
+    poses: int = 0
+    """Pose samples written (each once on ``/odom`` and ``/tf``)."""
+    unplaced_points: int = 0
+    """Acquisitions of completed scans left out of ``/biris/points`` for want of a pose (they
+    stay in the lossless channels)."""
+    unplaced_scans: int = 0
+    """Completed scans none of whose acquisitions had a pose: no cloud on ``/biris/points``."""
+    grid_messages: int = 0
+    """Certainty grids written on ``/biris/grid``."""
 
     @property
     def dropped(self) -> int:
@@ -174,6 +193,15 @@ class RecordSummary:
             )
         if self.lost_messages:
             text += f", {self.lost_messages} messages lost"
+        if self.moving:
+            text += f"; {self.poses} vehicle poses"
+            if self.unplaced_points or self.unplaced_scans:
+                text += (
+                    f", {self.unplaced_points} acquisitions without a pose left out of "
+                    f"/biris/points ({self.unplaced_scans} scans wholly)"
+                )
+            if self.grid_messages:
+                text += f", {self.grid_messages} certainty grids"
         if self.partial_scans:
             n = len(self.partial_scans)
             text += f"; {n} partial scan{'s' if n > 1 else ''}: " + ", ".join(self.partial_scans)
@@ -191,9 +219,18 @@ class _Writing:
     to close can be collected, and its finaliser closes this.
     """
 
-    def __init__(self, file: McapFile, close_timeout_s: float) -> None:
+    def __init__(
+        self,
+        file: McapFile,
+        close_timeout_s: float,
+        log_times: codec.LogTimes,
+        moving: MovingEncoder | None = None,
+    ) -> None:
         self.file = file
         self.close_timeout_s = close_timeout_s
+        self.log_times = log_times
+        self.moving = moving
+        """Adds the vehicle's poses, the clouds in ``odom`` and the grid (``poses=``)."""
         self.sink: feed.Sink | None = None
         self.failed = threading.Event()
         """Set when the sink could not be attached; the sink's own afterwards."""
@@ -243,6 +280,8 @@ class _Writing:
         spans = self.lost_spans
         if spans:
             counts["dropped_network_s"] = f"{sum(span.seconds for span in spans):.1f}"
+        if self.moving is not None:
+            counts.update(self.moving.counts())
         return counts
 
     def end_record(self) -> dict[str, object]:
@@ -254,13 +293,18 @@ class _Writing:
         record["unwritten_scans"] = sink.unhandled_scans if sink is not None else 0
         record["lost_spans"] = [str(span) for span in self.lost_spans]
         record["stopped_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        record.update(_log_time_record(self.log_times))
         return record
+
+    def write(self, message: codec.Encoded) -> None:
+        """Write one message, logged by :attr:`log_times`."""
+        _write(self.file, message, self.log_times(message.log_time_ns))
 
     # -- what the feed hands over (the sink's thread, in batches) --------------------------------
     def static(self, mount: Mount | None, t: float) -> None:
         if not self.static_written:
             self.static_written = True
-            _write(self.file, codec.static_transforms(mount, t))
+            self.write(codec.static_transforms(mount, t))
 
     def batch(self, batch: feed.Batch) -> None:
         """Write one batch: the data's messages as the feed encoded them, then the status; the
@@ -276,7 +320,10 @@ class _Writing:
             if message.topic == codec.RAW_STATUS_TOPIC:
                 status_messages.append(message)  # after its diagnostics, as it was read
             else:
-                _write(self.file, message)
+                self.write(message)
+        if self.moving is not None:
+            for encoded in self.moving.messages(batch):
+                self.write(encoded)
         self.points += len(batch.points)
         for scan in batch.scans:
             self.scans += 1
@@ -286,11 +333,9 @@ class _Writing:
         if reading is not None:
             extra = {"recorder": self.counts()}
             status = reading.status
-            _write(
-                self.file, codec.diagnostics(status, reading.t, extra=extra, error=reading.error)
-            )
+            self.write(codec.diagnostics(status, reading.t, extra=extra, error=reading.error))
             for message in status_messages:
-                _write(self.file, message)
+                self.write(message)
             self.statuses += 1
         if batch.final:
             self.finish()
@@ -338,6 +383,7 @@ class _Writing:
         error = self.error
         path = self.file.path
         spans = self.lost_spans
+        moving = self.moving
         self.summary = RecordSummary(
             path=path,
             complete=self.file.complete and self.unfinished is None,
@@ -357,6 +403,11 @@ class _Writing:
             lost_spans=tuple(str(span) for span in spans),
             lost_seconds=sum(span.seconds for span in spans),
             finished=self.unfinished is None,
+            moving=moving is not None,
+            poses=0 if moving is None else moving.poses_out,
+            unplaced_points=0 if moving is None else moving.unplaced_points,
+            unplaced_scans=0 if moving is None else moving.unplaced_scans,
+            grid_messages=0 if moving is None else moving.grid_messages,
         )
         return self.summary
 
@@ -385,7 +436,23 @@ class Recorder:
     ``close_timeout_s`` bounds :meth:`close` (:data:`CLOSE_TIMEOUT_S`); ``lost_limit_s`` is how
     long a lost network to a remote sensor is waited for (None:
     :data:`biris_hw.io.feed.LOST_LIMIT_S`, 30 s) before recording stops with a
-    :class:`~biris_hw.errors.ConnectionLost` naming the span.
+    :class:`~biris_hw.errors.ConnectionLost` naming the span. ``stamp`` is what the messages are
+    logged at: ``"hardware"``, their stamps' hardware-clock seconds (a timeline in 1970), or
+    ``"wall"``, those moved onto the host's wall clock by one offset measured at the start
+    (:class:`~biris_hw.io.codec.LogTimes`), so that the file lines up with the robot's other
+    recordings; the messages' stamps stay the hardware's either way, and the ``biris``
+    metadata says which (``log_time``, and ``log_time_offset_ns``: log time minus hardware
+    time).
+
+    On a moving robot, ``poses`` is the vehicle's pose (a
+    :class:`~biris_hw.io.pose.PoseBuffer`, or any :class:`~biris_hw.io.moving_sink.PoseFeed`,
+    on the sensor's hardware clock): the file then also carries ``/odom`` and ``odom ->
+    vehicle`` on ``/tf`` (each pose sample once), and ``/biris/points`` in ``odom`` instead of
+    ``frame`` (each scan deskewed, its acquisitions without a pose left out and counted);
+    ``grid`` (a :class:`~biris_hw.io.grid.GridParams`, a
+    :class:`~biris_hw.io.grid.CertaintyGrid` or a :class:`~biris_hw.io.grid.GridFeeder`; it
+    needs ``poses``) adds the certainty grid on ``/biris/grid`` at a few Hz, fed with every
+    acquisition (:mod:`biris_hw.io.moving_sink`).
     The recorder does not command the sensor: it records whatever is done meanwhile.
 
     A Recorder that is never closed is closed when it is collected, or at the latest when the
@@ -417,8 +484,15 @@ class Recorder:
         overwrite: bool = True,
         close_timeout_s: float = CLOSE_TIMEOUT_S,
         lost_limit_s: float | None = None,
+        stamp: codec.Stamp = "hardware",
+        poses: PoseFeed | None = None,
+        grid: GridOption | None = None,
     ) -> None:
         codec.cloud_frame_id(frame)  # ValueError for a frame that is neither
+        log_times = codec.LogTimes(stamp)  # ValueError for a stamp that is neither
+        if grid is not None and poses is None:
+            raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
+        moving = None if poses is None else MovingEncoder(poses, grid)
         if not (close_timeout_s > 0 and math.isfinite(close_timeout_s)):
             raise ValueError(f"close_timeout_s must be a positive number, not {close_timeout_s!r}")
         self.source = source
@@ -427,7 +501,7 @@ class Recorder:
         self.close_timeout_s = close_timeout_s
         file = McapFile(path, chunk_size=chunk_size, overwrite=overwrite)
         self.path = file.path
-        self._writing = _Writing(file, close_timeout_s)
+        self._writing = _Writing(file, close_timeout_s, log_times, moving)
         self._finalizer = weakref.finalize(self, self._writing.close_unclosed, file.path)
         self._extra = dict(metadata or {})
         topics = {
@@ -439,6 +513,8 @@ class Recorder:
         }
         if profiles:
             topics.add(codec.PROFILE_TOPIC)
+        if moving is not None:  # its clouds are in odom, made by the moving encoder
+            topics.discard(codec.POINTS_TOPIC)
         self._options = {
             "name": "recorder",
             "topics": topics,
@@ -464,6 +540,12 @@ class Recorder:
         }
         if record is not None:
             header["init_record"] = record.to_dict()
+        if writing.moving is not None:
+            header["cloud_frame_id"] = codec.ODOM_FRAME
+            header["moving"] = writing.moving.describe()
+            writing.moving.warm()
+        writing.log_times.anchor_to(self.source)
+        header.update(_log_time_record(writing.log_times))
         header.update(self._extra)
         _warm()
         if not writing.file.metadata("biris", _metadata_strings(header)):
@@ -476,6 +558,12 @@ class Recorder:
             self._finalizer.detach()
             raise
         return self
+
+    @property
+    def moving(self) -> MovingEncoder | None:
+        """What adds the vehicle's poses, the clouds in ``odom`` and the grid (with ``poses=``):
+        its counts so far, and its grid (``recorder.moving.grid``)."""
+        return self._writing.moving
 
     @property
     def failed(self) -> threading.Event:
@@ -560,6 +648,14 @@ class Recorder:
         error = self.error
         if exc is None and error is not None:
             raise error
+
+
+def _log_time_record(log_times: codec.LogTimes) -> dict[str, object]:
+    """What the metadata says of the log times: which clock, and the offset once measured."""
+    record: dict[str, object] = {"log_time": log_times.stamp}
+    if log_times.stamp == "wall" and log_times.offset_ns is not None:
+        record["log_time_offset_ns"] = log_times.offset_ns
+    return record
 
 
 def _partial_name(scan: Scan) -> str:

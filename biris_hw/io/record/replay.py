@@ -305,7 +305,7 @@ class ReplayServer:
         self._changes = StatusChanges()
         """Numbers the changes of the replay's status (:meth:`status`'s ``newer_than``)."""
         self._clock_s = 0.0
-        """The newest hardware time played (the log time of the latest message)."""
+        """The newest hardware time played: that of the newest point or scan handed over."""
 
     playback = True
     """A recording: motion and configuration are refused here (:class:`ReplayRefused`)."""
@@ -316,7 +316,8 @@ class ReplayServer:
         return self.speed is not None
 
     def clock(self) -> float:
-        """The newest hardware time played so far (0.0 before the first message)."""
+        """The newest hardware time played so far: that of the newest point or scan handed over
+        (0.0 before the first)."""
         with self._cond:
             return self._clock_s
 
@@ -418,7 +419,7 @@ class ReplayServer:
                     due = begun + (log_time - first) / 1e9 / self.speed
                     if self._stop.wait(max(0.0, due - time.monotonic())):
                         return
-                self._hand_over(topic, data, log_time / 1e9)
+                self._hand_over(topic, data)
         except BaseException as exc:  # a damaged file: said to every reader, not lost
             self.error = exc
         finally:
@@ -427,17 +428,22 @@ class ReplayServer:
                 self._changed()  # played: IDLE
                 self._cond.notify_all()
 
-    def _hand_over(self, topic: str, data: bytes, t: float) -> None:
+    def _hand_over(self, topic: str, data: bytes) -> None:
+        """Hand one recorded item over. The replay's clock is the items' own hardware time (a
+        point's ``t``, a scan's :func:`~biris_hw.io.codec.scan_time`), not the log time: a file
+        logged on the wall clock (``stamp="wall"``) has log times of today's date, and a client
+        placing data with the replay's clock (a pose lookup, a status's stamp) needs the
+        hardware's. A status leaves it as it is."""
         item: Scan | Point
         if topic == RAW_STATUS_TOPIC:
             status = codec.decode_status(data)
             with self._cond:
                 self._status = status
                 self.played["statuses"] += 1
-                self._clock_s = max(self._clock_s, t)
                 self._changed()
             return
         item = codec.decode_scan(data) if topic == RAW_SCAN_TOPIC else codec.decode_point(data)
+        t = codec.scan_time(item) if isinstance(item, Scan) else item.t
         with self._cond:
             if self.speed is None:  # as fast as the queueing readers go: wait for room
                 self._cond.wait_for(lambda: self._stop.is_set() or self._room(item))
