@@ -32,10 +32,14 @@ from tests.test_liveview import SUBPROTOCOL, _messages, _stamp, _subscribe
 # the Zenoh service's and the live view's own threads call into the server: scaled real time
 pytestmark = pytest.mark.realtime
 
-RESUME_S = 10.0
+RESUME_S = 20.0
 """The bound: real seconds from the sensor's return (its reset acknowledged and a sweep asked
 for) to an acquisition made after the reset at each consumer. The feed asks again within a
-batch (50 ms) of the reset's end; the rest is the sweep's start-up on a loaded host."""
+batch (50 ms) of the reset's end; the rest is the sweep's start-up and the network's delivery
+on a loaded host (make test-under-load: three busy processes beside the whole suite)."""
+
+START_S = 30.0
+"""How long the consumers may take to get their first data, before the reset (the same host)."""
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -91,9 +95,9 @@ def test_a_reset_ends_no_consumer(rig: SimulatedBiris, server: BirisServer, tmp_
         ):
             viewed = _messages(ws, _subscribe(ws, ["/biris/profile"]))
             conn.continuous_scan(-20.0, 20.0)
-            until(lambda: points.t > 0, wake=points.changed, what="a point before the reset")
-            until(lambda: scans.t > 0, wake=scans.changed, what="a scan before the reset")
-            until(lambda: recorder.points > 0, what="the recorder writing before the reset")
+            until(lambda: points.t > 0, START_S, "a point before the reset", wake=points.changed)
+            until(lambda: scans.t > 0, START_S, "a scan before the reset", wake=scans.changed)
+            until(lambda: recorder.points > 0, START_S, "the recorder writing before the reset")
             assert _stamp(next(viewed)[1]) > 0
 
             conn.reset()
@@ -117,7 +121,11 @@ def test_a_reset_ends_no_consumer(rig: SimulatedBiris, server: BirisServer, tmp_
                     break
             assert time.monotonic() - back < RESUME_S, "the live view's data came back late"
             written = recorder.points
-            until(lambda: recorder.points > written, what="the recorder writing after the reset")
+            until(
+                lambda: recorder.points > written,
+                RESUME_S,
+                "the recorder writing after the reset",
+            )
             conn.stop_scan()
             conn.wait_idle(timeout=30.0)
         assert view.error is None and not view.failed.is_set()
