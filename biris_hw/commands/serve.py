@@ -48,6 +48,13 @@ both views. ``--replay FILE`` serves a recording instead of a sensor
 configuration are refused with the replay's own error (a RequestError on the client). Playing
 begins when the first client opens a DATA connection, so that it sees the recording from its
 start (``--replay-now``: at once, as a live sensor would).
+
+``--sim --drive`` sets the simulated vehicle on its default drive and ``--grid`` adds the
+certainty grid (the flags and rules of ``biris record``: :mod:`biris_hw.commands.record`): the
+service then also publishes the vehicle's odometry, ``odom -> vehicle``, each scan deskewed and
+the grid on keys of its own (``serve(..., poses=, grid=)``, docs/wire-format.md), and
+``--foxglove`` shows the same (``/odom``, ``/tf``, ``/biris/points`` in ``odom``,
+``/biris/grid``).
 """
 
 from __future__ import annotations
@@ -64,6 +71,12 @@ from typing import Any, TextIO
 from biris_hw.commands.argtypes import path, positive_float, seconds
 from biris_hw.commands.failures import EXIT_INTERRUPTED, SetupError, UsageError
 from biris_hw.commands.options import add_target_arguments
+from biris_hw.commands.record import (
+    add_moving_arguments,
+    check_moving_arguments,
+    grid_params,
+    moving_session,
+)
 from biris_hw.commands.reset import AutoReset, add_auto_reset_arguments, check_auto_reset
 from biris_hw.commands.serve_setup import DEFAULT_LISTEN, check_service_flags, warn_about_exposure
 from biris_hw.commands.session import open_session, quiet_collector
@@ -167,6 +180,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --replay: play at once (default: when the first client opens a DATA "
         "connection, so that it sees the recording from its start)",
     )
+    add_moving_arguments(parser)
     add_target_arguments(parser, remote=False)
 
 
@@ -188,19 +202,20 @@ def _check_replay_arguments(args: argparse.Namespace) -> None:
 
 
 @contextlib.contextmanager
-def _sensor(args: argparse.Namespace) -> Iterator[Any]:
-    """The sensor to serve: a server of our own on --sim/--target/--attach, or a replay."""
+def _sensor(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
+    """The sensor to serve -- a server of our own on --sim/--target/--attach, or a replay --
+    and the vehicle's poses with ``--drive``/``--grid`` (the simulator's odometry; else None)."""
     if args.replay is None:
-        with open_session(args) as session:
+        with moving_session(args, open_session) as (session, poses):
             quiet_collector()
-            yield session.server
+            yield session.server, poses
         return
     from biris_hw.opening import open_sensor
 
     # autostart off: the service's own feeds open DATA connections at once, and would start it
     # before any client is there; _start_playing decides when
     with open_sensor(replay=args.replay, speed=args.speed, autostart=False) as replay:
-        yield replay
+        yield replay, None
 
 
 def _start_playing(replay: Any, service: Any, now: bool, stop: threading.Event) -> None:
@@ -220,8 +235,11 @@ def _start_playing(replay: Any, service: Any, now: bool, stop: threading.Event) 
 
 
 @contextlib.contextmanager
-def _live_view(args: argparse.Namespace, sensor: Any, stream: TextIO) -> Iterator[None]:
-    """``--foxglove PORT``: the sensor shown live for as long as the block runs."""
+def _live_view(
+    args: argparse.Namespace, sensor: Any, stream: TextIO, moving: dict[str, Any]
+) -> Iterator[None]:
+    """``--foxglove PORT``: the sensor shown live for as long as the block runs (with the
+    vehicle's poses and the grid as the service has them: ``moving``)."""
     if args.foxglove is None:
         yield
         return
@@ -235,7 +253,11 @@ def _live_view(args: argparse.Namespace, sensor: Any, stream: TextIO) -> Iterato
     # hardware clock for the simulator and a recording, as `biris view` does
     real = args.replay is None and not args.sim and getattr(args, "attach", None) is None
     view = LiveView(
-        sensor, host=args.foxglove_host, port=args.foxglove, stamp="wall" if real else "hardware"
+        sensor,
+        host=args.foxglove_host,
+        port=args.foxglove,
+        stamp="wall" if real else "hardware",
+        **moving,
     )
     try:
         view.start()
@@ -276,6 +298,7 @@ def run(
             f"biris serve needs the net extra (pip install 'biris-hw[net]'): {exc}"
         ) from exc
     _check_replay_arguments(args)
+    check_moving_arguments(args)
     check_auto_reset(args, playback=args.replay is not None)
     setup = check_service_flags(args)  # all of them, before the sensor is touched
     warn_about_exposure(setup, args)
@@ -298,7 +321,12 @@ def run(
 
             # joined last, once the sensor is closed: a reset under way ends with it
             stack.callback(join_watches)
-            sensor = stack.enter_context(_sensor(args))
+            sensor, poses = stack.enter_context(_sensor(args))
+            moving: dict[str, Any] = {}
+            if poses is not None:
+                moving["poses"] = poses
+                if getattr(args, "grid", False):
+                    moving["grid"] = grid_params()
             service = stack.enter_context(
                 serve(
                     sensor,
@@ -309,10 +337,11 @@ def run(
                     multicast=setup.multicast,
                     options=setup.options,
                     stop_when_controllers_leave=args.dead_man,
+                    **moving,
                 )
             )
             try:  # from here the service is up: Ctrl-C or SIGTERM closes it in order
-                stack.enter_context(_live_view(args, sensor, stream))
+                stack.enter_context(_live_view(args, sensor, stream, moving))
                 if args.replay is not None:
                     who = f"replay of {args.replay} at x{args.speed:g}, read-only"
                     _start_playing(sensor, service, args.replay_now, stop)

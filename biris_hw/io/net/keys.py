@@ -196,6 +196,30 @@ class Keys:
         """``biris_msgs/msg/Fault`` when the server enters a fault."""
         return f"{self.prefix}/fault"
 
+    @property
+    def odom(self) -> str:
+        """With the vehicle's poses: each pose sample, as ``nav_msgs/msg/Odometry`` (odom ->
+        vehicle)."""
+        return f"{self.prefix}/odom"
+
+    @property
+    def tf(self) -> str:
+        """With the vehicle's poses: each pose sample as the ``odom -> vehicle`` transform, a
+        ``tf2_msgs/msg/TFMessage``."""
+        return f"{self.prefix}/tf"
+
+    @property
+    def cloud(self) -> str:
+        """With the vehicle's poses: each completed scan deskewed, as
+        ``sensor_msgs/msg/PointCloud2`` in ``odom``."""
+        return f"{self.prefix}/cloud"
+
+    @property
+    def grid(self) -> str:
+        """With a certainty grid: the grid at a few Hz, as ``nav_msgs/msg/OccupancyGrid`` in
+        ``odom``."""
+        return f"{self.prefix}/grid"
+
     def rpc(self, op: str) -> str:
         """The queryable answering operation ``op``."""
         return f"{self.prefix}/rpc/{op}"

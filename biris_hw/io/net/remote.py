@@ -862,13 +862,17 @@ class RemoteSensor:
 
     def subscribe(
         self,
-        what: Literal["point", "scan", "status", "fault"],
+        what: Literal["point", "scan", "status", "fault", "odom", "grid"],
         callback: Callable[[Any], None],
         *,
         direction: Direction | None = None,
     ) -> Subscription:
         """Call ``callback`` with every publication of ``what``: a Point per acquisition, a Scan
-        per completed scan (of ``direction``, or both), a ServerStatus, a HardwareFault.
+        per completed scan (of ``direction``, or both), a ServerStatus, a HardwareFault; on a
+        service of a moving robot (``serve(..., poses=, grid=)``) a
+        :class:`~biris_hw.io.codec.PoseMessage` per vehicle pose sample (``odom``) and a
+        :class:`~biris_hw.io.codec.OccupancyGridMessage` per certainty grid (``grid``): a
+        service without them publishes none, and the callback is never called.
 
         The callback runs on a Zenoh thread: keep it short (hand work to a queue). A payload
         that does not decode is counted in the subscription's ``dropped`` and skipped.
@@ -884,11 +888,24 @@ class RemoteSensor:
             key, decode = keys.status, codec.decode_status
         elif what == "fault":
             key, decode = keys.fault, codec.decode_fault
+        elif what == "odom":
+            key = keys.odom
+
+            def decode(data: bytes) -> codec.PoseMessage:
+                return codec.decode_pose(data, codec.ODOMETRY)
+
+        elif what == "grid":
+            key, decode = keys.grid, codec.decode_occupancy_grid
         else:
             raise RequestError(f"subscribe: nothing called {what!r}")
         # the codec's first use costs ~0.1 s of interpreter time: paid here, on the caller's
         # thread, rather than by the first publications, which would queue behind it
-        warm(what)
+        if what == "odom":
+            codec.warm(codec.ODOMETRY)
+        elif what == "grid":
+            codec.warm(codec.OCCUPANCY_GRID)
+        else:
+            warm(what)
         subscription = Subscription()
 
         def on_sample(sample: zenoh.Sample) -> None:

@@ -40,6 +40,12 @@ Threads and why:
 * The same sink publishes the status when it changes and, unchanged, every ``status_period``
   seconds, and a fault when the sensor enters one: the feed's status thread waits for the
   sensor to push a change (``status(newer_than=...)``), asking nothing while nothing changes.
+* On a moving robot (``poses=``, and ``grid=``) a second sink, not prompt, with a thread and a
+  queue of its own, publishes what a :class:`~biris_hw.io.moving_sink.MovingEncoder` makes of
+  the same acquisitions -- the vehicle's poses on ``odom`` and ``tf``, each scan deskewed on
+  ``cloud``, the certainty grid on ``grid`` -- as a recording and the live view carry them:
+  deskewing a scan or writing a grid (some 13 ms) never runs in the reader's thread, so the
+  acquisitions go out as promptly as without it.
 
 What a supervisor reads in the log (logger ``biris_hw.io.net.service``): the service up (name,
 endpoints, who may do what) and down at INFO; each client's first request ("connected"), the
@@ -83,6 +89,7 @@ from biris_hw.errors import (
     RequestError,
 )
 from biris_hw.io import codec, feed
+from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed
 from biris_hw.io.net.keys import (
     BLOCKING_OPS,
     CONTROL_OPS,
@@ -201,6 +208,15 @@ FEED_DEPTH = 1024
 
 SCAN_DEPTH = 8
 """Scans that may wait for the service's publications in the feed."""
+
+_MOVING_KINDS = {
+    codec.ODOM_TOPIC: "odom",
+    codec.TF_TOPIC: "tf",
+    codec.POINTS_TOPIC: "cloud",
+    codec.GRID_TOPIC: "grid",
+}
+"""The moving robot's topics (:class:`~biris_hw.io.moving_sink.MovingEncoder`) and the
+:class:`~biris_hw.io.net.keys.Keys` each is published on (its counter's name too)."""
 
 _PUBLISHED = frozenset(
     {codec.RAW_POINT_TOPIC, codec.RAW_SCAN_TOPIC, codec.RAW_STATUS_TOPIC, codec.RAW_FAULT_TOPIC}
@@ -450,8 +466,16 @@ class Service:
         status_period: float = 1.0,
         playback: bool | None = None,
         stop_when_controllers_leave: bool = False,
+        poses: PoseFeed | None = None,
+        grid: GridOption | None = None,
     ) -> None:
         self.server = server
+        if grid is not None and poses is None:
+            raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
+        self.moving: MovingEncoder | None = None if poses is None else MovingEncoder(poses, grid)
+        """With ``poses``: what makes the vehicle's odometry, the deskewed clouds and the grid,
+        published from a sink of their own (:meth:`_publish_moving`); its counts and its grid
+        (``service.moving.grid``)."""
         recording = server.playback
         if playback and not recording:
             raise RequestError(
@@ -487,6 +511,10 @@ class Service:
             "status": 0,
             "fault": 0,
         }
+        if self.moving is not None:
+            self.published.update(dict.fromkeys(_MOVING_KINDS.values(), 0))
+            if self.moving.feeder is None:
+                del self.published["grid"]
         """Publications made, per key expression (the counter each publication carries): one
         per direction for scans, since a subscriber counts gaps per key."""
         self.requests = 0
@@ -534,9 +562,14 @@ class Service:
         self._threads: list[threading.Thread] = []
         self._sink: feed.Sink | None = None
         """The service's sink of the sensor's feed (None if the sensor could not be read)."""
+        self._moving_sink: feed.Sink | None = None
+        """With ``poses``: the sink that publishes the moving robot's messages, apart from the
+        prompt one: a grid message costs some 13 ms, too long for the feed's reader thread."""
         # before anything is served: the codec's first use costs ~0.1 s of interpreter time, which
         # on the feed thread would have stalled the server's threads at the first acquisition
         warm_all()
+        if self.moving is not None:
+            self.moving.warm()
         self._pool = _FairPool(READ_WORKERS, READ_QUEUE, "biris-net")
         self._control = _FairPool(CONTROL_WORKERS, CONTROL_QUEUE, "biris-net-control")
         config = make_config(listen=listen, connect=connect, multicast=multicast, options=options)
@@ -565,6 +598,14 @@ class Service:
         self._pub_fault = session.declare_publisher(
             keys.fault, congestion_control=zenoh.CongestionControl.BLOCK
         )
+        self._pub_moving: dict[str, tuple[Any, str]] = {}
+        """The moving robot's publishers by the encoder's topic, with their counter's name."""
+        if self.moving is not None:
+            for topic, kind in _MOVING_KINDS.items():
+                if kind in self.published:
+                    key = getattr(keys, kind)
+                    publisher = session.declare_publisher(key, congestion_control=drop)
+                    self._pub_moving[topic] = (publisher, kind)
         self._queryable = session.declare_queryable(keys.rpcs, _direct(self._on_query))
         self._clients_sub = session.liveliness().declare_subscriber(
             keys.client_tokens, self._on_client_token, history=True
@@ -589,6 +630,17 @@ class Service:
             )
         except BirisError as exc:  # a sensor already closed: the service answers all the same
             log.warning("the service publishes nothing: the sensor cannot be read (%s)", exc)
+        if self.moving is not None and self._sink is not None:
+            # not prompt: its own thread and queue, so that deskewing a scan and building a grid
+            # message never delay the reader (and so the points' publications)
+            self._moving_sink = feed.attach(
+                self.server,
+                self._publish_moving,
+                name="service-moving",
+                status_period_s=self.status_period,  # poses go on while the head is idle
+                point_depth=FEED_DEPTH,
+                scan_depth=SCAN_DEPTH,
+            )
         self._token = session.liveliness().declare_token(keys.service_token)
         if self.playback:
             who = "a recording: nobody may move or configure it"
@@ -624,6 +676,8 @@ class Service:
             self._conns.clear()
         for client in clients:
             self._close_all(client)
+        if self._moving_sink is not None:
+            self._moving_sink.detach()
         if self._sink is not None:
             self._sink.detach()
         for thread in self._threads:
@@ -672,6 +726,24 @@ class Service:
                     self._publish(self._pub_status, "status", message.data, message.msgtype)
                 elif message.topic == codec.RAW_FAULT_TOPIC:
                     self._publish(self._pub_fault, "fault", message.data, message.msgtype)
+            except Exception:
+                log.exception("publishing %s failed", message.topic)
+
+    def _publish_moving(self, batch: feed.Batch) -> None:
+        """Publish the moving robot's messages the batch gives (the moving sink's thread), each
+        on its key; a publication that fails is said and skipped, as in :meth:`_publish_batch`."""
+        assert self.moving is not None
+        try:
+            messages = self.moving.messages(batch)
+        except Exception:
+            log.exception("the vehicle's poses, clouds or grid could not be made")
+            return
+        for message in messages:
+            target = self._pub_moving.get(message.topic)
+            if target is None:
+                continue
+            try:
+                self._publish(target[0], target[1], message.data, message.msgtype)
             except Exception:
                 log.exception("publishing %s failed", message.topic)
 
@@ -1409,6 +1481,22 @@ def serve(
         stop_when_controllers_leave: (keyword) dead-man: when the last client that was granted
             a control operation has gone (its liveliness token withdrawn), issue ``stop_scan``,
             so that a continuous scan does not go on for ever. Default False.
+        poses: (keyword) on a moving robot, the vehicle's pose on the sensor's hardware clock
+            (a :class:`~biris_hw.io.pose.PoseBuffer`, or any
+            :class:`~biris_hw.io.moving_sink.PoseFeed`): the service also publishes each pose
+            sample on ``odom`` (``nav_msgs/msg/Odometry``) and ``tf`` (``odom -> vehicle``),
+            and each completed scan deskewed on ``cloud`` (``sensor_msgs/msg/PointCloud2`` in
+            ``odom``), from a sink of the feed of their own, not the reader's thread. Default
+            None: none of these.
+        grid: (keyword; needs ``poses``) a :class:`~biris_hw.io.grid.GridParams`,
+            :class:`~biris_hw.io.grid.CertaintyGrid` or :class:`~biris_hw.io.grid.GridFeeder`:
+            the certainty grid, fed every acquisition, published on ``grid``
+            (``nav_msgs/msg/OccupancyGrid`` in ``odom``) at a few Hz. The keys are
+            :class:`~biris_hw.io.net.keys.Keys`' (docs/wire-format.md, "Publications").
+
+    Raises:
+        ValueError: ``grid`` without ``poses``; TypeError: ``poses`` or ``grid`` of no kind
+            they take. Nothing is started then.
 
     The server is not closed on the way out: it belongs to the caller.
     """
