@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from biris_hw.bus.base import BusWindow
 from biris_hw.errors import FaultKind, HardwareFault
 from biris_hw.pan_reference import PanReference
 from biris_hw.records import MotorParams
-from biris_hw.timebase import StopEvent, timebase_of
+from biris_hw.timebase import HwLock, StopEvent, timebase_of
 from regs import biexec
 from regs.bit3 import ERROR_MASK, Bit3Reg, LocalCommand, LocalIntControl, LocalStatus
 from regs.hctl1000 import (
@@ -274,6 +275,31 @@ class MotionBoard:
         return None
 
 
+class _Reentrant:
+    """A time base's lock taken again by the thread that holds it (``threading.RLock`` for a
+    :class:`~biris_hw.timebase.HwLock`, which virtual time needs to see every wait)."""
+
+    def __init__(self, lock: HwLock) -> None:
+        self._lock = lock
+        self._owner: int | None = None
+        self._depth = 0
+
+    def __enter__(self) -> _Reentrant:
+        me = threading.get_ident()
+        if self._owner == me:  # only the holder ever sets it to its own ident
+            self._depth += 1
+            return self
+        self._lock.__enter__()
+        self._owner, self._depth = me, 1
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._depth -= 1
+        if self._depth == 0:
+            self._owner = None
+            self._lock.__exit__(None, None, None)
+
+
 class AxisDriver:
     """One HCTL-1000 on the board: configure it, start trapezoids, read positions, and tell when
     the motor has come to rest.
@@ -301,7 +327,12 @@ class AxisDriver:
         self._base = AXIS_BASE[axis]
         self._clock = clock
         self._scale = time_scale
-        self._latch = timebase_of(clock, time_scale).Lock()  # held across reads: TimeBase.Lock
+        self._latch = _Reentrant(timebase_of(clock, time_scale).Lock())
+        """Held across a latched read (R14H, then R13H and R12H) and, taken first, around a bus
+        transaction that reads inside it (:meth:`hold_here`, :meth:`start_trapezoid`): one
+        order for the two locks, and reentrant, so a read inside such a transaction takes it
+        again (a VM-USB's transaction holds the bridge: the other order deadlocked a mover
+        against a notifier)."""
         self._params: MotorParams | None = None
         """The parameters last loaded by :meth:`configure` (what a software reset must reload)."""
         self._prepared: tuple[int, int] | None = None
@@ -436,7 +467,7 @@ class AxisDriver:
 
         Every register goes back to its power-up value: the caller loads the parameters again
         (:meth:`configure`). Called with the head at rest."""
-        with self.window.transaction():
+        with self._latch, self.window.transaction():
             self._wr(Reg.PROGRAM_COUNTER, ProgramCounter.RESET)
             self._wr(Reg.PROGRAM_COUNTER, ProgramCounter.INIT_IDLE)
         return self.actual_position()
@@ -455,7 +486,7 @@ class AxisDriver:
                 (or no parameters were ever configured to reload after the reset): the chip is
                 left in init/idle, nothing committed.
         """
-        with self.window.transaction():
+        with self._latch, self.window.transaction():
             self._hold_here(zero_counter)
 
     def _hold_here(self, zero_counter: bool) -> None:
@@ -527,7 +558,7 @@ class AxisDriver:
         only while the counter is not yet referenced, during initialisation), and the move is
         recorded before F0 starts it: a driver that dies mid-move leaves its span behind.
         """
-        with self.window.transaction():
+        with self._latch, self.window.transaction():
             return self._start_trapezoid(destination)
 
     def _start_trapezoid(self, destination: int) -> int:

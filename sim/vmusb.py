@@ -22,24 +22,58 @@ bridge's FPGA, runs the stacks a moment later. All VME cycles, of lists and of s
 bus lock (the crate has one bus); device state has its own lock, always taken after the bus
 lock.
 
-Interpretations where regs/vmusb.py is silent (the simulated device's choices):
+What the device does as the public sources say a real one does (:mod:`regs.vmusb` names each
+source), and refuses or records when a driver breaks the convention:
+
+- *Answers.* Only the data read, 16-bit aligned unless GLOBAL_MODE has Align32 (then D8/D16
+  reads answer a ``u32``); a list without reads is answered ``WRITE_ACKNOWLEDGED`` when every
+  write got DTACK and ``NO_DTACK`` (0) when one did not. A bus error ends a block read short
+  (the list goes on) and stops the list at a single-cycle read or a write (Interpretation), so a
+  read list's answer comes back short, empty (a zero-length transfer) if nothing was read.
+- *D8 writes* drive the byte the data strobe selects: D15..D8 of the data word for an even
+  address, D7..D0 for an odd one. A D8 write whose two lanes differ is carried out that way and
+  recorded (``D8_ONE_LANE``): which lane a real bridge takes is undocumented, so a driver puts
+  the byte on both, as NSCLDAQ does.
+- *Block reads*: a count field of 0xFF is the escape (the count follows in its own word, up to
+  ``BLT_MAX_COUNT``); a count of 0 is malformed.
+- *Buffers.* Events collect in an open buffer that is sent when the next event would not fit its
+  length code (GLOBAL_MODE bits 0-3), when it holds EVENTS_PER_BUFFER events (code 9; with 0
+  there it never closes by count), and when data taking stops (then marked ``BUF_LAST``, an
+  empty one if no event is open). Each buffer ends with two terminators. With USB_BULK_SETUP
+  asking for ``n > 1`` buffers per transfer, closed buffers wait in the bridge until ``n`` are
+  there, until the timeout of bits 8-11 (Interpretation: ``t`` seconds of hardware time for a
+  code ``t``, 1 s for 0) or until data taking stops. So a bridge left at power-on settings (13K
+  words) holds an idle interrupt's event until the host next stops data taking. Data taking
+  with Align32 set is recorded (``ALIGN32_DATA_TAKING``): the manual makes every header 32 bits
+  then, a layout this device does not produce (it sends the 16-bit one).
+- *The IRQ mask* is loaded as the public drivers load it (GLOBAL_MODE with IRQ_MASK_LOAD, then
+  the USB_TRIGGER action; FIRMWARE_ID shows it in bits 24-30 while IRQ_MASK_LOAD is set). At
+  power-on every level is ignored (Interpretation: the real default is not documented; NSCLDAQ
+  writes it at every open). An IRQ whose ISV entry matches on a masked level is not
+  acknowledged: it stays pending on the bus and is recorded (``IRQ_MASKED``).
+- *Vectors* are 16 bits: an 8-bit interrupter presents ``VECTOR_HIGH_8BIT`` above its vector,
+  and an ISV entry matches only when the entry's byte in VECTOR_HIGH1/2 agrees (``irq(...,
+  vector_high=)`` for another interrupter). An IRQ that matches an entry's level and low byte
+  but not its high byte runs nothing (``VECTOR_HIGH_MISMATCH``); one that matches no entry is
+  dropped (``IRQ_UNSERVICED``), masked or not (Interpretation: a real bridge leaves a masked one
+  on the bus).
+
+Interpretations where the sources are silent (the simulated device's choices):
 
 - A malformed OUT packet is ignored whole (nothing runs, no answer: the host times out) and is
-  recorded as ``MALFORMED_PACKET``. Write data of D8/D16 lines sits in the low bits of the data
-  word, like read values, and must fit. Address bits beyond the modifier's width are malformed.
-- A block read needs a BLT modifier and a BLT modifier needs a count (1-255: the 8-bit field
-  cannot say more). MARKER, DELAY, NA, MB and the other mode bits are not supported: malformed.
-- A D8/D16 read in an immediate list while GLOBAL_ALIGN32 is clear still answers a ``u32`` (the
-  wire format of the spec) but is recorded as ``READ_WITHOUT_ALIGN32``: a real bridge would
-  have answered a ``u16`` and the driver's bring-up step is missing.
-- A VME bus error inside an IRQ stack ends that stack: the event carries the values read before
-  the failing line (the host sees a short event), counted in ``counters.bus_errors``.
+  recorded as ``MALFORMED_PACKET``. Write data of D8/D16 lines sits in the low 16 bits of the
+  data word and must fit. Address bits beyond the modifier's width are malformed.
+- A block read needs a BLT modifier and a BLT modifier needs a count. MARKER, DELAY, NA, MB
+  (NSCLDAQ's multi-block form) and the other mode bits are not modelled: malformed.
+- A VME bus error inside an IRQ stack follows the same rules: the event carries the values read
+  before it (the host sees a short event), counted in ``counters.bus_errors``.
 - An ISV entry is used when its level is not 0. A stack that an ISV entry names but that was
   never loaded runs as an empty stack (an event of length 0), after ``START_WITHOUT_STACK``.
-- SYS_RESET resets the registers, forgets the stacks, stops data taking without a BUF_LAST
-  buffer and drops everything queued on bulk IN; IRQs held pending stay pending (they are the
-  slaves' state, and a VME SYSRESET is not modelled). Writing START_DAQ clear while data taking
-  is off sends nothing. USB_TRIGGER and SCALER_DUMP do nothing.
+- SYS_RESET resets the registers (the IRQ mask too), forgets the stacks, stops data taking
+  without a BUF_LAST buffer and drops every buffer, open, held or queued; IRQs held pending stay
+  pending (they are the slaves' state, and a VME SYSRESET is not modelled). CLEAR drops the
+  buffers. Writing START_DAQ clear while data taking is off sends nothing. USB_TRIGGER does
+  nothing but load the IRQ mask; SCALER_DUMP does nothing.
 - A USB reset (``dev.reset()``) drops what is queued on bulk IN, as a flushed endpoint FIFO;
   registers, stacks and data taking are the crate's and stay.
 - Data taking "runs" from START_DAQ until the BUF_LAST buffer is queued: an immediate list or a
@@ -54,6 +88,7 @@ import errno
 import itertools
 import struct
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -68,25 +103,35 @@ from regs.vmusb import (
     ACTION_REGISTER,
     ADDR_NOT_LWORD,
     ADDRESS_BITS,
-    BERR_ANSWER,
+    BLOCK_COUNT_ESCAPE,
     BLOCK_COUNT_SHIFT,
+    BLT_MAX_COUNT,
     BLT_OF,
+    BUF_EVENT_COUNT,
     BUF_LAST,
     BUF_TERMINATOR,
+    BUFFER_LENGTH_MASK,
+    BUFFER_LENGTH_WORDS,
+    BUFFER_SINGLE_EVENT,
+    BULK_MULTI_BUFFER,
+    BULK_TIMEOUT,
+    BULK_TIMEOUT_SHIFT,
     CONFIGURATION,
     EP_IN,
     EP_OUT,
     EVENT_LENGTH,
     EVENT_STACK_SHIFT,
+    FID_IRQ_MASK_SHIFT,
     GLOBAL_ALIGN32,
     INTERFACE,
+    IRQ_MASK_ALL,
+    IRQ_MASK_LOAD,
     ISV_LEVEL,
     ISV_LEVEL_SHIFT,
     ISV_REGISTERS,
     ISV_STACK,
     ISV_STACK_SHIFT,
     ISV_VECTOR,
-    MAX_BLOCK_WORDS,
     MAX_LIST_LINES,
     MAX_PACKET,
     MODE_AM_MASK,
@@ -94,15 +139,20 @@ from regs.vmusb import (
     MODE_DS1,
     MODE_NW,
     MODE_SLF,
-    NO_READ_ANSWER,
+    NO_DTACK,
     PID,
     REGISTER_BLOCK,
     TA_IMMEDIATE_LIST,
+    VECTOR_HIGH_8BIT,
     VID,
+    WRITE_ACKNOWLEDGED,
     Action,
     AddressModifier,
     InternalReg,
+    irq_mask_bit,
+    read_answer_bytes,
     ta_load,
+    vector_high_slot,
 )
 from sim.audit import Audit, Violation
 from sim.clock import SimClock
@@ -182,10 +232,18 @@ class VmUsbRule(str, enum.Enum):
     """A write to the read-only FIRMWARE_ID register: ignored."""
     WRONG_ENDPOINT = "VMUSB_WRONG_ENDPOINT"
     """A transfer on an endpoint other than bulk OUT 0x02 / bulk IN 0x86."""
-    READ_WITHOUT_ALIGN32 = "VMUSB_READ_WITHOUT_ALIGN32"
-    """A D8/D16 read in an immediate list while GLOBAL_MODE lacks GLOBAL_ALIGN32."""
     STACK_OVERLAP = "VMUSB_STACK_OVERLAP"
     """A stack loaded over part of another stack's memory."""
+    D8_ONE_LANE = "VMUSB_D8_ONE_LANE"
+    """A D8 write whose data lanes D7..D0 and D15..D8 differ: the byte the strobe selects is
+    written, which need not be the one meant (NSCLDAQ puts it on both)."""
+    IRQ_MASKED = "VMUSB_IRQ_MASKED"
+    """A VME IRQ an ISV entry would service, on a level the IRQ mask ignores: left pending."""
+    VECTOR_HIGH_MISMATCH = "VMUSB_VECTOR_HIGH_MISMATCH"
+    """A VME IRQ matching an ISV entry's level and vector byte, but not the entry's upper vector
+    byte (VECTOR_HIGH1/2): no stack runs."""
+    ALIGN32_DATA_TAKING = "VMUSB_ALIGN32_DATA_TAKING"
+    """START_DAQ with GLOBAL_MODE's Align32 set (32-bit buffer headers, not modelled)."""
 
 
 @dataclass
@@ -203,7 +261,7 @@ class VmUsbCounters:
     stack_loads: int = 0
     action_writes: int = 0
     buffers: int = 0
-    """Data-taking buffers queued: one per IRQ event, plus each BUF_LAST buffer."""
+    """Data-taking buffers closed (each BUF_LAST buffer too)."""
     irq_events: int = 0
     """IRQ events serviced: stack runs."""
     bytes_out: int = 0
@@ -240,13 +298,20 @@ class _Line:
     """Address width of the modifier (16, 24, 32); 0 for an internal register."""
     count: int = 1
     data: int = 0
+    """Write data as it came: a D8 write's both lanes, D15..D8 and D7..D0."""
 
     @property
-    def reads(self) -> int:
-        """Values this line puts in an answer or an event."""
+    def reads(self) -> bool:
+        """Whether this line puts data in an answer or an event."""
+        return self.op in (_Op.READ, _Op.BLOCK, _Op.REG_READ)
+
+    def answer_bytes(self, align32: bool = False) -> int:
+        """Bytes this line puts in an answer or an event when every cycle succeeds."""
+        if self.op is _Op.READ:
+            return read_answer_bytes(8 * self.width, align32)
         if self.op is _Op.BLOCK:
-            return self.count
-        return 1 if self.op in (_Op.READ, _Op.REG_READ) else 0
+            return 4 * self.count
+        return 4 if self.op is _Op.REG_READ else 0
 
 
 @dataclass(frozen=True)
@@ -265,6 +330,20 @@ class _StackLoad:
 @dataclass(frozen=True)
 class _ActionWrite:
     value: int
+
+
+@dataclass(frozen=True)
+class _Run:
+    """What running lines gave: the data read, the lines run (up to one that stopped the list),
+    and whether a write got no DTACK."""
+
+    data: bytes
+    executed: int
+    write_failed: bool
+
+
+_TERMINATORS = struct.pack("<HH", BUF_TERMINATOR, BUF_TERMINATOR)
+"""What ends a buffer: the terminator, twice."""
 
 
 def _words32(payload: bytes) -> list[int]:
@@ -298,7 +377,7 @@ def _parse_packet(packet: bytes) -> _ImmediateList | _StackLoad | _ActionWrite:
                 f"(expected {2 * len(words) + 1})"
             )
         lines = _parse_lines(words)
-        shorts = 2 * sum(line.reads for line in lines)
+        shorts = sum(line.answer_bytes() for line in lines) // 2
         if shorts > EVENT_LENGTH:
             raise _Malformed(
                 f"stack {_LOAD_TAS[ta]} reads {shorts} 16-bit units, more than an event holds "
@@ -330,16 +409,30 @@ def _parse_lines(words: list[int]) -> tuple[_Line, ...]:
             raise _Malformed(f"list longer than {MAX_LIST_LINES} lines")
         mode = words[i]
         read = bool(mode & MODE_NW)
-        need = 2 if read else 3
+        escaped = (
+            read
+            and not mode & MODE_SLF
+            and mode & MODE_AM_MASK in _BLT_MODIFIERS
+            and mode >> BLOCK_COUNT_SHIFT == BLOCK_COUNT_ESCAPE
+        )
+        need = 3 if escaped or not read else 2
         if i + need > len(words):
             raise _Malformed(f"line {index} (mode 0x{mode:08X}) is truncated")
-        address = words[i + 1]
-        data = 0 if read else words[i + 2]
+        if escaped:  # [mode | 0xFF << 24, count, address] (mvme's "universal" block read)
+            count, address, data = words[i + 1], words[i + 2], 0
+            if not 1 <= count <= BLT_MAX_COUNT:
+                raise _Malformed(
+                    f"line {index}: escaped block count {count} is not 1..{BLT_MAX_COUNT}"
+                )
+        else:
+            address = words[i + 1]
+            data = 0 if read else words[i + 2]
+            count = mode >> BLOCK_COUNT_SHIFT
         i += need
         if mode & MODE_SLF:
             lines.append(_internal_line(index, mode, address, data, read))
         else:
-            lines.append(_vme_line(index, mode, address, data, read))
+            lines.append(_vme_line(index, mode, address, data, read, count))
     return tuple(lines)
 
 
@@ -351,12 +444,11 @@ def _internal_line(index: int, mode: int, reg: int, data: int, read: bool) -> _L
     return _Line(_Op.REG_READ if read else _Op.REG_WRITE, reg, data=data)
 
 
-def _vme_line(index: int, mode: int, address: int, data: int, read: bool) -> _Line:
+def _vme_line(index: int, mode: int, address: int, data: int, read: bool, count: int) -> _Line:
     if mode & ~_VME_MODE_BITS:
         raise _Malformed(f"line {index}: unsupported mode bits 0x{mode & ~_VME_MODE_BITS:08X}")
     am = mode & MODE_AM_MASK
     ds = mode & (MODE_DS0 | MODE_DS1)
-    count = mode >> BLOCK_COUNT_SHIFT
     if am not in _KNOWN_MODIFIERS:
         raise _Malformed(f"line {index}: unknown address modifier 0x{am:02X}")
     bits = ADDRESS_BITS[AddressModifier(am)]
@@ -366,7 +458,7 @@ def _vme_line(index: int, mode: int, address: int, data: int, read: bool) -> _Li
         if not read:
             raise _Malformed(f"line {index}: block writes are not supported")
         if count == 0:
-            raise _Malformed(f"line {index}: block read with count 0 (1..{MAX_BLOCK_WORDS})")
+            raise _Malformed(f"line {index}: block read with count 0")
         if ds or address & 3:
             raise _Malformed(f"line {index}: misaligned D32 block read at 0x{address:X}")
         return _Line(_Op.BLOCK, address, 4, bits, count)
@@ -383,7 +475,7 @@ def _vme_line(index: int, mode: int, address: int, data: int, read: bool) -> _Li
             width, first = 1, base + 1
         else:
             raise _Malformed(f"line {index}: both data strobes set (D16 has them clear)")
-        if not read and data >> (8 * width):
+        if not read and data >> 16:  # D8 data may use both lanes of the low 16 bits
             raise _Malformed(f"line {index}: D{8 * width} write data 0x{data:X} does not fit")
         return _Line(op, first, width, bits, data=data)
     if ds:
@@ -593,7 +685,15 @@ class SimulatedVmUsb:
         self._working = False
         self._daq_on = False
         self._lasts_owed = 0
-        self._pending: dict[tuple[int, int], int] = {}
+        self._pending: dict[tuple[int, int, int], int] = {}
+        """IRQs held on the bus: ``{(level, vector, vector_high): count}``."""
+        self._irq_mask = IRQ_MASK_ALL
+        self._open: list[bytes] = []
+        """Events of the buffer being filled (each its header and data)."""
+        self._held: list[bytes] = []
+        """Closed buffers waiting for the rest of a multi-buffer bulk transfer."""
+        self._held_deadline: float | None = None
+        """Monotonic real time at which the held buffers go out regardless."""
         self._reset_registers()
         self._sequencer = threading.Thread(
             target=self._run_sequencer, name=f"vmusb-{serial}", daemon=True
@@ -631,33 +731,42 @@ class SimulatedVmUsb:
         with self._lock:
             self._berr_address = address
 
-    def irq(self, level: int, vector: int, count: int = 1) -> None:
+    def irq(
+        self, level: int, vector: int, count: int = 1, *, vector_high: int = VECTOR_HIGH_8BIT
+    ) -> None:
         """A VME IRQ at ``level`` answering its IACK with ``vector``, asserted ``count`` times.
 
-        Never calls a window, so a slave may call it with its own lock held; the stack runs in
-        the sequencer thread. While data taking is off the IRQ stays pending (level-held).
+        ``vector_high`` is the byte above the vector the bridge sees: the default, 0xFF, is an
+        8-bit interrupter's. Never calls a window, so a slave may call it with its own lock held;
+        the stack runs in the sequencer thread. While data taking is off, or while the IRQ mask
+        ignores ``level``, the IRQ stays pending (level-held).
         """
-        if not 1 <= level <= 7 or not 0 <= vector <= 0xFF or count < 1:
-            raise ValueError(f"IRQ level={level} vector={vector} count={count} out of range")
+        if not (1 <= level <= 7 and 0 <= vector <= 0xFF and 0 <= vector_high <= 0xFF) or count < 1:
+            raise ValueError(
+                f"IRQ level={level} vector={vector} vector_high={vector_high} count={count} out "
+                "of range"
+            )
         with self._cond:
             if not self._present:
                 return
-            stack_id = self._isv_stack(level, vector)
+            stack_id = self._service(level, vector, vector_high, count)
             if stack_id is None:
+                return
+            if self._irq_mask & irq_mask_bit(level):
                 self._violate(
-                    VmUsbRule.IRQ_UNSERVICED,
-                    f"IRQ level {level} vector 0x{vector:02X} matches no ISV entry: dropped",
+                    VmUsbRule.IRQ_MASKED,
+                    f"IRQ level {level} vector 0x{vector:02X} while the IRQ mask 0x"
+                    f"{self._irq_mask:02X} ignores level {level}: left pending on the bus",
                     level=level,
                     vector=vector,
-                    count=count,
+                    mask=self._irq_mask,
                 )
-                return
-            if self._daq_on:
+            elif self._daq_on:
                 self._work.append(_IrqWork(stack_id, count))
                 self._cond.notify_all()
-            else:
-                key = (level, vector)
-                self._pending[key] = self._pending.get(key, 0) + count
+                return
+            key = (level, vector, vector_high)
+            self._pending[key] = self._pending.get(key, 0) + count
 
     def unplug(self) -> None:
         """The device vanishes: transfers raise ENODEV from now on, blocked reads wake and raise."""
@@ -713,9 +822,31 @@ class SimulatedVmUsb:
 
     @property
     def pending_irqs(self) -> dict[tuple[int, int], int]:
-        """IRQs held while data taking is off: ``{(level, vector): count}``."""
+        """IRQs held while data taking is off or their level masked: ``{(level, vector):
+        count}``."""
         with self._lock:
-            return dict(self._pending)
+            out: dict[tuple[int, int], int] = {}
+            for (level, vector, _), count in self._pending.items():
+                out[level, vector] = out.get((level, vector), 0) + count
+            return out
+
+    @property
+    def irq_mask(self) -> int:
+        """The IRQ mask: bit ``level - 1`` set when the bridge ignores that level."""
+        with self._lock:
+            return self._irq_mask
+
+    @property
+    def open_events(self) -> int:
+        """Events in the buffer being filled, not yet sent (held back by the buffer mode)."""
+        with self._lock:
+            return len(self._open)
+
+    @property
+    def held_buffers(self) -> int:
+        """Closed buffers waiting for a multi-buffer bulk transfer (USB_BULK_SETUP)."""
+        with self._lock:
+            return len(self._held)
 
     @property
     def queued_in(self) -> int:
@@ -783,15 +914,14 @@ class SimulatedVmUsb:
                     self._load(request)
                     return len(packet)
                 self.counters.immediate_lists += 1
-            values, berr_line, executed = self._run_lines(request.lines, immediate=True)
+            run = self._run_lines(request.lines)
             with self._cond:
-                self.counters.list_lines += executed
-                if berr_line is not None:
-                    answer = struct.pack("<H", BERR_ANSWER | berr_line)
-                elif values:
-                    answer = struct.pack(f"<{len(values)}I", *values)
+                self.counters.list_lines += run.executed
+                if any(line.reads for line in request.lines):
+                    answer = run.data  # short, or empty, after a bus error
                 else:
-                    answer = struct.pack("<H", NO_READ_ANSWER)
+                    ack = NO_DTACK if run.write_failed else WRITE_ACKNOWLEDGED
+                    answer = struct.pack("<I" if self._align32() else "<H", ack)
                 self._queue_in(answer, answer=True)
         return len(packet)
 
@@ -896,26 +1026,68 @@ class SimulatedVmUsb:
     def _reset_registers(self) -> None:
         self._regs = {int(reg): 0 for reg in InternalReg}
         self._regs[int(InternalReg.FIRMWARE_ID)] = self.firmware_id
+        self._irq_mask = IRQ_MASK_ALL
+
+    def _align32(self) -> bool:
+        """GLOBAL_MODE's Align32 (lock held)."""
+        return bool(self._regs[int(InternalReg.GLOBAL_MODE)] & GLOBAL_ALIGN32)
 
     def _isv_entries(self) -> Iterator[tuple[int, int, int, int]]:
-        """Used ISV entries ``(index, level, vector, stack_id)`` (lock held)."""
+        """Used ISV entries ``(index, level, vector, stack_id)`` (lock held); ``vector`` has 16
+        bits, its upper byte from VECTOR_HIGH1/2."""
         for i, reg in enumerate(ISV_REGISTERS):
             value = self._regs[int(reg)]
             for half in (0, 1):
                 entry = (value >> (16 * half)) & 0xFFFF
                 level = (entry & ISV_LEVEL) >> ISV_LEVEL_SHIFT
                 if level:
+                    index = 2 * i + half
+                    high_reg, shift = vector_high_slot(index)
+                    high = (self._regs[int(high_reg)] >> shift) & 0xFF
                     yield (
-                        2 * i + half,
+                        index,
                         level,
-                        entry & ISV_VECTOR,
+                        high << 8 | entry & ISV_VECTOR,
                         (entry & ISV_STACK) >> ISV_STACK_SHIFT,
                     )
 
-    def _isv_stack(self, level: int, vector: int) -> int | None:
+    def _isv_stack(self, level: int, vector: int, vector_high: int) -> int | None:
+        full = vector_high << 8 | vector
         for _, lv, vec, stack_id in self._isv_entries():
-            if lv == level and vec == vector:
+            if lv == level and vec == full:
                 return stack_id
+        return None
+
+    def _service(self, level: int, vector: int, vector_high: int, count: int) -> int | None:
+        """The stack an IRQ runs; None, recorded, when no ISV entry takes it (lock held)."""
+        stack_id = self._isv_stack(level, vector, vector_high)
+        if stack_id is not None:
+            return stack_id
+        near = [
+            (index, vec >> 8)
+            for index, lv, vec, _ in self._isv_entries()
+            if lv == level and vec & 0xFF == vector
+        ]
+        if near:
+            index, high = near[0]
+            self._violate(
+                VmUsbRule.VECTOR_HIGH_MISMATCH,
+                f"IRQ level {level} vector 0x{vector:02X} matches ISV entry {index} but its "
+                f"upper vector byte is 0x{high:02X} where the interrupter presents "
+                f"0x{vector_high:02X} (VECTOR_HIGH1/2): no stack runs",
+                level=level,
+                vector=vector,
+                entry=index,
+                vector_high=high,
+            )
+        else:
+            self._violate(
+                VmUsbRule.IRQ_UNSERVICED,
+                f"IRQ level {level} vector 0x{vector:02X} matches no ISV entry: dropped",
+                level=level,
+                vector=vector,
+                count=count,
+            )
         return None
 
     def _load(self, load: _StackLoad) -> None:
@@ -946,8 +1118,13 @@ class SimulatedVmUsb:
             self._lasts_owed = 0
             self._work.clear()
             self._in.clear()
+            self._drop_buffers()
         if value & Action.CLEAR:
             self._in = deque(item for item in self._in if item.answer)
+            self._drop_buffers()
+        mode = self._regs[int(InternalReg.GLOBAL_MODE)]
+        if value & Action.USB_TRIGGER and mode & IRQ_MASK_LOAD:
+            self._irq_mask = mode & IRQ_MASK_ALL  # CVMUSB::writeIrqMask, VMUSB::setIrqMask
         start = bool(value & Action.START_DAQ)
         if start and not self._daq_on:
             self._start_daq()
@@ -961,42 +1138,43 @@ class SimulatedVmUsb:
     def _start_daq(self) -> None:
         self._daq_on = True
         self.counters.daq_starts += 1
+        if self._align32():
+            self._violate(
+                VmUsbRule.ALIGN32_DATA_TAKING,
+                "START_DAQ with Align32 set: the manual makes every buffer and event header a "
+                "32-bit word then; this device sends the 16-bit layout",
+                global_mode=self._regs[int(InternalReg.GLOBAL_MODE)],
+            )
         for index, level, vector, named in self._isv_entries():
             if named not in self._stacks:
                 self._violate(
                     VmUsbRule.START_WITHOUT_STACK,
-                    f"START_DAQ: ISV entry {index} (level {level}, vector 0x{vector:02X}) names "
+                    f"START_DAQ: ISV entry {index} (level {level}, vector 0x{vector:04X}) names "
                     f"stack {named}, which was never loaded",
                     entry=index,
                     stack=named,
                 )
         pending, self._pending = self._pending, {}
-        for (level, vector), count in pending.items():
-            stack_id = self._isv_stack(level, vector)
-            if stack_id is None:
-                self._violate(
-                    VmUsbRule.IRQ_UNSERVICED,
-                    f"pending IRQ level {level} vector 0x{vector:02X} matches no ISV entry at "
-                    f"START_DAQ: dropped",
-                    level=level,
-                    vector=vector,
-                    count=count,
-                )
-            else:
+        for (level, vector, high), count in pending.items():
+            if self._irq_mask & irq_mask_bit(level):
+                self._pending[level, vector, high] = count  # still ignored: still on the bus
+                continue
+            stack_id = self._service(level, vector, high, count)
+            if stack_id is not None:
                 self._work.append(_IrqWork(stack_id, count))
         self._cond.notify_all()
 
     # -- VME cycles (the bus lock is held, the state lock is not) ----------------------------------
-    def _run_lines(
-        self, lines: tuple[_Line, ...], *, immediate: bool
-    ) -> tuple[list[int], int | None, int]:
-        """Run ``lines``: ``(values read, index of the line that ended in BERR or None, lines
-        run)``."""
-        values: list[int] = []
+    def _run_lines(self, lines: tuple[_Line, ...]) -> _Run:
+        """Run ``lines`` as the bridge does (regs/vmusb.py; module notes): the data read, in the
+        alignment GLOBAL_MODE sets."""
+        with self._lock:
+            align32 = self._align32()
+        data = bytearray()
         for index, line in enumerate(lines):
             if line.op is _Op.REG_READ:
                 with self._lock:
-                    values.append(self._regs[line.address])
+                    data += struct.pack("<I", self._register_read(line.address))
                 continue
             if line.op is _Op.REG_WRITE:
                 with self._lock:
@@ -1009,57 +1187,100 @@ class SimulatedVmUsb:
                     else:
                         self._regs[line.address] = line.data & 0xFFFF_FFFF
                 continue
-            if immediate and line.op is _Op.READ and line.width < 4:
-                with self._lock:
-                    if not self._regs[int(InternalReg.GLOBAL_MODE)] & GLOBAL_ALIGN32:
-                        self._violate(
-                            VmUsbRule.READ_WITHOUT_ALIGN32,
-                            f"D{8 * line.width} read at 0x{line.address:X} while GLOBAL_MODE "
-                            f"lacks GLOBAL_ALIGN32 (a real bridge answers a u16)",
-                        )
-            result = self._vme(line)
-            if result is None:
-                with self._lock:
-                    self.counters.bus_errors += 1
-                return values, index, index + 1
-            values.extend(result)
-        return values, None, len(lines)
+            if line.op is _Op.BLOCK:
+                words = self._block(line)
+                data += struct.pack(f"<{len(words)}I", *words)
+                if len(words) < line.count:  # ended short by BERR; the list goes on
+                    self._bus_error()
+                continue
+            if line.op is _Op.WRITE and line.width == 1:
+                self._check_lanes(line)
+            value = self._single(line)
+            if value is None:
+                self._bus_error()
+                return _Run(bytes(data), index + 1, line.op is _Op.WRITE)
+            if line.op is _Op.READ:
+                size = read_answer_bytes(8 * line.width, align32)
+                data += value.to_bytes(size, "little")
+        return _Run(bytes(data), len(lines), False)
 
-    def _vme(self, line: _Line) -> list[int] | None:
-        """One VME line's cycles: the values read (none for a write), or None on BERR."""
-        nbytes = line.width * line.count
-        slaves, berr = self._slaves, self._berr_address
-        if berr is not None and line.address <= berr < line.address + nbytes:
+    def _register_read(self, reg: int) -> int:
+        """An internal register as a read sees it (lock held): FIRMWARE_ID shows the IRQ mask in
+        bits 24-30 while GLOBAL_MODE has IRQ_MASK_LOAD (mvme's check of the mask)."""
+        value = self._regs[reg]
+        mode = self._regs[int(InternalReg.GLOBAL_MODE)]
+        if reg == InternalReg.FIRMWARE_ID and mode & IRQ_MASK_LOAD:
+            shown = IRQ_MASK_ALL << FID_IRQ_MASK_SHIFT
+            value = value & ~shown | self._irq_mask << FID_IRQ_MASK_SHIFT
+        return value
+
+    def _bus_error(self) -> None:
+        with self._lock:
+            self.counters.bus_errors += 1
+
+    def _check_lanes(self, line: _Line) -> None:
+        """A D8 write whose two lanes differ (lock not held)."""
+        high, low = line.data >> 8 & 0xFF, line.data & 0xFF
+        if high != low:
+            lane = "D7..D0" if line.address & 1 else "D15..D8"
+            with self._lock:
+                self._violate(
+                    VmUsbRule.D8_ONE_LANE,
+                    f"D8 write at 0x{line.address:X} with data 0x{line.data:04X}: the lanes "
+                    f"differ, the strobe selects {lane} (0x{low if line.address & 1 else high:02X})"
+                    "; NSCLDAQ puts the byte on both",
+                    address=line.address,
+                    data=line.data,
+                )
+
+    def _target(self, address: int, nbytes: int, bits: int) -> tuple[BusWindow, int] | None:
+        """The slave that answers ``nbytes`` at ``address`` and its offset; None is BERR."""
+        berr = self._berr_address
+        if berr is not None and address <= berr < address + nbytes:
             return None
-        target = next(
-            (
-                s
-                for s in slaves
-                if s.bits == line.bits
-                and s.base <= line.address
-                and line.address + nbytes <= s.base + s.window.size
-            ),
-            None,
-        )
+        for slave in self._slaves:
+            if (
+                slave.bits == bits
+                and slave.base <= address
+                and address + nbytes <= slave.base + slave.window.size
+            ):
+                return slave.window, address - slave.base
+        return None
+
+    def _block(self, line: _Line) -> list[int]:
+        """A D32 block read's words, up to the first transfer that ends in BERR."""
+        words: list[int] = []
+        for k in range(line.count):
+            target = self._target(line.address + 4 * k, 4, line.bits)
+            if target is None:
+                break
+            window, offset = target
+            try:
+                words.append(window.read32(offset))
+            except BusError:
+                break
+        return words
+
+    def _single(self, line: _Line) -> int | None:
+        """One single cycle: the value read (0 for a write), or None on BERR."""
+        target = self._target(line.address, line.width, line.bits)
         if target is None:
             return None
-        window, offset = target.window, line.address - target.base
+        window, offset = target
         try:
-            if line.op is _Op.BLOCK:
-                return [window.read32(offset + 4 * k) for k in range(line.count)]
             if line.op is _Op.READ:
                 if line.width == 4:
-                    return [window.read32(offset)]
+                    return window.read32(offset)
                 if line.width == 2:
-                    return [window.read16(offset)]
-                return [window.read8(offset)]
+                    return window.read16(offset)
+                return window.read8(offset)
             if line.width == 4:
                 window.write32(offset, line.data)
             elif line.width == 2:
                 window.write16(offset, line.data)
-            else:
-                window.write8(offset, line.data)
-            return []
+            else:  # the lane the data strobe selects: D7..D0 odd, D15..D8 even
+                window.write8(offset, line.data & 0xFF if line.address & 1 else line.data >> 8)
+            return 0
         except BusError:
             return None
 
@@ -1067,8 +1288,7 @@ class SimulatedVmUsb:
     def _run_sequencer(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: bool(self._work) or self._closed)
-                if self._closed:
+                if not self._wait_for_work():
                     return
             with self._bus_lock:
                 with self._cond:
@@ -1078,29 +1298,88 @@ class SimulatedVmUsb:
                     self._working = True
                     if isinstance(work, str):  # _LAST
                         self._lasts_owed -= 1
-                        self._queue_buffer(struct.pack("<HH", BUF_LAST, BUF_TERMINATOR))
+                        self._close_buffer(last=True)
                         self._working = False
                         self._cond.notify_all()
                         continue
                     stack = self._stacks.get(work.stack_id)
                     lines = stack.lines if stack is not None else ()
                 for _ in range(work.count):
-                    values, _berr, _ = self._run_lines(lines, immediate=False)
-                    header = work.stack_id << EVENT_STACK_SHIFT | (2 * len(values)) & EVENT_LENGTH
-                    buffer = struct.pack(f"<HH{len(values)}IH", 1, header, *values, BUF_TERMINATOR)
+                    run = self._run_lines(lines)
                     with self._cond:
                         if not self._present:
                             break
                         self.counters.irq_events += 1
-                        self._queue_buffer(buffer)
+                        self._add_event(work.stack_id, run.data)
                 with self._cond:
                     self._working = False
                     self._cond.notify_all()
 
-    def _queue_buffer(self, buffer: bytes) -> None:
-        """Queue a data-taking buffer (lock held)."""
+    def _wait_for_work(self) -> bool:
+        """Wait for stack runs or a last buffer to do; send held buffers whose timeout passes
+        meanwhile. False once the device is closed (lock held)."""
+        while not self._closed:
+            if self._work:
+                return True
+            deadline = self._held_deadline
+            if deadline is None:
+                self._cond.wait()
+                continue
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self._send_held()
+            else:
+                self._cond.wait(left)
+        return False
+
+    # -- buffers (lock held) -----------------------------------------------------------------------
+    def _add_event(self, stack_id: int, data: bytes) -> None:
+        """Put an event in the open buffer; close it as its length code says."""
+        event = struct.pack("<H", stack_id << EVENT_STACK_SHIFT | len(data) // 2) + data
+        mode = self._regs[int(InternalReg.GLOBAL_MODE)]
+        code = mode & BUFFER_LENGTH_MASK
+        room = BUFFER_LENGTH_WORDS.get(code, BUFFER_LENGTH_WORDS[0])
+        used = sum(len(e) for e in self._open) // 2 + 3  # the header and two terminators
+        if self._open and used + len(event) // 2 > room:
+            self._close_buffer()
+        self._open.append(event)
+        per_buffer = self._regs[int(InternalReg.EVENTS_PER_BUFFER)] & BUF_EVENT_COUNT
+        if (
+            (code == BUFFER_SINGLE_EVENT and per_buffer and len(self._open) >= per_buffer)
+            or len(event) // 2 + 3 > room
+            or len(self._open) == BUF_EVENT_COUNT
+        ):
+            self._close_buffer()
+
+    def _close_buffer(self, *, last: bool = False) -> None:
+        """Close the open buffer (an empty one only as the last) and send it, or hold it for a
+        multi-buffer transfer; the last buffer sends everything held."""
+        if not self._open and not last:
+            return
+        header = (BUF_LAST if last else 0) | len(self._open)
+        buffer = b"".join([struct.pack("<H", header), *self._open, _TERMINATORS])
+        self._open = []
         self.counters.buffers += 1
-        self._queue_in(buffer, answer=False)
+        self._held.append(buffer)
+        setup = self._regs[int(InternalReg.USB_BULK_SETUP)]
+        if last or len(self._held) >= max(1, setup & BULK_MULTI_BUFFER):
+            self._send_held()
+        elif self._held_deadline is None:
+            code = (setup & BULK_TIMEOUT) >> BULK_TIMEOUT_SHIFT
+            self._held_deadline = time.monotonic() + (code or 1) / self.time_scale
+            self._cond.notify_all()
+
+    def _send_held(self) -> None:
+        """The held buffers, in one bulk IN transfer."""
+        if self._held:
+            self._queue_in(b"".join(self._held), answer=False)
+        self._held = []
+        self._held_deadline = None
+
+    def _drop_buffers(self) -> None:
+        self._open = []
+        self._held = []
+        self._held_deadline = None
 
 
 # -- pyusb -----------------------------------------------------------------------------------------

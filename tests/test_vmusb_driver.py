@@ -27,9 +27,11 @@ from biris_hw.irq import open_line
 from biris_hw.irq.vmusb import VmUsbLine
 from regs.vmusb import (
     ACTION_REGISTER,
-    BERR_ANSWER,
+    BUFFER_LENGTH_MASK,
+    BUFFER_SINGLE_EVENT,
     EP_OUT,
     GLOBAL_ALIGN32,
+    IRQ_MASK_ALL,
     MAX_LIST_LINES,
     PID,
     REGISTER_BLOCK,
@@ -116,49 +118,73 @@ def test_list_lines_are_encoded_as_the_spec_says() -> None:
     lst = VmeList()
     lst.read8(A24, 0x123456)  # even byte: DS1, LWORD* high
     lst.read8(A24, 0x123457)  # odd byte: DS0
-    lst.write16(A24, 0x123458, 0xBEEF)
+    lst.read16(A24, 0x123458)
     lst.read32(A24, 0x12345C)
-    lst.block_read32(A24, 0x100000, 300)  # 255 + 45 words, one result
+    lst.block_read32(A24, 0x100000, 300)  # cut at every 256 bytes: 4 x 64 + 44, one result
     lst.read_register(InternalReg.FIRMWARE_ID)
+    blocks = [0x100 | 0x3B | n << 24 for n in (64, 64, 64, 64, 44)]
     assert lst.words() == [
         0x100 | 0x80 | A24,
         0x123457,
         0x100 | 0x40 | A24,
         0x123457,
-        A24,
+        0x100 | A24,
         0x123459,
-        0xBEEF,
         0x100 | A24,
         0x12345C,
-        0x100 | 0x3B | 255 << 24,
-        0x100000,
-        0x100 | 0x3B | 45 << 24,
-        0x100000 + 4 * 255,
+        *(w for i, mode in enumerate(blocks) for w in (mode, 0x100000 + 256 * i)),
         0x100 | 0x1000,
         0x00,
     ]
-    assert [slot.kind for slot in lst.reads] == ["single", "single", "single", "block", "register"]
-    answer = struct.pack("<4I", 0x12, 0x34, 0x89ABCDEF, 0x1234) + struct.pack("<I", 7) * 299
-    answer = struct.pack("<4I", 0x12, 0x34, 0x89ABCDEF, 0x01020304) + answer[16:]
+    assert [slot.kind for slot in lst.reads] == ["single"] * 4 + ["block", "register"]
+    # 16-bit alignment: D8 and D16 reads answer a u16, D32, blocks and registers u32s
+    answer = struct.pack("<HHHI", 0x12, 0x34, 0xBEEF, 0x89ABCDEF)
+    answer += struct.pack("<I", 0x01020304) + struct.pack("<I", 7) * 299
     values = lst.decode(answer + struct.pack("<I", 0x0A000A02))
-    assert values[:3] == [0x12, 0x34, 0x89ABCDEF]
-    assert values[3] == b"\x01\x02\x03\x04" + b"\x00\x00\x00\x07" * 299
-    assert values[4] == 0x0A000A02
+    assert values[:4] == [0x12, 0x34, 0xBEEF, 0x89ABCDEF]
+    assert values[4] == b"\x01\x02\x03\x04" + b"\x00\x00\x00\x07" * 299
+    assert values[5] == 0x0A000A02
+    writes = VmeList()
+    writes.write8(A24, 0x123456, 0xAB)  # the byte on both data lanes
+    writes.write16(A24, 0x123458, 0xBEEF)
+    assert writes.words() == [0x80 | A24, 0x123457, 0xABAB, A24, 0x123459, 0xBEEF]
 
 
 def test_answers_are_checked() -> None:
-    lst = VmeList()
-    lst.write8(A16, 0x10, 1)
-    lst.read16(A16, 0x20)
-    with pytest.raises(BusError, match=r"bus error: D16 read at A16 0x0020") as caught:
-        lst.decode(struct.pack("<H", BERR_ANSWER | 1))
-    assert caught.value.errno == errno.EIO
-    with pytest.raises(BusError) as short:
-        lst.decode(b"\x00\x00\x00")
-    assert short.value.errno == errno.EPROTO
     writes = VmeList()
-    writes.write32(A24, 0x100, 5)
-    assert writes.decode(b"\x00\x00") == []
+    writes.write8(A16, 0x10, 1)
+    writes.write16(A16, 0x20, 2)
+    assert writes.decode(b"\x01\x00") == []  # not zero: every write acknowledged
+    assert writes.decode(b"\x01\x00\x00\x00") == []  # a u32 under Align32
+    with pytest.raises(BusError, match=r"no DTACK.*D8 write at A16 0x0010.*0x0020") as berr:
+        writes.decode(b"\x00\x00")
+    assert berr.value.errno == errno.EIO
+    with pytest.raises(BusError) as odd:
+        writes.decode(b"\x01")
+    assert odd.value.errno == errno.EPROTO
+    registers = VmeList()
+    registers.write_register(InternalReg.ISV12, 0)
+    assert registers.decode(b"\x00\x00") == []  # not judged (NSCLDAQ's writeRegister)
+    reads = VmeList()
+    reads.read8(A16, 0x10)
+    reads.read16(A16, 0x20)
+    assert reads.decode(b"\x05\x00\x06\x07") == [5, 0x0706]
+    with pytest.raises(
+        BusError, match=r"bus error at or before the D16 read at A16 0x0020"
+    ) as short:
+        reads.decode(b"\x05\x00")  # ended short: the list stopped at a bus error
+    assert short.value.errno == errno.EIO
+    with pytest.raises(BusError, match=r"D8 read at A16 0x0010"):
+        reads.decode(b"")
+    for bad in (b"\x05\x00\x06", b"\x05\x00\x06\x07\x08\x09"):
+        with pytest.raises(BusError) as proto:
+            reads.decode(bad)
+        assert proto.value.errno == errno.EPROTO
+    with pytest.raises(BusError, match=r"in a list of VME reads") as mixed:
+        reads.write8(A16, 0x30, 1)
+    assert mixed.value.errno == errno.EINVAL
+    with pytest.raises(BusError, match="in a list of VME writes"):
+        writes.block_read32(A24, 0x100, 2)
     with pytest.raises(BusError):
         VmeList().block_read32(A16, 0x100, 1)  # A16 has no block transfer
     with pytest.raises(BusError):
@@ -178,7 +204,11 @@ def test_bring_up_leaves_the_bridge_idle_and_aligned(crate: Crate) -> None:
         bridge = window.bridge
         assert bridge.serial == "VM0001"
         assert bridge.firmware_id == crate.device.firmware_id
-        assert crate.device.register(InternalReg.GLOBAL_MODE) & GLOBAL_ALIGN32
+        mode = crate.device.register(InternalReg.GLOBAL_MODE)
+        assert mode & BUFFER_LENGTH_MASK == BUFFER_SINGLE_EVENT and not mode & GLOBAL_ALIGN32
+        assert crate.device.register(InternalReg.EVENTS_PER_BUFFER) == 1
+        assert crate.device.register(InternalReg.USB_BULK_SETUP) == 0
+        assert crate.device.irq_mask == IRQ_MASK_ALL  # no IRQ armed: every level ignored
         assert not crate.device.daq_running
         assert crate.device.queued_in == 0
         assert crate.device.configuration == 1
@@ -186,7 +216,7 @@ def test_bring_up_leaves_the_bridge_idle_and_aligned(crate: Crate) -> None:
             assert crate.device.register(reg) == 0
         with crate.reg_window() as other:
             assert other.bridge is bridge  # one claimed device per serial
-        assert bridge.stats.lists == 2  # the mode and ISV writes, then the firmware id
+        assert bridge.stats.lists == 2  # the IRQ mask's load, then the registers and the id
 
 
 def test_devices_are_told_apart_by_serial(no_leaks: None) -> None:
@@ -292,7 +322,7 @@ def test_long_accesses_are_split_into_lists(crate: Crate) -> None:
         assert crate.memory.read(0x101, len(data)) == data
         lists = crate.device.counters.immediate_lists
         assert window.read(0x100, 0x1400) == crate.memory.read(0x100, 0x1400)
-        assert crate.device.counters.immediate_lists == lists + 1  # 6 block lines, one list
+        assert crate.device.counters.immediate_lists == lists + 1  # 20 block lines, one list
         lists = crate.device.counters.immediate_lists
         assert regs.read(0, REG_SIZE) == crate.regs.read(0, REG_SIZE)  # A16: 128 D16 cycles
         assert crate.device.counters.immediate_lists == lists + 1

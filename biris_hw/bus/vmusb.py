@@ -7,14 +7,19 @@ and :meth:`VmUsbWindow.read_many` / :meth:`VmUsbWindow.read_regs` put several re
 
 Three pieces:
 
-* :class:`VmeList` builds a list and decodes its answer (and a BERR answer into a
-  :class:`~biris_hw.errors.BusError` naming the VME address);
+* :class:`VmeList` builds a list and decodes its answer: a write list's acknowledgement (zero
+  is no DTACK, a VME bus error), a read list's data (an answer that ends short is a bus error),
+  either as a :class:`~biris_hw.errors.BusError` naming the VME cycle;
 * :class:`VmUsbBridge` is one claimed device, shared (reference-counted) by every window and
   interrupt line of one serial number. It runs immediate lists, loads IRQ stacks, and while any
   IRQ is armed keeps *data taking* running with a reader thread that parses the buffers the
   bridge sends when it has run a stack for a VME interrupt. The bridge forbids an immediate list
   while data taking runs, so :meth:`VmUsbBridge.execute` stops it, runs the list, and starts it
-  again; a VME interrupt raised meanwhile stays pending on the bus and is served at the restart;
+  again; a VME interrupt raised meanwhile stays pending on the bus and is served at the restart.
+  Bring-up sets what the public drivers set (:mod:`regs.vmusb` names each source): one event
+  per buffer, so an interrupt's buffer leaves the bridge at once however idle it is, no
+  multi-buffering, Align32 clear, the IRQ mask (levels nobody armed ignored), the ISV vector
+  high bytes an 8-bit interrupter needs;
 * :class:`VmUsbWindow` (kind ``vmusb``): offsets of the window are VME addresses from ``base``
   with one address modifier. Interrupt lines are :class:`biris_hw.irq.vmusb.VmUsbLine`.
 
@@ -47,41 +52,47 @@ from regs.vmusb import (
     ACTION_REGISTER,
     ADDR_NOT_LWORD,
     ADDRESS_BITS,
-    BERR_ANSWER,
     BLOCK_COUNT_SHIFT,
+    BLT_BOUNDARY,
     BLT_OF,
     BUF_EVENT_COUNT,
     BUF_LAST,
     BUF_TERMINATOR,
+    BUFFER_SINGLE_EVENT,
     CONFIGURATION,
     EP_IN,
     EP_OUT,
     EVENT_CONTINUATION,
     EVENT_LENGTH,
     EVENT_STACK_SHIFT,
-    GLOBAL_ALIGN32,
+    FID_IRQ_MASK_SHIFT,
     INTERFACE,
+    IRQ_MASK_ALL,
+    IRQ_MASK_LOAD,
     ISV_REGISTERS,
-    MAX_BLOCK_WORDS,
     MAX_LIST_LINES,
     MAX_PACKET,
     MODE_DS0,
     MODE_DS1,
     MODE_NW,
     MODE_SLF,
-    NO_READ_ANSWER,
+    NO_DTACK,
     PID,
     REGISTER_BLOCK,
     TA_IMMEDIATE_LIST,
+    VECTOR_HIGH_8BIT,
     VID,
     Action,
     AddressModifier,
     InternalReg,
+    irq_mask_bit,
     isv_entry,
+    read_answer_bytes,
     ta_load,
 )
 
 __all__ = [
+    "DRIVER_GLOBAL_MODE",
     "IRQ_STACK_IDS",
     "IRQ_STACK_WORDS",
     "BridgeStats",
@@ -99,6 +110,16 @@ IRQ_STACK_IDS = range(2, 8)
 IRQ_STACK_WORDS = 128
 """Stack memory (32-bit words) set aside for each IRQ stack: stack ``i`` loads at offset
 ``(i - 2) * IRQ_STACK_WORDS``, so arming one IRQ never moves another's stack."""
+
+DRIVER_GLOBAL_MODE = BUFFER_SINGLE_EVENT
+"""GLOBAL_MODE as the driver runs the bridge: buffer length code 9 with one event per buffer
+(EVENTS_PER_BUFFER 1), so each interrupt's buffer is sent at once; Align32 clear (16-bit
+alignment, as NSCLDAQ and mvme take data); no mixed or spanning buffers; bus request level 0."""
+EVENTS_PER_BUFFER = 1
+"""Events per buffer under :data:`DRIVER_GLOBAL_MODE`."""
+BULK_SETUP = 0
+"""USB_BULK_SETUP: no multi-buffering (each buffer its own bulk transfer), timeout code 0, as
+NSCLDAQ's ``startDaq`` and mvme's DAQ start write it."""
 
 READ_SIZE = 64 * MAX_PACKET
 """Bytes asked for by one bulk IN read of data-taking buffers (several buffers fit)."""
@@ -119,6 +140,8 @@ _VANISHED = frozenset({errno.ENODEV, errno.EIO, errno.ENXIO, errno.ESHUTDOWN})
 """USB errors that mean the device is gone, or the exchange is beyond recovery."""
 
 _WIDTH_MASK = {8: 0xFF, 16: 0xFFFF, 32: 0xFFFF_FFFF}
+_WRITES_NAMED = 4
+"""Writes named one by one in the message of an unacknowledged write list."""
 
 
 # -- lists -----------------------------------------------------------------------------------------
@@ -138,14 +161,24 @@ class ReadSlot:
     width: int
     count: int
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the answer this entry takes: a ``u16`` for a D8 or D16 single cycle (Align32
+        is clear), a ``u32`` per D32 transfer and per register."""
+        if self.kind == "single":
+            return read_answer_bytes(self.width)
+        return 4 * self.count
+
 
 @dataclass(frozen=True)
 class _Line:
     words: tuple[int, ...]
-    answers: int
-    """u32 answer words this line adds."""
+    nbytes: int
+    """Bytes this line adds to the answer."""
     what: str
     """The cycle, for messages: ``D16 read at A24 0x001234``."""
+    vme: Literal["read", "write", ""] = ""
+    """A VME read or write line; "" for an internal register."""
 
 
 def _modifier(am: int) -> AddressModifier:
@@ -171,11 +204,16 @@ class VmeList:
     bridge takes it; :attr:`reads` says what each entry of :meth:`decode`'s result is. A list
     may be longer than :data:`~regs.vmusb.MAX_LIST_LINES`: :meth:`segments` cuts it into the
     lists the bridge runs one after the other.
+
+    A list holds VME reads or VME writes, not both (internal register lines go with either):
+    the answer to a list with reads carries their data only, so a write's bus error would not
+    show in it.
     """
 
     def __init__(self) -> None:
         self._lines: list[_Line] = []
         self.reads: list[ReadSlot] = []
+        self._vme_kinds: set[str] = set()
 
     def __len__(self) -> int:
         return len(self._lines)
@@ -217,16 +255,34 @@ class VmeList:
             field = (address & ~1) | ADDR_NOT_LWORD
         what = f"D{width} {'read' if value is None else 'write'} at {_space(mod, address)}"
         if value is None:
-            self._lines.append(_Line((MODE_NW | mod | ds, field), 1, what))
+            self._vme("read")
+            line = _Line((MODE_NW | mod | ds, field), read_answer_bytes(width), what, "read")
+            self._lines.append(line)
             self.reads.append(ReadSlot("single", address, width, 1))
         else:
+            self._vme("write")
             data = _fit(value, width)
-            self._lines.append(_Line((mod | ds, field, data), 0, what))
+            if width == 8:  # on both data lanes, D7..D0 and D15..D8 (NSCLDAQ's addWrite8)
+                data |= data << 8
+            self._lines.append(_Line((mod | ds, field, data), 0, what, "write"))
+
+    def _vme(self, kind: Literal["read", "write"]) -> None:
+        """Refuse a VME read in a list of VME writes, and the other way round."""
+        other = "write" if kind == "read" else "read"
+        if other in self._vme_kinds:
+            raise BusError(
+                f"a VME {kind} in a list of VME {other}s: the answer to a list with reads "
+                "carries their data only, so a write's bus error would not show",
+                errno.EINVAL,
+            )
+        self._vme_kinds.add(kind)
 
     # -- block reads -------------------------------------------------------------------------------
     def block_read32(self, am: int, address: int, n_words: int) -> None:
         """D32 block transfer of ``n_words`` from ``address``; ``am`` is the BLT modifier or the
-        data modifier it belongs to. One result entry (``bytes``), however many lines it takes."""
+        data modifier it belongs to. One result entry (``bytes``), however many lines it takes:
+        a line ends at every :data:`~regs.vmusb.BLT_BOUNDARY` (NSCLDAQ's ``addBlockRead``), so
+        none carries more than 64 transfers and the count field never needs its escape."""
         mod = _modifier(am)
         blt = BLT_OF.get(mod, mod)
         if blt not in BLT_OF.values():
@@ -236,17 +292,19 @@ class VmeList:
         _check_address(blt, address, 4 * n_words)
         if address % 4:
             raise BusError(f"block read at {_space(blt, address)} is misaligned", errno.EINVAL)
-        for first in range(0, n_words, MAX_BLOCK_WORDS):
-            count = min(MAX_BLOCK_WORDS, n_words - first)
-            at = address + 4 * first
+        self._vme("read")
+        at, left = address, n_words
+        while left:
+            count = min(left, (BLT_BOUNDARY - at % BLT_BOUNDARY) // 4)
             mode = MODE_NW | blt | count << BLOCK_COUNT_SHIFT
             what = f"D32 block read of {count} word(s) at {_space(blt, at)}"
-            self._lines.append(_Line((mode, at), count, what))
+            self._lines.append(_Line((mode, at), 4 * count, what, "read"))
+            at, left = at + 4 * count, left - count
         self.reads.append(ReadSlot("block", address, 32, n_words))
 
     # -- the bridge's own registers ----------------------------------------------------------------
     def read_register(self, reg: int) -> None:
-        self._lines.append(_Line((MODE_NW | MODE_SLF, reg), 1, f"read of register 0x{reg:02X}"))
+        self._lines.append(_Line((MODE_NW | MODE_SLF, reg), 4, f"read of register 0x{reg:02X}"))
         self.reads.append(ReadSlot("register", reg, 32, 1))
 
     def write_register(self, reg: int, value: int) -> None:
@@ -264,49 +322,62 @@ class VmeList:
         n = len(self._lines)
         return [range(i, min(n, i + MAX_LIST_LINES)) for i in range(0, n, MAX_LIST_LINES)]
 
-    def answer_words(self, lines: range | None = None) -> int:
-        """u32 words of data the answer to ``lines`` (default: all) carries."""
+    def answer_bytes(self, lines: range | None = None) -> int:
+        """Bytes of data the answer to ``lines`` (default: all) carries."""
         chosen = self._lines if lines is None else self._lines[lines.start : lines.stop]
-        return sum(line.answers for line in chosen)
+        return sum(line.nbytes for line in chosen)
 
     def answer_size(self, lines: range | None = None) -> int:
         """Bytes of a good answer to ``lines``: the data, or the ``u16`` of a list without reads."""
-        return 4 * self.answer_words(lines) or 2
+        return self.answer_bytes(lines) or 2
 
     def payload(self, answer: bytes, lines: range | None = None) -> bytes:
         """The data of the answer to ``lines`` (one bulk IN transfer), checked.
 
-        Raises :class:`BusError` (EIO) naming the cycle for a BERR answer, and (EPROTO) for an
-        answer of a length the list does not imply.
+        A list without reads is answered by an acknowledgement: zero when a VME write got no
+        DTACK (:class:`BusError` EIO naming the writes), anything else when all did; a list of
+        register writes only is not judged by it. A list with reads is answered by their data;
+        an answer that ends short means a VME bus error ended the list (EIO naming the first
+        read whose data is missing: the failing cycle, or one after it when a block read ended
+        short and the list went on). Any other answer is EPROTO.
         """
         span = range(len(self._lines)) if lines is None else lines
-        expected = 4 * self.answer_words(span)
-        if len(answer) == 2:
-            (word,) = _U16.unpack(answer)
-            if word & 0xFF00 == BERR_ANSWER:
-                index = span.start + (word & 0xFF)
-                if index in span:
-                    raise BusError(f"VME bus error: {self._lines[index].what}", errno.EIO)
+        chosen = self._lines[span.start : span.stop]
+        expected = sum(line.nbytes for line in chosen)
+        if not expected:
+            if len(answer) not in (2, 4):  # a u16; a u32 under Align32 (mvme's write32)
                 raise BusError(
-                    f"the VM-USB reported a bus error on line {word & 0xFF} of a list of "
-                    f"{len(span)} line(s)",
+                    f"the VM-USB answered {len(answer)} byte(s) to a list without reads, not "
+                    "a 2-byte acknowledgement",
                     errno.EPROTO,
                 )
-            if expected == 0 and word == NO_READ_ANSWER:
-                return b""
-        elif expected and len(answer) == expected:
+            writes = [line for line in chosen if line.vme == "write"]
+            if writes and int.from_bytes(answer, "little") == NO_DTACK:
+                raise BusError(f"VME bus error (no DTACK): {_writes(writes)}", errno.EIO)
+            return b""
+        if len(answer) == expected:
             return answer
+        if len(answer) < expected and not len(answer) % 2:
+            done = 0
+            for line in chosen:
+                done += line.nbytes
+                if line.nbytes and done > len(answer):
+                    raise BusError(
+                        f"VME bus error at or before the {line.what} (the answer is "
+                        f"{expected - len(answer)} of {expected} byte(s) short)",
+                        errno.EIO,
+                    )
         raise BusError(
-            f"the VM-USB answered {len(answer)} byte(s) to a list whose answer is "
-            f"{max(expected, 2)} byte(s)",
+            f"the VM-USB answered {len(answer)} byte(s) to a list whose answer is {expected} "
+            "byte(s)",
             errno.EPROTO,
         )
 
     def values(self, payload: bytes) -> list[int | bytes]:
         """The result entries (one per :attr:`reads` slot) of checked answer data."""
-        if len(payload) != 4 * self.answer_words():
+        if len(payload) != self.answer_bytes():
             raise BusError(
-                f"{len(payload)} byte(s) of data for a list that reads {4 * self.answer_words()}",
+                f"{len(payload)} byte(s) of data for a list that reads {self.answer_bytes()}",
                 errno.EPROTO,
             )
         out: list[int | bytes] = []
@@ -316,16 +387,24 @@ class VmeList:
                 n = slot.count
                 words = struct.unpack_from(f"<{n}I", payload, pos)
                 out.append(struct.pack(f">{n}I", *words))
-                pos += 4 * n
             else:
-                (word,) = struct.unpack_from("<I", payload, pos)
-                out.append(word & _WIDTH_MASK[slot.width])
-                pos += 4
+                value = int.from_bytes(payload[pos : pos + slot.nbytes], "little")
+                out.append(value & _WIDTH_MASK[slot.width])
+            pos += slot.nbytes
         return out
 
     def decode(self, answer: bytes) -> list[int | bytes]:
         """The values of a one-transfer answer to the whole list (see :meth:`payload`)."""
         return self.values(self.payload(answer))
+
+
+def _writes(writes: Sequence[_Line]) -> str:
+    """The writes of an unacknowledged list, for its message (which one failed is not said)."""
+    if len(writes) == 1:
+        return f"the {writes[0].what}"
+    named = ", ".join(line.what for line in writes[:_WRITES_NAMED])
+    more = f", ... ({len(writes) - _WRITES_NAMED} more)" if len(writes) > _WRITES_NAMED else ""
+    return f"one of the list's {len(writes)} writes: {named}{more}"
 
 
 def _check_address(mod: AddressModifier, address: int, nbytes: int) -> None:
@@ -570,6 +649,8 @@ class VmUsbBridge:
         """How many times :meth:`relink` found the device again (for status and tests)."""
         self._subs: dict[int, IrqSubscription] = {}
         self._isv = [0] * 8
+        self._irq_mask = IRQ_MASK_ALL
+        """The IRQ mask the bridge holds (bring-up ignores every level)."""
         self._daq = False
         self._hold = 0
         self._owed_start = False
@@ -588,7 +669,15 @@ class VmUsbBridge:
             raise
 
     def _bring_up(self) -> None:
-        """Claim the device and leave it idle, in a known mode, with nothing owed on EP 0x86."""
+        """Claim the device and leave it idle, in a known mode, with nothing owed on EP 0x86.
+
+        As NSCLDAQ's ``openVMUsb`` and mvme's ``openUsbDevice``: clear, stop data taking, drain,
+        every IRQ level masked (NSCLDAQ ``writeIrqMask(0x7f)``). Then the registers data taking
+        depends on (:mod:`regs.vmusb`, "Bring-up registers"), in the list that ends the mask's
+        load: one event per buffer, no multi-buffering, the vector high bytes of 8-bit
+        interrupters; and the firmware id. Stale ISV entries are cleared before the mask is
+        loaded.
+        """
         try:
             self._dev.set_configuration(CONFIGURATION)
             usb.util.claim_interface(self._dev, INTERFACE)
@@ -598,17 +687,68 @@ class VmUsbBridge:
         self._action(Action.CLEAR)
         self._action(0)  # data taking stopped, whatever a previous user left running
         self._drain()
-        setup = VmeList()
-        setup.write_register(InternalReg.GLOBAL_MODE, GLOBAL_ALIGN32)
+        stale = VmeList()
         for reg in ISV_REGISTERS:  # no stale ISV entry may name a stack we never loaded
-            setup.write_register(reg, 0)
-        self._run(setup)
-        ident = VmeList()
-        ident.read_register(InternalReg.FIRMWARE_ID)
-        (fid,) = self._run(ident)
-        assert isinstance(fid, int)
+            stale.write_register(reg, 0)
+        setup = self._load_irq_mask(IRQ_MASK_ALL, stale)
+        setup.write_register(InternalReg.EVENTS_PER_BUFFER, EVENTS_PER_BUFFER)
+        setup.write_register(InternalReg.USB_BULK_SETUP, BULK_SETUP)
+        every_entry = int.from_bytes(bytes([VECTOR_HIGH_8BIT]) * 4, "little")
+        setup.write_register(InternalReg.VECTOR_HIGH1, every_entry)
+        setup.write_register(InternalReg.VECTOR_HIGH2, every_entry)
+        setup.read_register(InternalReg.FIRMWARE_ID)
+        shown, fid = self._run(setup)
+        assert isinstance(shown, int) and isinstance(fid, int)
+        self._irq_mask_taken(IRQ_MASK_ALL, shown)
         self.firmware_id = fid
         log.info("VM-USB %s: firmware 0x%08X", self.serial, fid)
+
+    def _load_irq_mask(self, mask: int, before: VmeList | None = None) -> VmeList:
+        """Load IRQ ``mask`` into the bridge (lock held, data taking stopped): GLOBAL_MODE with
+        IRQ_MASK_LOAD (after the register writes of ``before``, in the same list), a USB
+        trigger; the returned list, which the caller runs (and may extend), reads FIRMWARE_ID
+        first (the mask shows in its bits 24-30) and puts GLOBAL_MODE back to 0 and then to
+        :data:`DRIVER_GLOBAL_MODE` (NSCLDAQ's and mvme's sequence)."""
+        load = VmeList() if before is None else before
+        load.write_register(InternalReg.GLOBAL_MODE, IRQ_MASK_LOAD | mask)
+        self._run(load)
+        self._action(Action.USB_TRIGGER)
+        back = VmeList()
+        back.read_register(InternalReg.FIRMWARE_ID)
+        back.write_register(InternalReg.GLOBAL_MODE, 0)
+        back.write_register(InternalReg.GLOBAL_MODE, DRIVER_GLOBAL_MODE)
+        return back
+
+    def _irq_mask_taken(self, mask: int, shown: int) -> None:
+        """Note the mask the bridge now holds; warn when FIRMWARE_ID did not show it (mvme takes
+        that as an error, NSCLDAQ does not look; which firmware shows it is not documented)."""
+        self._irq_mask = mask
+        if (shown >> FID_IRQ_MASK_SHIFT) & IRQ_MASK_ALL != mask:
+            log.warning(
+                "VM-USB %s: IRQ mask 0x%02X loaded, but FIRMWARE_ID read 0x%08X during the load",
+                self.serial,
+                mask,
+                shown,
+            )
+
+    def _set_irq_mask(self, mask: int) -> None:
+        """Make the bridge ignore exactly the levels of ``mask`` (lock held, data taking
+        stopped); nothing to do when it already does."""
+        if mask == self._irq_mask:
+            return
+        (shown,) = self._run(self._load_irq_mask(mask))
+        assert isinstance(shown, int)
+        self._irq_mask_taken(mask, shown)
+
+    def _wanted_irq_mask(self, *extra_levels: int) -> int:
+        """Every level ignored but those of the armed IRQs (and ``extra_levels``), as mvme's
+        ``removeIrqMask`` does per IRQ stack."""
+        with self._cond:
+            levels = {sub.level for sub in self._subs.values()} | set(extra_levels)
+        mask = IRQ_MASK_ALL
+        for level in levels:
+            mask &= ~irq_mask_bit(level)
+        return mask
 
     def _drain(self) -> None:
         timeout_ms = max(1, round(self.drain_timeout_s * 1000))
@@ -736,6 +876,7 @@ class VmUsbBridge:
                 restart = self._stop_daq()
                 sub = IrqSubscription(self, level, vector, stack_id, reads, on_close)
                 try:
+                    self._set_irq_mask(self._wanted_irq_mask(level))  # before the ISV entry
                     self._load_stack(stack_id, words)
                     self._set_isv(
                         stack_id - IRQ_STACK_IDS.start, isv_entry(vector, level, stack_id)
@@ -776,6 +917,7 @@ class VmUsbBridge:
                     del self._subs[sub.stack_id]
                 try:
                     self._set_isv(sub.stack_id - IRQ_STACK_IDS.start, 0)
+                    self._set_irq_mask(self._wanted_irq_mask())
                 finally:
                     if self._subs and self._dead is None:
                         self._start_daq()
@@ -889,6 +1031,7 @@ class VmUsbBridge:
         self._inbuf += data
         last = False
         while True:
+            _skip_terminators(self._inbuf)  # a buffer's second one, if it came on its own
             parsed = _parse_buffer(self._inbuf, self.serial)
             if parsed is None:
                 return last
@@ -913,7 +1056,7 @@ class VmUsbBridge:
             return
         self.stats.events += 1
         values: tuple[int, ...] | None = None
-        if len(payload) == 4 * sub.reads.answer_words():
+        if len(payload) == sub.reads.answer_bytes():
             values = tuple(int(v) for v in sub.reads.values(payload) if isinstance(v, int))
         else:
             log.warning(
@@ -921,7 +1064,7 @@ class VmUsbBridge:
                 self.serial,
                 sub.level,
                 len(payload),
-                4 * sub.reads.answer_words(),
+                sub.reads.answer_bytes(),
             )
         sub._post(values)
 
@@ -1051,6 +1194,7 @@ class VmUsbBridge:
             self._bring_up()
             with self._cond:
                 subs = list(self._subs.values())
+            self._set_irq_mask(self._wanted_irq_mask())  # before the ISV entries
             for sub in subs:
                 self._load_stack(sub.stack_id, sub.reads.words())
                 index = sub.stack_id - IRQ_STACK_IDS.start
@@ -1127,9 +1271,19 @@ class VmUsbBridge:
         return f"<VmUsbBridge {self.serial} {state} refs={self._refs}>"
 
 
+_TERMINATOR_BYTES = _U16.pack(BUF_TERMINATOR)
+
+
+def _skip_terminators(buf: bytearray) -> None:
+    """Drop buffer terminators at the start of ``buf``: no buffer header is 0xFFFF."""
+    while buf[:2] == _TERMINATOR_BYTES:
+        del buf[:2]
+
+
 def _parse_buffer(buf: bytearray, serial: str) -> tuple[int, int, list[tuple[int, bytes]]] | None:
     """(bytes used, header, [(stack id, event data)]) of the first buffer, or None if it has not
-    all arrived. Continuation segments are joined to the event they continue."""
+    all arrived. Continuation segments are joined to the event they continue; the buffer ends
+    with one terminator or two (the second, when it has arrived, is used up too)."""
     if len(buf) < 2:
         return None
     (header,) = _U16.unpack_from(buf, 0)
@@ -1156,7 +1310,10 @@ def _parse_buffer(buf: bytearray, serial: str) -> tuple[int, int, list[tuple[int
             f"VM-USB {serial}: malformed data buffer (header 0x{header:04X}, ends 0x{end:04X})",
             errno.EPROTO,
         )
-    return pos + 2, header, events
+    pos += 2
+    if buf[pos : pos + 2] == _TERMINATOR_BYTES:
+        pos += 2
+    return pos, header, events
 
 
 def _find(serial: str | None, backend: Any) -> tuple[Any, str]:
