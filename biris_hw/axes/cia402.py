@@ -1229,13 +1229,36 @@ class Cia402Axis:
         """Wait (real time) for a statusword satisfying ``done``, from TPDO1; at the end, one
         SDO read in case an event was missed. A drive in FAULT is a motor fault; silence a bus
         one."""
+        ok, status = self._wait_status(done)
+        if ok:
+            return status
+        state = state_of(status)
+        text = f"{self._who} did not reach {what} (statusword 0x{status:04X}, {_name(state)})"
+        if state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
+            raise HardwareFault("motor_stall", text + self._last_fault())
+        raise DriveBusError(text)
+
+    def _wait_status(
+        self, done: Callable[[int], bool], over: Callable[[int], str | None] | None = None
+    ) -> tuple[bool, int]:
+        """Wait (real time, :attr:`state_timeout_s`) for a statusword satisfying ``done``, from
+        TPDO1, then one SDO read in case an event was missed: (satisfied, the statusword).
+
+        Raises:
+            DriveBusError: the drive is lost (no heartbeat, the bus gone).
+            HardwareFault: ``motor_stall`` (:meth:`_given_up`) as soon as ``over`` names why
+                waiting on is pointless.
+        """
         deadline = time.monotonic() + self.state_timeout_s
         with self._cond:
             while True:
                 if self._lost is not None:
                     raise DriveBusError(self._lost)
+                why = None if over is None else over(self._status)
+                if why is not None:
+                    raise self._given_up(why)
                 if done(self._status):
-                    return self._status
+                    return True, self._status
                 remaining = deadline - time.monotonic()
                 if remaining <= 0.0:
                     break
@@ -1243,13 +1266,10 @@ class Cia402Axis:
         status = self._read(Obj.STATUSWORD, 0, "<H")
         with self._cond:
             self._status = status
-        if done(status):
-            return status
-        state = state_of(status)
-        text = f"{self._who} did not reach {what} (statusword 0x{status:04X}, {_name(state)})"
-        if state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE):
-            raise HardwareFault("motor_stall", text + self._last_fault())
-        raise DriveBusError(text)
+            why = None if over is None else over(status)
+        if why is not None:
+            raise self._given_up(why)
+        return done(status), status
 
     def _last_fault(self) -> str:
         return f": {self.faults[-1].text}" if self.faults else ""
@@ -1313,27 +1333,8 @@ class Cia402Axis:
                 return "the drive is in FAULT"
             return None
 
-        deadline = time.monotonic() + self.state_timeout_s
-        with self._cond:
-            while True:
-                if self._lost is not None:
-                    raise DriveBusError(self._lost)
-                why = over(self._status)
-                if why is not None:
-                    raise self._given_up(why)
-                if done(self._status):
-                    return self._status
-                remaining = deadline - time.monotonic()
-                if remaining <= 0.0:
-                    break
-                self._cond.wait(remaining)
-        status = self._read(Obj.STATUSWORD, 0, "<H")
-        with self._cond:
-            self._status = status
-            why = over(status)
-        if why is not None:
-            raise self._given_up(why)
-        if done(status):
+        ok, status = self._wait_status(done, over)
+        if ok:
             return status
         state = _name(state_of(status))
         raise DriveBusError(

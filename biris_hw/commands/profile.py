@@ -30,7 +30,6 @@ from __future__ import annotations
 import os
 import re
 import stat
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -140,17 +139,9 @@ def _read(file: Path) -> dict[str, Any]:
             f"{file}: mode {stat.S_IMODE(mode):04o} lets other users write it (and so choose "
             f"the service your commands use): chmod 644 {file}"
         )
-    if sys.version_info >= (3, 11):
-        import tomllib
-    else:  # tomli is a declared dependency below 3.11
-        import tomli as tomllib  # type: ignore[import-not-found, unused-ignore]
-    try:
-        with open(file, "rb") as stream:
-            table: dict[str, Any] = tomllib.load(stream)
-    except OSError as exc:
-        raise SetupError(f"cannot read {file}: {exc.strerror or exc}") from exc
-    except ValueError as exc:  # tomllib.TOMLDecodeError
-        raise SetupError(f"{file}: not TOML: {exc}") from exc
+    from biris_hw.commands.options import read_toml
+
+    table = read_toml(file)
     for key in table:
         if _SECRET.search(key):
             raise SetupError(
