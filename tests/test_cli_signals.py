@@ -161,6 +161,7 @@ def _line(proc: subprocess.Popen[str], prefix: str) -> str:
             return line
 
 
+@pytest.mark.slow  # the fast tier keeps a cheaper test of the same (make test-slow runs this)
 def test_sigterm_stops_the_service_in_order() -> None:
     """Two SIGTERMs in a row (a supervisor that insists): the service stops once, in order,
     says so on stdout and in its log, and exits 143."""

@@ -483,6 +483,7 @@ def _recording(path: Path, drive: DriveMap, *, poses: bool) -> Path:
     return path
 
 
+@pytest.mark.slow  # the fast tier keeps a cheaper test of the same (make test-slow runs this)
 def test_grid_command_builds_the_grid_of_a_recording(
     fonts_open: None, biris: Run, short_drive: DriveMap, tmp_path: Path
 ) -> None:
@@ -500,6 +501,7 @@ def test_grid_command_builds_the_grid_of_a_recording(
     assert code == 0 and "standing at the odom origin" in out
 
 
+@pytest.mark.slow  # the fast tier keeps a cheaper test of the same (make test-slow runs this)
 def test_grid_command_on_the_simulator_scores_itself(
     fonts_open: None, biris: Run, tmp_path: Path
 ) -> None:

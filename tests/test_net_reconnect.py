@@ -306,6 +306,7 @@ def test_a_reader_rides_out_a_router_restart_and_counts_what_it_missed(no_leaks:
 # -- a partition -----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # the fast tier keeps a cheaper test of the same (make test-slow runs this)
 @pytest.mark.realtime
 def test_a_partition_longer_than_the_lease_is_lost_then_data_again() -> None:
     """Service in one network namespace, reader in another, the veth between them taken down

@@ -200,6 +200,7 @@ def test_an_obstacle_in_the_path_is_reported_at_its_true_distance(with_obstacle:
     assert reported >= 2  # the drive did bring it into the zone
 
 
+@pytest.mark.slow  # the fast tier keeps a cheaper test of the same (make test-slow runs this)
 def test_nothing_in_the_path_leaves_the_alarm_quiet() -> None:
     clear = _drive(Scene.room())
     for answer, x in zip(clear.answers, clear.x, strict=True):

@@ -506,6 +506,7 @@ def test_the_initialiser_re_links_before_it_restarts_the_failed_tasks(
 # -- a server over a replugged VM-USB --------------------------------------------------------------
 
 
+@pytest.mark.slow  # the fast tier keeps a cheaper test of the same (make test-slow runs this)
 @needs_relink_first
 def test_a_replugged_vmusb_is_recovered_by_one_reset(no_leaks: None) -> None:
     with (

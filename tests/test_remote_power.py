@@ -283,6 +283,7 @@ def test_a_server_started_on_a_crate_without_power_fails_with_bus_at_once(
         assert server.status()["state"] == "idle"
 
 
+@pytest.mark.slow  # the fast tier keeps a cheaper test of the same (make test-slow runs this)
 @pytest.mark.realtime
 def test_power_lost_behind_a_vmusb_is_a_bus_fault_and_reset_recovers(
     make_rig: RigFactory,

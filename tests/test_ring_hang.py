@@ -223,7 +223,9 @@ def _random_run(rig: SimulatedBiris, server: BirisServer, seed: int, steps: int)
     return trace
 
 
-@pytest.mark.parametrize(("seed", "ring"), [(7, True), (10, False)])
+@pytest.mark.parametrize(
+    ("seed", "ring"), [(7, True), pytest.param(10, False, marks=pytest.mark.slow)]
+)
 def test_a_seeded_random_sequence_ends_with_made_equal_to_accounted(
     rig: SimulatedBiris, seed: int, ring: bool
 ) -> None:
