@@ -49,8 +49,11 @@ ROOT = Path(__file__).resolve().parent.parent
 TIME_SCALE = 1.0
 MATCH_WINDOW_NS = 2_000_000_000
 SUBSCRIBERS = 10
-RATES = (200, 500, 1000, 2000, 4000, 8000)
-"""Points per second offered in the throughput steps (the sensor makes 20/s at 128 samples)."""
+RATES = (200, 500, 1000, 2000, 4000, 8000, 12000, 16000)
+"""Points per second offered in the throughput steps (the sensor makes 20/s at 128 samples). The
+top rungs are more than the service makes on two cores (about 10,000-12,000/s: its publication
+path is the limit, the stand-in then hands out as fast as it is asked), so the ceiling is
+measured, not the ladder's top."""
 
 
 def _port() -> int:

@@ -179,6 +179,30 @@ def test_the_buffer_is_bounded_and_forgets_the_oldest() -> None:
     assert [s.t for s in held] == pytest.approx([s.t for s in samples[-100:]])
 
 
+def test_since_gives_the_held_samples_after_a_time_as_samples_gives_them() -> None:
+    """What a sink reads each batch: only the new samples, the same as ``samples()``'s tail
+    (stamps, wrapped yaw, twist, seq), across the store's wrap-around and a forgotten head."""
+    path = Trajectory.arc(radius_m=0.5, speed_mps=1.0)  # yaw crosses pi: wrapped as samples()
+    buffer = PoseBuffer(capacity=60)
+    samples = _samples(path, 0.0, 6.0)
+    taken: list[float] = []
+    last = -math.inf
+    for chunk in range(0, len(samples), 23):
+        buffer.extend(samples[chunk : chunk + 23])
+        fresh = buffer.since(last)
+        held = buffer.samples()
+        assert fresh == [s for s in held if s.t > last]
+        if fresh:
+            last = fresh[-1].t
+            taken.extend(s.t for s in fresh)
+    assert taken == pytest.approx([s.t for s in samples])  # each once, none lost
+    assert buffer.since(math.inf) == []
+    assert buffer.since(-math.inf) == buffer.samples()
+    for bad in (math.nan, "1.0", None, True):
+        with pytest.raises(ValueError, match="since: t_hw must be a number"):
+            buffer.since(bad)  # type: ignore[arg-type]
+
+
 def test_samples_out_of_order_or_not_finite_are_refused_and_counted() -> None:
     buffer = PoseBuffer()
     assert buffer.add(PoseSample(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0))

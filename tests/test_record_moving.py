@@ -482,6 +482,19 @@ def test_moving_flags_without_poses_are_usage_errors(
     assert not (tmp_path / "x.mcap").exists()
 
 
+@pytest.mark.usefixtures("no_target_env")
+@pytest.mark.parametrize("command", ["record", "view", "serve"])
+def test_a_scene_too_tight_for_the_drive_is_a_usage_error_before_anything_starts(
+    biris: Run, tmp_path: Path, command: str
+) -> None:
+    out = tmp_path / "x.mcap"
+    extra = ["--out", str(out), "--duration", "1"] if command == "record" else []
+    code, _out, err = biris(command, "--sim", "--drive", "--scene", "circle:0.5", *extra)
+    assert code == 2, err
+    assert "--drive in --scene circle:0.5: the default drive does not fit this scene" in err
+    assert not out.exists()
+
+
 @pytest.mark.realtime  # biris record keeps scaled time: it records as time passes
 @pytest.mark.usefixtures("no_target_env")
 def test_biris_record_drive_grid(biris: Run, tmp_path: Path) -> None:

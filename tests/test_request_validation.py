@@ -154,7 +154,9 @@ def naming(argument: str) -> str:
 @pytest.fixture(scope="module")
 def shared() -> Iterator[Bench]:
     with (
-        SimulatedBiris(scene=Scene.circle(2.0), time_scale=TIME_SCALE, seed=7) as rig,
+        SimulatedBiris(
+            scene=Scene.circle(2.0), time_scale=TIME_SCALE, seed=7, clock="virtual"
+        ) as rig,
         BirisServer(rig.hardware, BirisInitRecord()) as server,
     ):
         bench = Bench(rig, server, server.open(), server.open(ConnectionKind.DATA))
@@ -373,6 +375,8 @@ def test_an_elevation_of_any_real_type_is_used_exactly(bench: Bench, deg: object
     assert bench.conn.set_elevation(deg) == expected  # type: ignore[arg-type]
     bench.conn.wait_idle(timeout=WAIT)
     assert bench.server.status().elevation == expected
+    # idle is the servo's settle band; the tilt ends inside 2 counts a moment later
+    bench.rig.timebase.sleep(0.25, what="the tilt to settle")
     assert abs(bench.rig.elevation_counts - expected) < 2
 
 

@@ -1,6 +1,6 @@
-"""The service on a moving robot: ``serve(..., poses=, grid=)`` publishes the vehicle's odometry,
-its ``odom -> vehicle`` transforms, the deskewed clouds and the certainty grid on keys of its
-own; without them it publishes nothing new.
+"""The service on a moving robot: ``serve(..., poses=, grid=, proximity=)`` publishes the
+vehicle's odometry, its ``odom -> vehicle`` transforms, the deskewed clouds, the certainty grid
+and the proximity alarm's answers on keys of their own; without them it publishes nothing new.
 
 The simulated vehicle drives the room while the head sweeps (scaled real time: the service's
 Zenoh threads call into the server, which the virtual time base cannot see); a raw Zenoh
@@ -25,6 +25,7 @@ from biris_hw.io.grid import GridParams
 from biris_hw.io.net import connect, serve
 from biris_hw.io.net.keys import Keys
 from biris_hw.io.net.zconfig import make_config
+from biris_hw.io.proximity import DEFAULT_ZONE, RATE_HZ
 from biris_hw.opening import open_poses, open_sensor
 from sim import Scene
 from sim.drives import default_drive
@@ -35,7 +36,7 @@ from tests.net_helpers import endpoint, free_port, warm_up_zenoh
 pytestmark = pytest.mark.realtime
 
 WAIT = 20.0
-MOVING_KEYS = ("odom", "tf", "cloud", "grid")
+MOVING_KEYS = ("odom", "tf", "cloud", "grid", "proximity")
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -85,13 +86,14 @@ def _sweep(sensor: object, *targets: float) -> None:
     conn.close()
 
 
-def test_a_served_drive_publishes_odometry_transforms_clouds_and_the_grid(
+def test_a_served_drive_publishes_odometry_transforms_clouds_the_grid_and_the_alarm(
     make_rig: RigFactory,
 ) -> None:
     scene = Scene.room()
     where = endpoint(free_port())
     grids: list[codec.OccupancyGridMessage] = []
     odoms: list[codec.PoseMessage] = []
+    alarms: list[codec.ProximityMessage] = []
     got = threading.Condition()
 
     def keep(into: list[object]) -> object:
@@ -107,7 +109,13 @@ def test_a_served_drive_publishes_odometry_transforms_clouds_and_the_grid(
         open_sensor(sim=rig) as sensor,
         open_poses(sim=rig) as poses,
         serve(
-            sensor, name="mv", listen=[where], multicast=False, poses=poses, grid=GridParams()
+            sensor,
+            name="mv",
+            listen=[where],
+            multicast=False,
+            poses=poses,
+            grid=GridParams(),
+            proximity=DEFAULT_ZONE,
         ) as svc,
     ):
         assert svc.moving is not None
@@ -117,11 +125,13 @@ def test_a_served_drive_publishes_odometry_transforms_clouds_and_the_grid(
         ):
             remote.subscribe("grid", keep(grids))  # type: ignore[arg-type]
             remote.subscribe("odom", keep(odoms))  # type: ignore[arg-type]
+            remote.subscribe("proximity", keep(alarms))  # type: ignore[arg-type]
             _sweep(sensor, 90.0, -90.0)
             until(
-                lambda: all(heard.on(k) for k in MOVING_KEYS) and grids and odoms,
+                lambda: all(heard.on(k) for k in MOVING_KEYS) and grids and odoms and alarms,
                 WAIT,
-                "odom, tf, cloud and grid published and the grid and odom decoded",
+                "odom, tf, cloud, grid and proximity published, and grid, odom and proximity "
+                "decoded by a subscriber",
             )
             published = dict(svc.published)
             heard_now = {k: heard.on(k) for k in MOVING_KEYS}
@@ -133,6 +143,7 @@ def test_a_served_drive_publishes_odometry_transforms_clouds_and_the_grid(
         "tf": codec.TF_MESSAGE,
         "cloud": codec.POINT_CLOUD2,
         "grid": codec.OCCUPANCY_GRID,
+        "proximity": codec.PROXIMITY,
     }
     for key, msgtype in types.items():
         samples = heard_now[key]
@@ -146,6 +157,12 @@ def test_a_served_drive_publishes_odometry_transforms_clouds_and_the_grid(
     assert set(np.unique(grid.data)) <= {-1, *range(101)}
     assert np.any(grid.data >= 0) and np.any(grid.data > 50)
     assert all(g.frame_id == "odom" for g in grids)
+    # the proximity alarm: its answers in the vehicle frame, at most RATE_HZ of hardware time
+    answers = [codec.decode_proximity(data) for _, _, data in heard_now["proximity"]]
+    assert all(a.frame_id == "vehicle" and a.zone_width_m == 0.6 for a in answers)
+    proximity_stamps = np.array([a.t for a in answers])
+    assert np.all(np.diff(proximity_stamps) >= 1 / RATE_HZ - 1e-9)
+    assert all(isinstance(a, codec.ProximityMessage) and a.frame_id == "vehicle" for a in alarms)
     # odometry: odom -> vehicle at the simulator's 50 Hz, each sample once, in order
     assert all((o.frame_id, o.child_frame_id) == ("odom", "vehicle") for o in odoms)
     stamps = np.array([o.sample.t for o in odoms])
@@ -176,7 +193,7 @@ def test_without_poses_the_service_publishes_nothing_new(make_rig: RigFactory) -
     assert "point" in keys
 
 
-def test_a_grid_without_poses_or_of_no_kind_is_refused_before_anything_starts(
+def test_a_grid_or_an_alarm_without_poses_or_of_no_kind_is_refused(
     make_rig: RigFactory,
 ) -> None:
     rig = make_rig(scene=Scene.room(), seed=3)
@@ -185,3 +202,12 @@ def test_a_grid_without_poses_or_of_no_kind_is_refused_before_anything_starts(
             serve(sensor, name="bad", multicast=False, grid=GridParams()).__enter__()
         with pytest.raises(TypeError, match="grid= takes"):
             serve(sensor, name="bad", multicast=False, poses=poses, grid=5).__enter__()
+        with pytest.raises(ValueError, match="proximity= needs poses="):
+            serve(sensor, name="bad", multicast=False, proximity=DEFAULT_ZONE).__enter__()
+        with pytest.raises(TypeError, match="proximity= takes"):
+            serve(sensor, name="bad", multicast=False, poses=poses, proximity=5).__enter__()
+        # poses alone: the vehicle's keys, neither the grid's nor the alarm's
+        with serve(sensor, name="poses", multicast=False, poses=poses) as svc:
+            assert set(svc.published) == {
+                "point", "scan/cw", "scan/ccw", "status", "fault", "odom", "tf", "cloud"
+            }  # fmt: skip

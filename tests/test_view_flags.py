@@ -222,3 +222,32 @@ def test_the_layout_is_in_the_package_and_names_what_the_view_publishes() -> Non
     )
     assert server.name == "server"  # shown as "biris: server", not "biris: biris: server"
     assert not (ROOT / "docs" / "foxglove-layout.json").exists()  # one copy: the packaged one
+
+
+def test_a_moving_robots_layout_follows_the_vehicle_through_odom_and_shows_the_grid(
+    no_leaks: None,
+) -> None:
+    """With poses the view serves the moving variant: the camera follows the vehicle's position
+    (the scene keeps odom's heading), the reference grid is in odom, the certainty grid and the
+    deskewed scans (kept long enough to build up the room) are shown, and the proximity alarm is
+    plotted. Standing still, the file as shipped."""
+    still = json.loads(liveview.LAYOUT_FILE.read_text())
+    assert liveview.layout() == still
+    moving = liveview.layout(moving=True)
+    panel = moving["configById"]["3D!biris"]
+    assert (panel["followTf"], panel["followMode"]) == ("vehicle", "follow-position")
+    assert panel["layers"]["grid"]["frameId"] == codec.ODOM_FRAME
+    assert panel["topics"][codec.GRID_TOPIC]["visible"] is True
+    assert panel["topics"][codec.POINTS_TOPIC]["decayTime"] >= 10
+    plotted = {p["value"] for p in moving["configById"]["Plot!azimuth"]["paths"]}
+    assert plotted == {f"{codec.PROXIMITY_TOPIC}.distance_m", f"{codec.PROXIMITY_TOPIC}.age_s"}
+    fields = codec.schema_text(codec.PROXIMITY)
+    assert "float64 distance_m" in fields and "float64 age_s" in fields
+    assert moving["layout"] == still["layout"]  # the same panels, in the same places
+    server = liveview._LayoutServer("127.0.0.1", moving=True)
+    try:
+        url = f"http://127.0.0.1:{server.port}{liveview.LAYOUT_PATH}"
+        with urllib.request.urlopen(url, timeout=10) as answer:
+            assert json.loads(answer.read()) == moving
+    finally:
+        server.stop()

@@ -20,9 +20,12 @@ On a moving robot (docs/moving.md): ``--drive`` (with ``--sim``) puts the simula
 the simulator's default drive through its scene (:func:`sim.drives.default_drive`, setting off
 at 8 s of hardware time), and the recording carries its odometry (``/odom``, ``odom ->
 vehicle`` on ``/tf``) and ``/biris/points`` in ``odom``, each scan deskewed; ``--grid`` adds the
-certainty grid on ``/biris/grid`` (a few Hz), built from every acquisition (on ``--sim`` alone
-the vehicle stands at the origin, and its odometry is recorded the same way). A real robot's
-poses come in through the API (``Recorder(poses=...)``, docs/moving.md).
+certainty grid on ``/biris/grid`` (a few Hz), built from every acquisition, and
+``--proximity`` the proximity alarm's answers on ``/biris/proximity`` (five a second; the zone
+:data:`~biris_hw.io.proximity.DEFAULT_ZONE`, or ``--proximity-zone FRONT,WIDTH,LENGTH`` in
+metres). On ``--sim`` alone the vehicle stands at the origin, and its odometry is recorded the
+same way. A real robot's poses come in through the API (``Recorder(poses=...)``,
+docs/moving.md).
 
 ``--stamp wall|hardware`` is what the messages are logged at, as for ``biris view``: ``wall``
 on a real sensor, ``hardware`` on the simulator (:func:`~biris_hw.commands.options.stamp_of`).
@@ -32,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -41,7 +45,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from biris_hw.commands.argtypes import degrees, path, positive_float
 from biris_hw.commands.console import StatusLine, note_clamped, prog_of, wants_progress
-from biris_hw.commands.failures import EXIT_INTERRUPTED, AuditFailure, UsageError
+from biris_hw.commands.failures import EXIT_INTERRUPTED, UsageError
 from biris_hw.commands.options import (
     add_continuous_argument,
     add_stamp_argument,
@@ -49,15 +53,12 @@ from biris_hw.commands.options import (
     add_timeout_argument,
     add_yes_argument,
     check_output_file,
-    check_target_arguments,
     stamp_of,
     sweep_chosen,
 )
 from biris_hw.commands.session import (
-    LagWatch,
     Session,
     confirm_moves,
-    make_scene,
     open_session,
     quiet_collector,
 )
@@ -65,6 +66,7 @@ from biris_hw.commands.session import (
 if TYPE_CHECKING:
     from biris_hw.io.grid import GridParams
     from biris_hw.io.moving_sink import PoseFeed
+    from biris_hw.io.proximity import ProximityZone
     from biris_hw.io.record import Recorder
 
 __all__ = [
@@ -74,6 +76,7 @@ __all__ = [
     "grid_params",
     "moving_session",
     "progress_text",
+    "proximity_zone",
     "recording_metadata",
     "run",
 ]
@@ -122,8 +125,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_moving_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--drive`` and ``--grid``: the simulated vehicle on its default drive, the certainty
-    grid (``biris record`` and ``biris view``)."""
+    """``--drive``, ``--grid`` and ``--proximity``: the simulated vehicle on its default drive,
+    the certainty grid, the proximity alarm (``biris record``, ``biris view``, ``biris
+    serve``)."""
     moving = parser.add_argument_group("on a moving robot (docs/moving.md)")
     moving.add_argument(
         "--drive",
@@ -139,21 +143,76 @@ def add_moving_arguments(parser: argparse.ArgumentParser) -> None:
         "over 20 m x 20 m, a few Hz), built from every acquisition placed with the vehicle's "
         "pose (on --sim; with --replay, a recording that holds poses)",
     )
+    moving.add_argument(
+        "--proximity",
+        action="store_true",
+        help="the proximity alarm on /biris/proximity (biris_msgs/Proximity, five a second): "
+        "the nearest return in a zone ahead of the vehicle, with its age (needs the poses, "
+        "as --grid)",
+    )
+    moving.add_argument(
+        "--proximity-zone",
+        type=_zone_size,
+        metavar="FRONT,WIDTH,LENGTH",
+        help="the alarm's zone in metres: where it starts ahead of the vehicle frame's origin, "
+        "its width, its length standing still (default 0,0.6,0.5); implies --proximity",
+    )
+
+
+def _zone_size(text: str) -> tuple[float, float, float]:
+    """``--proximity-zone``: three numbers in metres, the front finite, the width and the
+    length positive."""
+    words = text.split(",")
+    try:
+        values = [float(word) for word in words]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(
+            f"not three numbers FRONT,WIDTH,LENGTH in metres: {text!r}"
+        )
+    front, width, length = values
+    if width <= 0 or length <= 0:
+        raise argparse.ArgumentTypeError(f"the width and the length must be positive: {text!r}")
+    return front, width, length
 
 
 def check_moving_arguments(args: argparse.Namespace, *, replay: bool = False) -> None:
-    """``--drive`` and ``--grid`` where the command has the vehicle's poses: the simulator
-    (``--sim``), or a replay (``replay``: its own poses, for ``--grid``); UsageError else."""
+    """``--drive``, ``--grid`` and ``--proximity`` where the command has the vehicle's poses:
+    the simulator (``--sim``), or a replay (``replay``: its own poses, for ``--grid`` and
+    ``--proximity``); UsageError else."""
     if getattr(args, "drive", False) and not args.sim:
         what = "a replay drives nothing" if replay else "a real vehicle drives itself"
         raise UsageError(f"--drive goes with --sim ({what})")
-    if getattr(args, "grid", False) and not (args.sim or replay):
-        raise UsageError(
-            "--grid needs the vehicle's poses, which this command has on the simulator "
-            "(--sim, and --drive for a moving vehicle) or in a recording (biris view "
-            "--replay); a real robot's poses come in through the API: Recorder(poses=...), "
-            "LiveView(poses=...) (docs/moving.md)"
-        )
+    for flag, wanted in (("--grid", getattr(args, "grid", False)), ("--proximity", _alarm(args))):
+        if wanted and not (args.sim or replay):
+            raise UsageError(
+                f"{flag} needs the vehicle's poses, which this command has on the simulator "
+                "(--sim, and --drive for a moving vehicle) or in a recording (biris view "
+                "--replay); a real robot's poses come in through the API: Recorder(poses=...), "
+                "LiveView(poses=...) (docs/moving.md)"
+            )
+
+
+def _alarm(args: argparse.Namespace) -> bool:
+    """``--proximity`` or ``--proximity-zone`` was given."""
+    return (
+        bool(getattr(args, "proximity", False)) or getattr(args, "proximity_zone", None) is not None
+    )
+
+
+def proximity_zone(args: argparse.Namespace) -> ProximityZone | None:
+    """The proximity alarm's zone ``--proximity`` or ``--proximity-zone`` asks for (the default
+    zone, docs/moving.md, or the one given); None when neither is given."""
+    if not _alarm(args):
+        return None
+    from biris_hw.io.proximity import DEFAULT_ZONE, ProximityZone
+
+    size = getattr(args, "proximity_zone", None)
+    if size is None:
+        return DEFAULT_ZONE
+    front, width, length = size
+    return ProximityZone(front_m=front, width_m=width, length_m=length)
 
 
 def grid_params() -> GridParams:
@@ -170,63 +229,24 @@ def moving_session(
     opener: Callable[[argparse.Namespace], AbstractContextManager[Session]] | None = None,
 ) -> Iterator[tuple[Session, PoseFeed | None]]:
     """:func:`~biris_hw.commands.session.open_session`, and the vehicle's poses when
-    ``--drive`` or ``--grid`` asks for them (None otherwise): the simulated odometry, pumped
-    into a :class:`~biris_hw.io.pose.PoseBuffer` on the rig's time base while the block runs.
-    With ``--drive`` the simulator's vehicle follows :func:`sim.drives.default_drive` (a scene
-    too tight for it is a UsageError, before anything starts). ``opener`` opens the session
-    without ``--drive`` (the calling command's ``open_session``)."""
+    ``--drive``, ``--grid`` or ``--proximity`` asks for them (None otherwise): the simulated
+    odometry, pumped into a :class:`~biris_hw.io.pose.PoseBuffer` on the rig's time base while
+    the block runs. With ``--drive`` the simulator's vehicle follows
+    :func:`sim.drives.default_drive` (the session's simulator is built so: a scene too tight
+    for it is a UsageError, before anything starts). ``opener`` opens the session (the calling
+    command's ``open_session``)."""
     from biris_hw.opening import open_poses
 
     drive = getattr(args, "drive", False)
-    wants_poses = drive or getattr(args, "grid", False)
-    opening = _driving(args) if drive else (opener or open_session)(args)
-    with opening as session:
+    wants_poses = drive or getattr(args, "grid", False) or _alarm(args)
+    with (opener or open_session)(args) as session:
         if not wants_poses:
             yield session, None
             return
         if session.rig is None:  # check_moving_arguments refuses this first
-            raise UsageError("--drive and --grid go with --sim")
+            raise UsageError("--drive, --grid and --proximity go with --sim")
         with open_poses(sim=session.rig) as poses:
             yield session, poses
-
-
-@contextlib.contextmanager
-def _driving(args: argparse.Namespace) -> Iterator[Session]:
-    """The session of ``--sim`` (as :func:`~biris_hw.commands.session.open_session` opens it:
-    the init record, the lag watch, the audit read at the end) with the vehicle on the
-    scene's default drive."""
-    from biris_hw.opening import load_init_record, open_sensor
-    from sim import SimulatedBiris
-    from sim.drives import default_drive
-
-    check_target_arguments(args)
-    prog = prog_of(args)
-    scene = make_scene(args.scene)
-    try:
-        trajectory = default_drive(scene)
-    except ValueError as exc:
-        raise UsageError(f"--drive in --scene {args.scene}: {exc}") from exc
-    continuous = True if getattr(args, "continuous", False) else None
-    record = load_init_record(args.init, continuous=continuous)
-    rig = SimulatedBiris(
-        scene=scene,
-        samples=args.samples,
-        time_scale=args.time_scale,
-        seed=args.seed,
-        clock=getattr(args, "clock", None) or "scaled",
-        trajectory=trajectory,
-    ).start()
-    with contextlib.ExitStack() as stack:
-        stack.callback(rig.close)
-        stack.callback(LagWatch(rig, prog).start().stop)
-        server = stack.enter_context(open_sensor(sim=rig, init=record))
-        yield Session(server, server.hardware, server.record, rig, True, prog)
-    if rig.audit.violations:
-        found = rig.audit.violations
-        raise AuditFailure(
-            f"the simulator's audit recorded {len(found)} driver rule violation(s); "
-            f"first: {found[0]}"
-        )
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -287,6 +307,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 stamp=stamp_of(args),
                 poses=poses,
                 grid=grid_params() if getattr(args, "grid", False) else None,
+                proximity=proximity_zone(args),
             )
             try:
                 with recorder, _progress(args, recorder):

@@ -49,12 +49,13 @@ configuration are refused with the replay's own error (a RequestError on the cli
 begins when the first client opens a DATA connection, so that it sees the recording from its
 start (``--replay-now``: at once, as a live sensor would).
 
-``--sim --drive`` sets the simulated vehicle on its default drive and ``--grid`` adds the
-certainty grid (the flags and rules of ``biris record``: :mod:`biris_hw.commands.record`): the
-service then also publishes the vehicle's odometry, ``odom -> vehicle``, each scan deskewed and
-the grid on keys of its own (``serve(..., poses=, grid=)``, docs/wire-format.md), and
-``--foxglove`` shows the same (``/odom``, ``/tf``, ``/biris/points`` in ``odom``,
-``/biris/grid``).
+``--sim --drive`` sets the simulated vehicle on its default drive, ``--grid`` adds the
+certainty grid and ``--proximity`` the proximity alarm (the flags and rules of ``biris
+record``: :mod:`biris_hw.commands.record`): the service then also publishes the vehicle's
+odometry, ``odom -> vehicle``, each scan deskewed, the grid and the alarm's answers on keys of
+their own (``serve(..., poses=, grid=, proximity=)``, docs/wire-format.md), and ``--foxglove``
+shows the same (``/odom``, ``/tf``, ``/biris/points`` in ``odom``, ``/biris/grid``,
+``/biris/proximity``).
 """
 
 from __future__ import annotations
@@ -76,6 +77,7 @@ from biris_hw.commands.record import (
     check_moving_arguments,
     grid_params,
     moving_session,
+    proximity_zone,
 )
 from biris_hw.commands.reset import AutoReset, add_auto_reset_arguments, check_auto_reset
 from biris_hw.commands.serve_setup import DEFAULT_LISTEN, check_service_flags, warn_about_exposure
@@ -204,7 +206,8 @@ def _check_replay_arguments(args: argparse.Namespace) -> None:
 @contextlib.contextmanager
 def _sensor(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
     """The sensor to serve -- a server of our own on --sim/--target/--attach, or a replay --
-    and the vehicle's poses with ``--drive``/``--grid`` (the simulator's odometry; else None)."""
+    and the vehicle's poses with ``--drive``/``--grid``/``--proximity`` (the simulator's
+    odometry; else None)."""
     if args.replay is None:
         with moving_session(args, open_session) as (session, poses):
             quiet_collector()
@@ -239,7 +242,7 @@ def _live_view(
     args: argparse.Namespace, sensor: Any, stream: TextIO, moving: dict[str, Any]
 ) -> Iterator[None]:
     """``--foxglove PORT``: the sensor shown live for as long as the block runs (with the
-    vehicle's poses and the grid as the service has them: ``moving``)."""
+    vehicle's poses, the grid and the alarm as the service has them: ``moving``)."""
     if args.foxglove is None:
         yield
         return
@@ -327,6 +330,9 @@ def run(
                 moving["poses"] = poses
                 if getattr(args, "grid", False):
                     moving["grid"] = grid_params()
+                zone = proximity_zone(args)
+                if zone is not None:
+                    moving["proximity"] = zone
             service = stack.enter_context(
                 serve(
                     sensor,

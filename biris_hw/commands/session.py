@@ -89,15 +89,27 @@ def make_scene(spec: str) -> Scene:
 
 
 def _start_rig(args: argparse.Namespace) -> SimulatedBiris:
-    """The simulator ``--sim`` and its flags describe, started (tests wrap this to break it)."""
+    """The simulator ``--sim`` and its flags describe, started (tests wrap this to break it).
+    With ``--drive`` its vehicle follows the scene's :func:`sim.drives.default_drive` (a scene
+    too tight for it is a UsageError, before the simulator starts)."""
     from sim import SimulatedBiris
 
+    scene = make_scene(args.scene)
+    trajectory = None
+    if getattr(args, "drive", False):
+        from sim.drives import default_drive
+
+        try:
+            trajectory = default_drive(scene)
+        except ValueError as exc:
+            raise UsageError(f"--drive in --scene {args.scene}: {exc}") from exc
     return SimulatedBiris(
-        scene=make_scene(args.scene),
+        scene=scene,
         samples=args.samples,
         time_scale=args.time_scale,
         seed=args.seed,
         clock=getattr(args, "clock", None) or "scaled",
+        trajectory=trajectory,
     ).start()
 
 

@@ -24,9 +24,10 @@ times).
 On a moving robot (docs/moving.md), as for ``biris record``: ``--drive`` (with ``--sim``) puts
 the simulated vehicle on its default drive, and the view publishes its odometry (``/odom``,
 ``odom -> vehicle`` on ``/tf``) and ``/biris/points`` in ``odom``; ``--grid`` adds the certainty
-grid on ``/biris/grid``. A replay of a recording that holds the vehicle's poses (``odom ->
-vehicle`` on ``/tf``, else ``/odom``) is shown the same way, the poses handed on at the pace of
-the data; ``--grid`` builds the grid from them.
+grid on ``/biris/grid`` and ``--proximity`` the proximity alarm on ``/biris/proximity``. A replay
+of a recording that holds the vehicle's poses (``odom -> vehicle`` on ``/tf``, else ``/odom``) is
+shown the same way, the poses handed on at the pace of the data; ``--grid`` and ``--proximity``
+build the grid and the alarm from them.
 
 A fault of the sensor does not end the view: the WebSocket stays up, ``/diagnostics`` says
 ERROR with the fault, the command says once on stderr what the fault is and how to recover
@@ -69,6 +70,7 @@ from biris_hw.commands.record import (
     check_moving_arguments,
     grid_params,
     moving_session,
+    proximity_zone,
 )
 from biris_hw.commands.session import confirm_moves, open_session, quiet_collector
 from biris_hw.errors import HardwareFault
@@ -195,6 +197,7 @@ def run(
             if poses is not None:
                 options["poses"] = poses
                 options["grid"] = grid_params() if args.grid else None
+                options["proximity"] = proximity_zone(args)
             with (
                 open_sensor(replay=args.replay, speed=args.speed, autostart=False) as replay,
                 _listening(LiveView(replay, **options), args) as view,
@@ -211,6 +214,7 @@ def run(
         with moving_session(args, open_session) as (session, poses):
             options["poses"] = poses
             options["grid"] = grid_params() if args.grid else None
+            options["proximity"] = proximity_zone(args)
             with _listening(LiveView(session.server, **options), args) as view:
                 quiet_collector()
                 _announce(view, stream, ready)
@@ -342,8 +346,9 @@ _stamp = stamp_of
 
 def _recorded_poses(args: argparse.Namespace) -> PoseFeed | None:
     """The vehicle's poses a recording holds (``odom -> vehicle`` on ``/tf``, else ``/odom``),
-    to show it in ``odom``; None for a recording without any. ``--grid`` without them is a
-    UsageError; a file whose poses cannot be read is said on stderr and shown without."""
+    to show it in ``odom``; None for a recording without any. ``--grid`` or ``--proximity``
+    without them is a UsageError; a file whose poses cannot be read is said on stderr and
+    shown without."""
     from biris_hw.io.moving_sink import RecordedPoses
     from biris_hw.io.pose import PoseFileError, read_poses
 
@@ -356,10 +361,11 @@ def _recorded_poses(args: argparse.Namespace) -> PoseFeed | None:
             continue
         if samples:
             return RecordedPoses(samples)
-    if args.grid:
-        raise UsageError(
-            f"--grid: {args.replay} holds no vehicle poses (odom -> vehicle on /tf, or /odom)"
-        )
+    for flag, wanted in (("--grid", args.grid), ("--proximity", proximity_zone(args))):
+        if wanted:
+            raise UsageError(
+                f"{flag}: {args.replay} holds no vehicle poses (odom -> vehicle on /tf, or /odom)"
+            )
     return None
 
 

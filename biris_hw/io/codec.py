@@ -64,7 +64,8 @@ while), ``/tf`` (pan and tilt at each acquisition's time), ``/tf_static`` (the t
 transforms), ``/diagnostics`` (REP 107). The lossless channels of a recording are
 :data:`RAW_SCAN_TOPIC`, :data:`RAW_POINT_TOPIC` and :data:`RAW_STATUS_TOPIC`. On a moving robot a
 recording and the live view add :data:`MOVING_TOPICS` (``/odom``, ``/biris/grid``), ``odom ->
-vehicle`` on ``/tf`` and ``/biris/points`` in ``odom`` (:func:`placed_cloud`).
+vehicle`` on ``/tf`` and ``/biris/points`` in ``odom`` (:func:`placed_cloud`), and with a
+proximity alarm :data:`PROXIMITY_TOPIC`.
 
 Every cloud has the fields ``x, y, z`` (float32, m), ``intensity`` (float32, BIRIS's int16
 value), ``time`` (float32, s after the header's stamp: the acquisition's time), ``azimuth``
@@ -83,9 +84,10 @@ Every decoding failure -- truncated, garbage, a wrong type, values a ``Scan`` re
 oversized payload -- is a :class:`WireError`: bytes from the network are never trusted, and a
 caller must be able to catch one error, not whatever the CDR parser happened to trip over.
 
-The messages sent once per acquisition (the profile cloud, the transforms) and the scan cloud
-are written by hand (:class:`_Cdr`): building rosbags message objects costs more than the
-encoding itself at the acquisition rate. Tests compare those bytes with rosbags'.
+The messages sent once per acquisition (the lossless ``Point``, the profile cloud, the
+transforms) and the scan cloud are written by hand (:class:`_Cdr`, :func:`_point_layout`):
+building rosbags message objects costs more than the encoding itself at the acquisition rate.
+Tests compare those bytes with rosbags'.
 
 rosbags is imported on first use, so that importing this module costs nothing without it.
 """
@@ -648,14 +650,19 @@ def _cls(name: str) -> Any:
     return typestore().types[name]
 
 
+@functools.cache
+def _header_types() -> tuple[Any, Any]:
+    """The classes of a header and its stamp, looked up once: every message has a header."""
+    types = typestore().types
+    return types["builtin_interfaces/msg/Time"], types["std_msgs/msg/Header"]
+
+
 def _header(t: float | int, frame_id: str) -> Any:
     """A ``std_msgs/Header`` stamped ``t`` (seconds, or whole nanoseconds as an int)."""
-    types = typestore().types
+    time_type, header_type = _header_types()
     ns = t if isinstance(t, int) else stamp_ns(t)
-    stamp = types["builtin_interfaces/msg/Time"](
-        sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000
-    )
-    return types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+    sec, nanosec = divmod(ns, 1_000_000_000)
+    return header_type(stamp=time_type(sec=sec, nanosec=nanosec), frame_id=frame_id)
 
 
 def _serialize(msg: Any, msgtype: str) -> bytes:
@@ -701,9 +708,18 @@ def _array(values: Any, dtype: type[np.generic]) -> NDArray[Any]:
     return np.ascontiguousarray(values, dtype=dtype)
 
 
+@functools.cache
+def _no_mount() -> Any:
+    """The ``Mount`` of an item without one (``has_mount`` false), made once: every
+    acquisition of a head without a mount carries it, and serialising only reads it."""
+    offset = np.zeros(3)
+    offset.flags.writeable = False
+    return _cls(MOUNT)(offset_m=offset, head_height_m=0.0, head_offset_m=0.0)
+
+
 def _mount(mount: Mount | None) -> Any:
     if mount is None:
-        return _cls(MOUNT)(offset_m=np.zeros(3), head_height_m=0.0, head_offset_m=0.0)
+        return _no_mount()
     return _cls(MOUNT)(
         offset_m=np.array(mount.offset_m, dtype=np.float64),
         head_height_m=mount.head_height_m,
@@ -801,26 +817,124 @@ def decode_scan(data: bytes | bytearray | memoryview) -> Scan:
 
 
 def encode_point(point: Point) -> bytes:
-    """``point`` as a CDR ``biris_msgs/msg/Point`` (little-endian)."""
+    """``point`` as a CDR ``biris_msgs/msg/Point`` (little-endian).
+
+    Written by hand around the bytes its shape has in common with every acquisition of that
+    shape (:func:`_point_layout`), not through rosbags' message objects: this runs once per
+    acquisition on the service's path to every remote reader, and rosbags' objects and generic
+    serialiser cost several times the writing itself (``net.throughput_128`` in
+    docs/benchmarks.md). Tests compare the bytes with rosbags'."""
     if not isinstance(point, Point):
         raise WireError(f"encode_point takes a Point, not {type(point).__name__}")
-    msg = _cls(POINT)(
-        header=_header(point.t, FRAME_ID),
-        azimuth=point.azimuth,
-        range_mm=point.range_mm,
-        profile=_array(point.profile, np.int16),
-        intensity=_array(point.intensity, np.int16),
-        t=point.t,
-        acq=point.acq,
-        scan_seq=point.scan_seq,
-        elevation=point.elevation,
-        has_t_delivered=point.t_delivered is not None,
-        t_delivered=_nan_none(point.t_delivered),
-        has_mount=point.mount is not None,
-        mount=_mount(point.mount),
-        acquisition=point.acquisition,
-    )
-    return _serialize(msg, POINT)
+    mount = point.mount
+    t_delivered = point.t_delivered
+    try:
+        profile, intensity = _little16(point.profile), _little16(point.intensity)
+        if intensity.shape != profile.shape:
+            raise ValueError(f"intensity has shape {intensity.shape}, profile {profile.shape}")
+        layout = _point_layout(profile.shape[0], point.acquisition)
+        sec, nanosec = divmod(stamp_ns(point.t), 1_000_000_000)
+        offset, height, sideways = (
+            (mount.offset_m, mount.head_height_m, mount.head_offset_m)
+            if mount is not None
+            else ((0.0, 0.0, 0.0), 0.0, 0.0)
+        )
+        return b"".join(
+            (
+                _POINT_HEAD.pack(_CDR_LE, sec, nanosec),
+                layout.frame_id,
+                _POINT_FIELDS.pack(point.azimuth, point.range_mm),
+                layout.profile_length,
+                profile.tobytes(),
+                layout.intensity_length,
+                intensity.tobytes(),
+                layout.tail_padding,
+                _POINT_TAIL.pack(
+                    point.t,
+                    point.acq,
+                    point.scan_seq,
+                    point.elevation,
+                    t_delivered is not None,
+                    _nan_none(t_delivered),
+                    mount is not None,
+                    *offset,
+                    height,
+                    sideways,
+                ),
+                layout.acquisition,
+            )
+        )
+    except (OverflowError, ValueError, TypeError, struct.error) as exc:
+        raise WireError(f"cannot encode {POINT}: {exc}") from exc
+
+
+_CDR_LE = b"\x00\x01\x00\x00"
+"""The encapsulation header of little-endian plain CDR (what rosbags and rmw write)."""
+
+_POINT_HEAD = struct.Struct("<4siI")
+"""The encapsulation header, then ``header.stamp``: sec, nanosec."""
+
+_POINT_FIELDS = struct.Struct("<ii")
+"""``azimuth``, ``range_mm`` (4-aligned after the frame id)."""
+
+_POINT_TAIL = struct.Struct("<dQQi?3xd?7x3ddd")
+"""From ``t`` to the end of ``mount``, starting 8-aligned: t, acq, scan_seq, elevation,
+has_t_delivered, (padding to 8), t_delivered, has_mount, (padding to 8), mount.offset_m,
+mount.head_height_m, mount.head_offset_m. CDR's padding is zero, as struct's ``x`` writes it."""
+
+
+class _PointLayout(NamedTuple):
+    """What a Point's CDR has in common with every acquisition of its shape (samples and
+    acquisition mode), between the fields that change: the frame id, the sequence lengths, the
+    alignment padding, the mode's name."""
+
+    frame_id: bytes
+    """``header.frame_id``, and the padding to ``azimuth``."""
+    profile_length: bytes
+    intensity_length: bytes
+    """The padding after the profile, and the intensity's length."""
+    tail_padding: bytes
+    """The padding after the intensity, to ``t``."""
+    acquisition: bytes
+
+
+@functools.lru_cache(maxsize=64)
+def _point_layout(samples: int, acquisition: str) -> _PointLayout:
+    """The layout of a Point of ``samples`` samples taken in mode ``acquisition``, worked out
+    once per shape (a sensor makes one or two) by writing one with :class:`_Cdr`."""
+    out = _Cdr()
+    out.stamp(0)
+    marks = [out.size]
+    out.string(FRAME_ID)
+    out.align(4)
+    marks.append(out.size)
+    out.raw(bytes(_POINT_FIELDS.size))
+    marks.append(out.size)
+    out.pack("<I", samples)
+    marks.append(out.size)
+    out.raw(bytes(2 * samples))
+    marks.append(out.size)
+    out.pack("<I", samples)
+    marks.append(out.size)
+    out.raw(bytes(2 * samples))
+    marks.append(out.size)
+    out.align(8)
+    marks.append(out.size)
+    out.raw(bytes(_POINT_TAIL.size))
+    marks.append(out.size)
+    out.string(acquisition)
+    marks.append(out.size)
+    data = out.bytes()[len(_CDR_LE) :]
+    pieces = [data[a:b] for a, b in zip(marks[0::2], marks[1::2], strict=True)]
+    return _PointLayout(*pieces)
+
+
+def _little16(values: NDArray[np.int16]) -> NDArray[np.int16]:
+    """``values`` as little-endian int16 (as they are, on a little-endian host)."""
+    return values if values.dtype == _LITTLE16 else values.astype(_LITTLE16)
+
+
+_LITTLE16 = np.dtype("<i2")
 
 
 def decode_point(data: bytes | bytearray | memoryview) -> Point:
@@ -1837,7 +1951,9 @@ for (:mod:`biris_hw.io.moving_sink`)."""
 # -- the proximity alarm: biris_msgs/msg/Proximity ------------------------------------------------
 
 PROXIMITY_TOPIC = "/biris/proximity"
-"""Where the proximity alarm's answers go (:mod:`biris_hw.io.proximity`)."""
+"""Where the proximity alarm's answers go (:mod:`biris_hw.io.proximity`): in a recording and the
+live view given ``proximity=`` (beside :data:`MOVING_TOPICS`), and on the service's
+``biris/<name>/proximity``."""
 
 
 class ProximityMessage(NamedTuple):

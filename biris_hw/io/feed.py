@@ -456,9 +456,8 @@ class Sink:
         cost every remote reader a thread wake-up per acquisition. Such a sink's ``on_batch``
         must not block (the service's publications drop what a subscriber cannot take)."""
         with self._inline:
-            with self._cond:
-                if self._sealed:
-                    return
+            if self._sealed:  # (a prompt sink's is set only below, under _inline)
+                return
             self._deliver(batch)
             if batch.final:
                 with self._cond:
@@ -547,6 +546,23 @@ class FeedStopped(RuntimeError):
     gone): :func:`attach` (or :func:`shared_feed`) finds the process's current one."""
 
 
+@dataclass(frozen=True)
+class _Roster:
+    """The reader's view of its sinks at one :attr:`SharedFeed._roster_version`: who they
+    are, who is closing, and how long a prompt ask for an acquisition waits (0.0: no sink is
+    prompt, the reader polls every batch)."""
+
+    version: int
+    sinks: tuple[Sink, ...]
+    closing: tuple[Sink, ...]
+    prompt_wait: float
+
+    @classmethod
+    def of(cls, version: int, sinks: Sequence[Sink]) -> _Roster:
+        wait = min(BATCH_S, *(s.batch_s for s in sinks)) if any(s.prompt for s in sinks) else 0.0
+        return cls(version, tuple(sinks), tuple(s for s in sinks if s._closing), wait)
+
+
 class SharedFeed:
     """Every acquisition, scan and status of one sensor, read once and encoded once for every
     sink in the process (see the module). Get it with :func:`shared_feed`."""
@@ -555,6 +571,9 @@ class SharedFeed:
         self.source = source
         self._lock = threading.Lock()
         self._sinks: list[Sink] = []
+        self._roster_version = 0
+        """Bumped (under ``_lock``) whenever a sink comes, goes or starts closing: the reader
+        works out what its sinks ask of it (:class:`_Roster`) only when this has moved."""
         self._wake = threading.Event()
         """Ends the reader's pause: a sink attached or is detaching."""
         self._status_wake = threading.Event()
@@ -578,6 +597,7 @@ class SharedFeed:
         self._lost: LostSpan | None = None
         self._lost_retry = LOST_RETRY_S
         self._sweep: list[Point] = []
+        self._last_roster: _Roster | None = None
         self._sweep_sent = -math.inf
         self._server_dropped = [0, 0]
         """What the sensor dropped on the feed's two connections (its counts, added up across
@@ -691,6 +711,7 @@ class SharedFeed:
                 first = not self._sinks and self._reader is None
                 sink._base_points, sink._base_scans = self.dropped_points, self.dropped_scans
                 self._sinks.append(sink)
+                self._roster_version += 1
             if first:
                 self._start()
         self._opened.wait()
@@ -698,6 +719,7 @@ class SharedFeed:
             with self._lock:
                 if sink in self._sinks:
                     self._sinks.remove(sink)
+                    self._roster_version += 1
             raise self._open_error
         sink._start()
         if status_period_s is not None or status_changes:
@@ -736,6 +758,7 @@ class SharedFeed:
             attached = sink in self._sinks
             if attached:
                 sink._closing = True
+                self._roster_version += 1
         if attached and not self._ended.is_set():
             self._wake.set()  # the reader hands it what waits, then its final batch
             self._status_wake.set()
@@ -756,6 +779,7 @@ class SharedFeed:
             for sink in sinks:
                 if sink in self._sinks:
                     self._sinks.remove(sink)
+                    self._roster_version += 1
             if not self._sinks and not self._over:
                 self._over = True
                 if _REGISTRY.get(id(self.source)) is self:
@@ -815,14 +839,25 @@ class SharedFeed:
         for sink in self.sinks:
             sink._fail(exc)
 
+    def _roster(self) -> _Roster:
+        """What the sinks ask of the reader now, worked out again only when one came, went or
+        began closing since the last time (a prompt reader asks this once per acquisition)."""
+        roster = self._last_roster
+        version = self._roster_version
+        if roster is None or roster.version != version:
+            with self._lock:
+                roster = _Roster.of(self._roster_version, self._sinks)
+            self._last_roster = roster
+        return roster
+
     def _loop(self, points_conn: Any, scans_conn: Any) -> None:
         ended = [False, False]
         scans_polled = -math.inf
         while not self._stop.is_set():
-            self._wake.clear()
-            with self._lock:
-                sinks = list(self._sinks)
-            closing = [s for s in sinks if s._closing]
+            if self._wake.is_set():  # (clearing an event that is not set takes its lock)
+                self._wake.clear()
+            roster = self._roster()
+            sinks, closing = roster.sinks, roster.closing
             begun = time.monotonic()
             points: list[Point] = []
             scans: list[Scan] = []
@@ -830,15 +865,14 @@ class SharedFeed:
             waited = False
             if begun >= self._fault_until or closing:
                 if not ended[0]:
-                    wait = 0.0
-                    if not closing and any(s.prompt for s in sinks):
-                        wait = min(BATCH_S, *(s.batch_s for s in sinks))
+                    wait = 0.0 if closing else roster.prompt_wait
                     points, ended[0], waited = self._drain(points_conn, wait, faults)
                     self._dropped_count(0, points_conn)
                     if wait > 0 and points and not faults:
                         # prompt: the acquisition goes out now, before anything else is asked
                         # (a poll for more, the scans: round trips a remote reader would wait)
-                        self._hand_out(sinks, points, (), (), ())
+                        for point in points:  # (one: a prompt wait returns with the first)
+                            self._hand_out_now(sinks, point)
                         points = []
                         if begun - scans_polled < wait:
                             continue  # the scans at most every batch: a poll is a round trip
@@ -850,7 +884,7 @@ class SharedFeed:
             going = self.error is not None or all(ended)
             if more and not going:  # a bounded detach takes what waits, until half its time
                 now = time.monotonic()
-                closing = [s for s in closing if not now < s._drop_after < math.inf]
+                closing = tuple(s for s in closing if not now < s._drop_after < math.inf)
             if points or scans or faults or closing or self._sweep:
                 self._hand_out(sinks, points, scans, faults, closing)
             if closing:
@@ -1028,6 +1062,50 @@ class SharedFeed:
             sink._offer(
                 Batch(tuple(points), tuple(scans), tuple(messages), status, tuple(faults), final)
             )
+
+    def _hand_out_now(self, sinks: Sequence[Sink], point: Point) -> None:
+        """:meth:`_hand_out` of one acquisition read on a prompt wait, and nothing else: the
+        same messages and the same batch for every sink, without the work a batch of scans,
+        faults or closing sinks needs. A prompt reader pays this for every acquisition, so
+        its cost bounds the service's rate (``net.throughput_128`` in docs/benchmarks.md)."""
+        if point.t > self._last_seen:  # (as max(): a NaN time leaves it as it was)
+            self._last_seen = point.t
+        active = [s.active() for s in sinks]
+        union = active[0] if len(active) == 1 else frozenset().union(*active)
+        encoded: list[tuple[str, Message]] = []
+        sweep = None
+        try:
+            for topic in _POINT_TOPICS:
+                if topic in union:
+                    encoded.append((topic, self._encode_point(topic, point)))
+            if codec.SWEEP_TOPIC in union:
+                sweepers = [
+                    s for s, mine in zip(sinks, active, strict=True) if codec.SWEEP_TOPIC in mine
+                ]
+                sweep = self._sweep_message([point], sweepers, False)
+            elif self._sweep:  # nobody wants it now: what came meanwhile is not kept
+                self._sweep_message((), (), False)
+        except Exception:
+            log.exception("a batch of %d points, %d scans not encoded", 1, 0)
+            self._unencoded[0] += 1
+            for sink in sinks:
+                sink._offer(Batch())
+            return
+        items = (point,)
+        for sink, mine in zip(sinks, active, strict=True):
+            messages = tuple([m for topic, m in encoded if topic in mine])
+            if sweep is not None and codec.SWEEP_TOPIC in mine:
+                messages += (sweep,)
+            sink._offer(Batch(items, (), messages))
+
+    def _encode_point(self, topic: str, point: Point) -> Message:
+        """One acquisition's message on ``topic`` (one of :data:`_POINT_TOPICS`), counted."""
+        if topic == codec.RAW_POINT_TOPIC:  # the one the service publishes: without a detour
+            data = codec.encode_point(point)
+            with self._encoded_lock:
+                self.encoded[topic] += 1
+            return Message(topic, codec.POINT, data, codec.stamp_ns(point.t), point)
+        return self._encode_points(topic, [point])[0]  # (a list, as a batch is)
 
     def _count(
         self, encoded: codec.Encoded, item: object, log_time_ns: int | None = None

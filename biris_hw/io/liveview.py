@@ -50,13 +50,16 @@ the feed asks the sensor for data only every :data:`FAULT_POLL_S` (each ask woul
 fault again), not at the batch rate, which would load a sensor reached over the network for
 nothing.
 
-**On a moving robot** (``poses=``, and ``grid=``) the view also publishes ``/odom`` and ``odom
--> vehicle`` on ``/tf`` (each pose sample once), ``/biris/points`` in ``odom`` (each scan
-deskewed) and, with a grid, the certainty grid on ``/biris/grid`` at a few Hz
+**On a moving robot** (``poses=``, and ``grid=``, ``proximity=``) the view also publishes
+``/odom`` and ``odom -> vehicle`` on ``/tf`` (each pose sample once), ``/biris/points`` in
+``odom`` (each scan deskewed), with a grid the certainty grid on ``/biris/grid`` at a few Hz,
+and with a proximity alarm its answers on ``/biris/proximity``
 (:class:`~biris_hw.io.moving_sink.MovingEncoder`, shared with the recorder); a 3D panel whose
 display frame is ``odom`` then shows the profiles and sweeps where they were taken too, through
-the transforms. Those channels are advertised only then. The grid is fed every acquisition
-whether or not a viewer watches it, so a viewer who subscribes late sees it whole.
+the transforms. Those channels are advertised only then, and the layout the view serves is
+the moving robot's (:func:`layout`). The grid and the alarm are fed every
+acquisition whether or not a viewer watches them, so a viewer who subscribes late sees the grid
+whole and the alarm remembering what the head saw before.
 
 A view its owner forgets to close is closed when the garbage collector takes it, or at the
 interpreter's exit at the latest, as a file is: the feed holds it only weakly, so a script that
@@ -68,6 +71,7 @@ from __future__ import annotations
 import contextlib
 import http.server
 import ipaddress
+import json
 import logging
 import socket
 import socketserver
@@ -83,7 +87,7 @@ from biris_hw.data import ConnectionKind
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
 from biris_hw.geometry import Frame, Mount
 from biris_hw.io import codec, feed
-from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed
+from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed, ProximityOption
 from biris_hw.sensor import Sensor
 from biris_hw.status import ServerStatus
 
@@ -123,7 +127,47 @@ LAYOUT_FILE = Path(__file__).with_name("foxglove-layout.json")
 following ``vehicle`` with the clouds, the diagnostics, a plot of the pan."""
 
 LAYOUT_PATH = "/foxglove-layout.json"
-"""Where the view's HTTP server serves :data:`LAYOUT_FILE`."""
+"""Where the view's HTTP server serves its layout (:func:`layout`)."""
+
+
+def layout(*, moving: bool = False) -> dict[str, Any]:
+    """The layout the view serves: :data:`LAYOUT_FILE`, or on a moving robot its variant.
+
+    A view that stands still shows everything in ``vehicle``. On a moving robot the clouds are in
+    ``odom`` and the vehicle moves through it: the 3-D panel's camera follows the vehicle's
+    position but not its heading (``follow-position``), so the scene keeps the orientation of
+    ``odom`` and the deskewed scans of ``/biris/points`` stay 30 s to build up the room around
+    the vehicle; the reference grid lies in ``odom``; ``/biris/grid`` (the certainty grid) is
+    drawn under the clouds and the proximity alarm's distance and age are plotted where the
+    pan's plot was (the pan is in ``/tf`` still)."""
+    base: dict[str, Any] = json.loads(LAYOUT_FILE.read_text())
+    if not moving:
+        return base
+    panel = base["configById"]["3D!biris"]
+    panel["followTf"] = "vehicle"
+    panel["followMode"] = "follow-position"
+    panel["layers"]["grid"]["frameId"] = codec.ODOM_FRAME
+    panel["topics"][codec.POINTS_TOPIC]["decayTime"] = 30
+    panel["topics"][codec.GRID_TOPIC] = {"visible": True}
+    base["configById"]["Plot!azimuth"] = {
+        "paths": [
+            {
+                "value": f"{codec.PROXIMITY_TOPIC}.distance_m",
+                "enabled": True,
+                "timestampMethod": "headerStamp",
+                "label": "nearest in the zone (m)",
+            },
+            {
+                "value": f"{codec.PROXIMITY_TOPIC}.age_s",
+                "enabled": True,
+                "timestampMethod": "headerStamp",
+                "label": "its age (s)",
+            },
+        ],
+        "showLegend": True,
+    }
+    return base
+
 
 FAULT_POLL_S = feed.FAULT_POLL_S
 """While the sensor is in a fault, the pause between two asks for data (real seconds): the
@@ -194,8 +238,9 @@ class _LayoutHandler(http.server.BaseHTTPRequestHandler):
 class _LayoutServer:
     """The layout over HTTP on ``host``, on a port of its own (0: a free one), in a thread."""
 
-    def __init__(self, host: str, port: int = 0) -> None:
-        handler = type("_Handler", (_LayoutHandler,), {"layout": LAYOUT_FILE.read_bytes()})
+    def __init__(self, host: str, port: int = 0, *, moving: bool = False) -> None:
+        served = json.dumps(layout(moving=moving), indent=1).encode()
+        handler = type("_Handler", (_LayoutHandler,), {"layout": served})
         # a plain TCP server, not http.server's: that one looks its host's name up (a DNS
         # query, seconds on a host without DNS) for a header nobody reads
         server_class = type(
@@ -312,15 +357,19 @@ class LiveView:
     ``poses`` (the vehicle's pose: a :class:`~biris_hw.io.pose.PoseBuffer`, or any
     :class:`~biris_hw.io.moving_sink.PoseFeed`, on the sensor's hardware clock) and ``grid`` (a
     :class:`~biris_hw.io.grid.GridParams`, :class:`~biris_hw.io.grid.CertaintyGrid` or
-    :class:`~biris_hw.io.grid.GridFeeder`; it needs ``poses``) add the moving robot's channels
-    (see the module); ``/biris/points`` is then in ``odom``, whatever ``frame`` says.
+    :class:`~biris_hw.io.grid.GridFeeder`; it needs ``poses``) and ``proximity`` (a
+    :class:`~biris_hw.io.proximity.ProximityZone`, :class:`~biris_hw.io.proximity.ProximityAlarm`
+    or :class:`~biris_hw.io.proximity.ProximityFeeder`; it needs ``poses``) add the moving
+    robot's channels (see the module); ``/biris/points`` is then in ``odom``, whatever
+    ``frame`` says.
 
     Raises:
         RuntimeError: the server cannot listen there (the port is taken).
         OSError: the layout's HTTP server cannot listen on ``layout_port``.
-        ValueError: a frame or a stamp that is neither of its two; ``grid`` without
-            ``poses``.
-        TypeError: ``poses`` is not a pose buffer, ``grid`` none of its kinds.
+        ValueError: a frame or a stamp that is neither of its two; ``grid`` or ``proximity``
+            without ``poses``.
+        TypeError: ``poses`` is not a pose buffer, ``grid`` or ``proximity`` none of its
+            kinds.
         ConnectionClosed: the source has stopped.
     """
 
@@ -340,12 +389,20 @@ class LiveView:
         viewer: str = DEFAULT_VIEWER,
         poses: PoseFeed | None = None,
         grid: GridOption | None = None,
+        proximity: ProximityOption | None = None,
     ) -> None:
         codec.cloud_frame_id(frame)
         if grid is not None and poses is None:
             raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
-        self.moving: MovingEncoder | None = None if poses is None else MovingEncoder(poses, grid)
-        """What adds the vehicle's poses, the clouds in ``odom`` and the grid (``poses=``)."""
+        if proximity is not None and poses is None:
+            raise ValueError(
+                "proximity= needs poses=: the alarm places each acquisition with its pose"
+            )
+        self.moving: MovingEncoder | None = (
+            None if poses is None else MovingEncoder(poses, grid, proximity=proximity)
+        )
+        """What adds the vehicle's poses, the clouds in ``odom``, the grid and the proximity
+        alarm (``poses=``)."""
         self.source = source
         self.host = host
         self.frame: Frame = frame
@@ -395,7 +452,9 @@ class LiveView:
         )
         try:
             if self._layout_port is not None:
-                self._layout = _LayoutServer(self.host, self._layout_port)
+                self._layout = _LayoutServer(
+                    self.host, self._layout_port, moving=self.moving is not None
+                )
             topics = dict(codec.TOPICS)
             if self.moving is not None:
                 self.moving.warm()

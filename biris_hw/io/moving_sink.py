@@ -23,16 +23,24 @@ robot (docs/moving.md), written once here for both sinks:
   acquisition of the feed goes into a :class:`~biris_hw.io.grid.CertaintyGrid` through a
   :class:`~biris_hw.io.grid.GridFeeder` (which holds each until its pose is known), and the grid
   goes out when the feeder says one is due (a few Hz, on the data's hardware time) and once more
-  at the end.
+  at the end;
+- **``/biris/proximity``** (``biris_msgs/msg/Proximity`` in ``vehicle``) with a proximity
+  alarm: every acquisition goes into a :class:`~biris_hw.io.proximity.ProximityAlarm` through a
+  :class:`~biris_hw.io.proximity.ProximityFeeder` (the same holding rule as the grid's), and
+  the alarm's answer goes out :data:`~biris_hw.io.proximity.RATE_HZ` times a second of the
+  data's hardware time, each at an acquisition's time whose pose is known (so as often however
+  the batches come), and once more at the end, at the newest.
 
 Only the topics the sink wants are built (``wanted``: the live view builds only what a viewer
-subscribed to), but the poses are taken and the grid is fed whatever is watched, so that a
-viewer who subscribes late sees the grid whole and the poses from then on.
+subscribed to), but the poses are taken and the grid and the alarm are fed whatever is watched,
+so that a viewer who subscribes late sees the grid whole, the alarm's memory full and the poses
+from then on.
 
 **Reading the poses.** Each sample is taken once, by ``since(t)`` where the pose object has one
-(:class:`RecordedPoses`, the simulator's odometry), else by ``samples()`` (a PoseBuffer), which
-copies every sample held (about 10 ms for a full buffer of 3000): that is looked at no more
-often than every ``poll_s`` real seconds, so ``/odom`` then comes in bursts of half a second.
+(a :class:`~biris_hw.io.pose.PoseBuffer`, :class:`RecordedPoses`, the simulator's odometry: a
+bisection, whatever the number held), else by ``samples()``, which copies every sample held
+(about 10 ms for 3000): a pose object with only that is looked at no more often than every
+``poll_s`` real seconds, so ``/odom`` then comes in bursts of half a second.
 """
 
 from __future__ import annotations
@@ -51,6 +59,7 @@ from biris_hw.io import codec
 from biris_hw.io.deskew import deskewed
 from biris_hw.io.feed import Batch
 from biris_hw.io.grid import CertaintyGrid, GridFeeder, GridParams
+from biris_hw.io.proximity import ProximityAlarm, ProximityFeeder, ProximityZone
 
 __all__ = [
     "LEAD_S",
@@ -59,6 +68,7 @@ __all__ = [
     "GridOption",
     "MovingEncoder",
     "PoseFeed",
+    "ProximityOption",
     "RecordedPoses",
 ]
 
@@ -92,6 +102,10 @@ class _Since(Protocol):
 
 GridOption: TypeAlias = GridParams | CertaintyGrid | GridFeeder
 """What ``grid=`` takes: the grid's settings, a grid, or a feeder of a grid (its own poses)."""
+
+ProximityOption: TypeAlias = ProximityZone | ProximityAlarm | ProximityFeeder
+"""What ``proximity=`` takes: the alarm's zone, an alarm, or a feeder of an alarm (its own poses
+and rate)."""
 
 
 class RecordedPoses:
@@ -138,6 +152,19 @@ def _feeder(grid: GridOption, poses: PoseFeed) -> GridFeeder:
     )
 
 
+def _proximity_feeder(proximity: ProximityOption, poses: PoseFeed) -> ProximityFeeder:
+    if isinstance(proximity, ProximityFeeder):
+        return proximity
+    if isinstance(proximity, ProximityZone):
+        return ProximityFeeder(ProximityAlarm(proximity), poses)
+    if isinstance(proximity, ProximityAlarm):
+        return ProximityFeeder(proximity, poses)
+    raise TypeError(
+        "proximity= takes a ProximityZone, a ProximityAlarm or a ProximityFeeder, not "
+        f"{type(proximity).__name__}"
+    )
+
+
 def _everything(topic: str) -> bool:
     return True
 
@@ -146,14 +173,15 @@ class MovingEncoder:
     """The messages of a moving robot for one sink, batch by batch (see the module).
 
     ``poses`` is the vehicle's pose (a :class:`PoseFeed`, on the sensor's hardware clock);
-    ``grid`` (None: no grid) what :data:`GridOption` says. ``wait_s`` is how long a scan waits
+    ``grid`` (None: no grid) what :data:`GridOption` says, ``proximity`` (None: no alarm) what
+    :data:`ProximityOption` says. ``wait_s`` is how long a scan waits
     for its poses (:data:`WAIT_S`), ``poll_s`` how often a pose object without ``since`` is
     copied (:data:`POSE_POLL_S`). Used from one thread (the sink's); the counts may be read
     from any.
 
     Raises:
         TypeError: ``poses`` lacks ``poses_at``, ``span`` or a way to give its samples, or
-            ``grid`` is none of its kinds.
+            ``grid`` or ``proximity`` is none of its kinds.
         ValueError: ``wait_s`` or ``poll_s`` is not a number of seconds >= 0.
     """
 
@@ -162,6 +190,7 @@ class MovingEncoder:
         poses: PoseFeed,
         grid: GridOption | None = None,
         *,
+        proximity: ProximityOption | None = None,
         wait_s: float = WAIT_S,
         poll_s: float = POSE_POLL_S,
     ) -> None:
@@ -181,6 +210,9 @@ class MovingEncoder:
                 raise ValueError(f"{name} must be a number of seconds >= 0, not {value!r}")
         self.poses = poses
         self.feeder: GridFeeder | None = None if grid is None else _feeder(grid, poses)
+        self.proximity_feeder: ProximityFeeder | None = (
+            None if proximity is None else _proximity_feeder(proximity, poses)
+        )
         self.wait_s = float(wait_s)
         self.poll_s = float(poll_s)
         self._since = poses if isinstance(poses, _Since) else None
@@ -200,11 +232,19 @@ class MovingEncoder:
         self.unplaced_points = 0
         """Acquisitions of completed scans left out of their cloud for want of a pose."""
         self.grid_messages = 0
+        self.proximity_messages = 0
+        """Answers of the proximity alarm made (on ``/biris/proximity``)."""
+        self._answered = -math.inf
+        """The stamp of the last of them."""
 
     # -- what it adds ----------------------------------------------------------------------------
     @property
     def grid(self) -> CertaintyGrid | None:
         return None if self.feeder is None else self.feeder.grid
+
+    @property
+    def alarm(self) -> ProximityAlarm | None:
+        return None if self.proximity_feeder is None else self.proximity_feeder.alarm
 
     @property
     def topics(self) -> dict[str, str]:
@@ -213,6 +253,8 @@ class MovingEncoder:
         topics = {codec.ODOM_TOPIC: codec.ODOMETRY}
         if self.feeder is not None:
             topics[codec.GRID_TOPIC] = codec.OCCUPANCY_GRID
+        if self.proximity_feeder is not None:
+            topics[codec.PROXIMITY_TOPIC] = codec.PROXIMITY
         return topics
 
     def describe(self) -> dict[str, object]:
@@ -232,6 +274,19 @@ class MovingEncoder:
                 "band_m": list(params.band_m),
                 "half_life_s": params.half_life_s,
             }
+        feeder = self.proximity_feeder
+        if feeder is not None:
+            zone = feeder.alarm.zone
+            out["proximity"] = {
+                "topic": codec.PROXIMITY_TOPIC,
+                "rate_hz": 1.0 / feeder.period_s,
+                "front_m": zone.front_m,
+                "width_m": zone.width_m,
+                "length_m": zone.length_m,
+                "time_s": zone.time_s,
+                "band_m": list(zone.band_m),
+                "memory_s": zone.memory_s,
+            }
         return out
 
     def counts(self) -> dict[str, object]:
@@ -247,15 +302,25 @@ class MovingEncoder:
             counts["grid_messages"] = self.grid_messages
             counts["grid_acquisitions"] = grid.acquisitions
             counts["grid_unplaced"] = grid.unplaced
+        alarm = self.alarm
+        if alarm is not None:
+            counts["proximity_messages"] = self.proximity_messages
+            counts["proximity_acquisitions"] = alarm.acquisitions
+            counts["proximity_unplaced"] = alarm.unplaced
         return counts
 
     @staticmethod
     def warm() -> None:
         """Pay the one-time costs of its message types now (the typestore, the schema texts,
-        rosbags' generated OccupancyGrid encoder), not on the first batch."""
-        for msgtype in (codec.ODOMETRY, codec.OCCUPANCY_GRID):
+        rosbags' generated OccupancyGrid and Proximity encoders), not on the first batch."""
+        for msgtype in (codec.ODOMETRY, codec.OCCUPANCY_GRID, codec.PROXIMITY):
             codec.warm(msgtype)
         codec.encode_occupancy_grid(np.zeros((1, 1), dtype=np.int8), 1.0, (0.0, 0.0), 0.0)
+        nan = math.nan
+        codec.encode_proximity(
+            0.0, found=False, distance_m=math.inf, x_m=nan, y_m=nan, age_s=nan,
+            looked_age_s=math.inf, zone_length_m=1.0, zone_width_m=1.0, speed_mps=0.0,
+        )  # fmt: skip
 
     # -- a batch ---------------------------------------------------------------------------------
     def messages(
@@ -283,6 +348,7 @@ class MovingEncoder:
         grid = self._grid(batch, wanted)
         if grid is not None:
             out.append(grid)
+        out.extend(self._proximity(batch, wanted))
         out.sort(key=lambda m: m.log_time_ns)
         return out
 
@@ -350,3 +416,28 @@ class MovingEncoder:
             return None
         self.grid_messages += 1
         return grid.message()
+
+    def _proximity(self, batch: Batch, wanted: Callable[[str], bool]) -> list[codec.Encoded]:
+        """Feed the alarm the batch's acquisitions; its answers at the times they are owed
+        (and at the end, unless the last one was at the same time), if wanted."""
+        feeder = self.proximity_feeder
+        if feeder is None:
+            return []
+        if batch.points:
+            feeder.add(batch.points)
+        if batch.final:
+            feeder.flush()
+        owed = feeder.due()  # named once: an unwatched topic owes nothing afterwards
+        if not wanted(codec.PROXIMITY_TOPIC):
+            return []
+        if batch.final and feeder.known_t > max(self._answered, *owed, -math.inf):
+            owed.append(feeder.known_t)
+        out: list[codec.Encoded] = []
+        for t in owed:
+            answer = feeder.answer(t)
+            if answer is None:
+                continue
+            self._answered = answer.t
+            self.proximity_messages += 1
+            out.append(answer.message())
+        return out

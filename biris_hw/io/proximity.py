@@ -23,8 +23,14 @@ them in the vehicle's frame *at that moment* and looks inside the zone:
 
 A sweep of -90 to +90 degrees looks ahead about once a second and a half; a head that should
 guard the path sweeps a narrower fan ahead. :meth:`Proximity.message` encodes the answer for the
-network or a recording (``biris_msgs/msg/Proximity``, :mod:`biris_hw.io.codec`). docs/moving.md,
-"The proximity alarm", says more.
+network or a recording (``biris_msgs/msg/Proximity``, :mod:`biris_hw.io.codec`).
+
+A live stream feeds it through a :class:`ProximityFeeder`, as a
+:class:`~biris_hw.io.grid.GridFeeder` feeds the grid: each acquisition waits until the vehicle's
+pose at its time is known, and the alarm is asked at the newest acquisition placed, at
+:data:`RATE_HZ` of the data's hardware time (:class:`~biris_hw.io.moving_sink.MovingEncoder`
+publishes the answers on ``/biris/proximity``).
+docs/moving.md, "The proximity alarm", says more.
 """
 
 from __future__ import annotations
@@ -32,9 +38,9 @@ from __future__ import annotations
 import collections
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -44,7 +50,14 @@ from biris_hw.geometry import Mount
 from biris_hw.io import codec
 from biris_hw.io.grid import GridParams, Placed, profile_rays
 
-__all__ = ["DEFAULT_ZONE", "Proximity", "ProximityAlarm", "ProximityZone"]
+__all__ = [
+    "DEFAULT_ZONE",
+    "RATE_HZ",
+    "Proximity",
+    "ProximityAlarm",
+    "ProximityFeeder",
+    "ProximityZone",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -303,6 +316,116 @@ class ProximityAlarm:
             t, True, float(p[best, 0] - x0), float(p[best, 0]), float(p[best, 1]), t - seen_t,
             looked, length, zone.width_m, speed,
         )  # fmt: skip
+
+
+RATE_HZ = 5.0
+"""Answers a :class:`ProximityFeeder` owes per second of the data's hardware time: a message
+is some 100 bytes, and a reactive layer wants its news fresh; a feed hands a sink its
+acquisitions every 50 ms, so a sink cannot answer much more often."""
+
+
+class _PoseSpan(Protocol):
+    """A pose lookup that also says which times it holds: a
+    :class:`~biris_hw.io.pose.PoseBuffer`."""
+
+    def poses_at(self, times: ArrayLike) -> VehiclePoses: ...
+
+    def span(self) -> tuple[float, float] | None: ...
+
+
+class ProximityFeeder:
+    """Feeds a :class:`ProximityAlarm` the acquisitions of a live stream and says when and where
+    to ask it, as a feed's sink does.
+
+    The acquisitions wait for their poses by the rule of :class:`~biris_hw.io.grid.GridFeeder`
+    (a base publishes at 50 Hz, BIRIS at 30 Hz): each until ``poses`` holds a sample at or after
+    its time, or until it is ``wait_s`` hardware seconds behind the newest acquisition, when it
+    is put in anyway and counted as unplaced if its pose is still unknown.
+
+    The alarm is asked (:meth:`answer`) at the time of an acquisition taken in whose pose was
+    known: every acquisition up to then has been fed, and the zone can be placed there.
+    :meth:`due` names those times, one per ``1 / rate_hz`` hardware seconds of them, however
+    the acquisitions were batched (a live feed hands them over every 50 ms, a replay as fast as
+    it reads or a virtual clock a sweep at once): asked in order, each answer is what a check at
+    that moment would have said, since the alarm leaves out what it saw later.
+    """
+
+    def __init__(
+        self,
+        alarm: ProximityAlarm,
+        poses: _PoseSpan,
+        *,
+        wait_s: float = 0.5,
+        rate_hz: float = RATE_HZ,
+    ) -> None:
+        if not isinstance(alarm, ProximityAlarm):
+            raise TypeError(f"alarm must be a ProximityAlarm, not {type(alarm).__name__}")
+        if not (math.isfinite(wait_s) and wait_s >= 0.0):
+            raise ValueError(f"wait_s must be a number of seconds >= 0, not {wait_s!r}")
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ValueError(f"rate_hz must be positive, not {rate_hz!r}")
+        self.alarm = alarm
+        self.poses = poses
+        self.wait_s = float(wait_s)
+        self.period_s = 1.0 / float(rate_hz)
+        self.known_t = -math.inf
+        """The newest acquisition taken in whose pose was known (-inf: none yet)."""
+        self._pending: list[Point] = []
+        self._known: list[float] = []
+        """The times of the acquisitions taken in with a known pose since :meth:`due`."""
+        self._next = -math.inf
+
+    @property
+    def pending(self) -> int:
+        """Acquisitions waiting for the pose of their time."""
+        return len(self._pending)
+
+    def add(self, points: Iterable[Point]) -> Placed:
+        """Take acquisitions in; feed the alarm every waiting one whose pose can be known now."""
+        self._pending.extend(points)
+        if not self._pending:
+            return Placed(0, 0)
+        return self._feed(max(p.t for p in self._pending) - self.wait_s)
+
+    def flush(self) -> Placed:
+        """Feed the alarm whatever waits, as it stands (at the end of a stream)."""
+        return self._feed(math.inf)
+
+    def _feed(self, given_up: float) -> Placed:
+        """Feed the waiting acquisitions whose pose is known, and those older than
+        ``given_up``."""
+        span = self.poses.span()
+        newest_pose = -math.inf if span is None else span[1]
+        done = [p.t <= newest_pose or p.t < given_up for p in self._pending]
+        ready = [p for p, d in zip(self._pending, done, strict=True) if d]
+        if not ready:
+            return Placed(0, 0)
+        self._pending = [p for p, d in zip(self._pending, done, strict=True) if not d]
+        known = [p.t for p in ready if p.t <= newest_pose]
+        if known:
+            self.known_t = max(self.known_t, *known)
+            self._known.extend(known)
+        return self.alarm.add_points(ready, self.poses)
+
+    def due(self) -> list[float]:
+        """The hardware times at which answers are owed, oldest first, among the acquisitions
+        taken in with a known pose since the last call: the first at least ``1 / rate_hz``
+        after the last answer owed, and so on. Each time is named once."""
+        owed: list[float] = []
+        for t in sorted(self._known):
+            if t >= self._next:
+                owed.append(t)
+                self._next = t + self.period_s
+        self._known.clear()
+        return owed
+
+    def answer(self, t_hw: float | None = None) -> Proximity | None:
+        """The alarm's answer at ``t_hw`` (default :attr:`known_t`); None before any
+        acquisition was placed, or when the pose then is not known (a gap in the stream)."""
+        t = self.known_t if t_hw is None else float(t_hw)
+        if t == -math.inf:
+            return None
+        return self.alarm.check(t, self.poses)
 
 
 def _passed(

@@ -220,6 +220,12 @@ class Keys:
         ``odom``."""
         return f"{self.prefix}/grid"
 
+    @property
+    def proximity(self) -> str:
+        """With a proximity alarm: its answer at a few Hz, as ``biris_msgs/msg/Proximity`` in
+        ``vehicle``."""
+        return f"{self.prefix}/proximity"
+
     def rpc(self, op: str) -> str:
         """The queryable answering operation ``op``."""
         return f"{self.prefix}/rpc/{op}"

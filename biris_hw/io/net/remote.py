@@ -862,17 +862,19 @@ class RemoteSensor:
 
     def subscribe(
         self,
-        what: Literal["point", "scan", "status", "fault", "odom", "grid"],
+        what: Literal["point", "scan", "status", "fault", "odom", "grid", "proximity"],
         callback: Callable[[Any], None],
         *,
         direction: Direction | None = None,
     ) -> Subscription:
         """Call ``callback`` with every publication of ``what``: a Point per acquisition, a Scan
         per completed scan (of ``direction``, or both), a ServerStatus, a HardwareFault; on a
-        service of a moving robot (``serve(..., poses=, grid=)``) a
-        :class:`~biris_hw.io.codec.PoseMessage` per vehicle pose sample (``odom``) and a
-        :class:`~biris_hw.io.codec.OccupancyGridMessage` per certainty grid (``grid``): a
-        service without them publishes none, and the callback is never called.
+        service of a moving robot (``serve(..., poses=, grid=, proximity=)``) a
+        :class:`~biris_hw.io.codec.PoseMessage` per vehicle pose sample (``odom``), a
+        :class:`~biris_hw.io.codec.OccupancyGridMessage` per certainty grid (``grid``) and a
+        :class:`~biris_hw.io.codec.ProximityMessage` per answer of the proximity alarm
+        (``proximity``): a service without them publishes none, and the callback is never
+        called.
 
         The callback runs on a Zenoh thread: keep it short (hand work to a queue). A payload
         that does not decode is counted in the subscription's ``dropped`` and skipped.
@@ -896,6 +898,8 @@ class RemoteSensor:
 
         elif what == "grid":
             key, decode = keys.grid, codec.decode_occupancy_grid
+        elif what == "proximity":
+            key, decode = keys.proximity, codec.decode_proximity
         else:
             raise RequestError(f"subscribe: nothing called {what!r}")
         # the codec's first use costs ~0.1 s of interpreter time: paid here, on the caller's
@@ -904,6 +908,8 @@ class RemoteSensor:
             codec.warm(codec.ODOMETRY)
         elif what == "grid":
             codec.warm(codec.OCCUPANCY_GRID)
+        elif what == "proximity":
+            codec.warm(codec.PROXIMITY)
         else:
             warm(what)
         subscription = Subscription()

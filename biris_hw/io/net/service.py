@@ -40,10 +40,12 @@ Threads and why:
 * The same sink publishes the status when it changes and, unchanged, every ``status_period``
   seconds, and a fault when the sensor enters one: the feed's status thread waits for the
   sensor to push a change (``status(newer_than=...)``), asking nothing while nothing changes.
-* On a moving robot (``poses=``, and ``grid=``) a second sink, not prompt, with a thread and a
-  queue of its own, publishes what a :class:`~biris_hw.io.moving_sink.MovingEncoder` makes of
-  the same acquisitions -- the vehicle's poses on ``odom`` and ``tf``, each scan deskewed on
-  ``cloud``, the certainty grid on ``grid`` -- as a recording and the live view carry them:
+* On a moving robot (``poses=``, and ``grid=``, ``proximity=``) a second sink, not prompt, with
+  a thread and a queue of its own, publishes what a
+  :class:`~biris_hw.io.moving_sink.MovingEncoder` makes of the same acquisitions -- the
+  vehicle's poses on ``odom`` and ``tf``, each scan deskewed on ``cloud``, the certainty grid on
+  ``grid``, the proximity alarm's answers on ``proximity`` -- as a recording and the live view
+  carry them:
   deskewing a scan or writing a grid (some 13 ms) never runs in the reader's thread, so the
   acquisitions go out as promptly as without it.
 
@@ -89,7 +91,7 @@ from biris_hw.errors import (
     RequestError,
 )
 from biris_hw.io import codec, feed
-from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed
+from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed, ProximityOption
 from biris_hw.io.net.keys import (
     BLOCKING_OPS,
     CONTROL_OPS,
@@ -214,6 +216,7 @@ _MOVING_KINDS = {
     codec.TF_TOPIC: "tf",
     codec.POINTS_TOPIC: "cloud",
     codec.GRID_TOPIC: "grid",
+    codec.PROXIMITY_TOPIC: "proximity",
 }
 """The moving robot's topics (:class:`~biris_hw.io.moving_sink.MovingEncoder`) and the
 :class:`~biris_hw.io.net.keys.Keys` each is published on (its counter's name too)."""
@@ -468,14 +471,22 @@ class Service:
         stop_when_controllers_leave: bool = False,
         poses: PoseFeed | None = None,
         grid: GridOption | None = None,
+        proximity: ProximityOption | None = None,
     ) -> None:
         self.server = server
         if grid is not None and poses is None:
             raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
-        self.moving: MovingEncoder | None = None if poses is None else MovingEncoder(poses, grid)
-        """With ``poses``: what makes the vehicle's odometry, the deskewed clouds and the grid,
-        published from a sink of their own (:meth:`_publish_moving`); its counts and its grid
-        (``service.moving.grid``)."""
+        if proximity is not None and poses is None:
+            raise ValueError(
+                "proximity= needs poses=: the alarm places each acquisition with its pose"
+            )
+        self.moving: MovingEncoder | None = (
+            None if poses is None else MovingEncoder(poses, grid, proximity=proximity)
+        )
+        """With ``poses``: what makes the vehicle's odometry, the deskewed clouds, the grid and
+        the proximity alarm's answers, published from a sink of their own
+        (:meth:`_publish_moving`); its counts, its grid and its alarm (``service.moving.grid``,
+        ``service.moving.alarm``)."""
         recording = server.playback
         if playback and not recording:
             raise RequestError(
@@ -515,6 +526,8 @@ class Service:
             self.published.update(dict.fromkeys(_MOVING_KINDS.values(), 0))
             if self.moving.feeder is None:
                 del self.published["grid"]
+            if self.moving.proximity_feeder is None:
+                del self.published["proximity"]
         """Publications made, per key expression (the counter each publication carries): one
         per direction for scans, since a subscriber counts gaps per key."""
         self.requests = 0
@@ -736,7 +749,7 @@ class Service:
         try:
             messages = self.moving.messages(batch)
         except Exception:
-            log.exception("the vehicle's poses, clouds or grid could not be made")
+            log.exception("the vehicle's poses, clouds, grid or proximity could not be made")
             return
         for message in messages:
             target = self._pub_moving.get(message.topic)
@@ -1491,12 +1504,17 @@ def serve(
         grid: (keyword; needs ``poses``) a :class:`~biris_hw.io.grid.GridParams`,
             :class:`~biris_hw.io.grid.CertaintyGrid` or :class:`~biris_hw.io.grid.GridFeeder`:
             the certainty grid, fed every acquisition, published on ``grid``
-            (``nav_msgs/msg/OccupancyGrid`` in ``odom``) at a few Hz. The keys are
-            :class:`~biris_hw.io.net.keys.Keys`' (docs/wire-format.md, "Publications").
+            (``nav_msgs/msg/OccupancyGrid`` in ``odom``) at a few Hz.
+        proximity: (keyword; needs ``poses``) a :class:`~biris_hw.io.proximity.ProximityZone`,
+            :class:`~biris_hw.io.proximity.ProximityAlarm` or
+            :class:`~biris_hw.io.proximity.ProximityFeeder`: the proximity alarm, fed every
+            acquisition, its answer published on ``proximity`` (``biris_msgs/msg/Proximity`` in
+            ``vehicle``) five times a second of hardware time. The keys are
+            :class:`~biris_hw.io.net.keys.Keys`' (docs/wire-format.md, "Key expressions").
 
     Raises:
-        ValueError: ``grid`` without ``poses``; TypeError: ``poses`` or ``grid`` of no kind
-            they take. Nothing is started then.
+        ValueError: ``grid`` or ``proximity`` without ``poses``; TypeError: ``poses``,
+            ``grid`` or ``proximity`` of no kind they take. Nothing is started then.
 
     The server is not closed on the way out: it belongs to the caller.
     """

@@ -251,6 +251,32 @@ class PoseBuffer:
             for i, (r, a) in enumerate(zip(rows, yaw, strict=True))
         ]
 
+    def since(self, t_hw: float, /) -> list[PoseSample]:
+        """The samples held stamped after ``t_hw`` (hardware seconds), oldest first, as
+        :meth:`samples` gives them (``seq`` their place among the held): a reader that hands
+        each sample on once (the recorder's, the live view's, the service's ``/odom``) takes
+        only the new ones by bisection, instead of copying the whole buffer each time.
+
+        Raises:
+            ValueError: ``t_hw`` is not a number (NaN included); ``-math.inf`` gives them all.
+        """
+        if isinstance(t_hw, bool) or not isinstance(t_hw, (int, float, np.integer, np.floating)):
+            raise ValueError(f"since: t_hw must be a number of hardware seconds, not {t_hw!r}")
+        after = float(t_hw)
+        if math.isnan(after):
+            raise ValueError("since: t_hw must be a number of hardware seconds, not nan")
+        with self._cond:
+            held = self._store[self._start : self._end, 0]
+            first = int(np.searchsorted(held, after, side="right"))
+            rows = self._store[self._start + first : self._end].copy()
+        yaw = _wrap(rows[:, 3])
+        return [
+            PoseSample(
+                float(r[0]), float(r[1]), float(r[2]), float(a), float(r[4]), float(r[5]), first + i
+            )
+            for i, (r, a) in enumerate(zip(rows, yaw, strict=True))
+        ]
+
     def wait_for(self, t_hw: float, timeout_hw: float | None = None) -> bool:
         """Wait until a sample stamped at or after ``t_hw`` is held (so every time up to
         ``t_hw`` is between two samples), at most ``timeout_hw`` hardware seconds; True if one

@@ -23,9 +23,10 @@ which :class:`~biris_hw.io.record.ReplayServer` plays up to its last complete ch
 :data:`FLUSH_S` of data, or a chunk, lost). ``close()`` returns within :data:`CLOSE_TIMEOUT_S`
 whatever the backlog, and an unclosed Recorder is closed when it is collected or at exit.
 
-On a moving robot (``poses=``, and ``grid=``) the recording also carries the vehicle's
-``/odom``, ``odom -> vehicle`` on ``/tf``, ``/biris/points`` in ``odom`` (each scan deskewed)
-and the certainty grid on ``/biris/grid``, made by a
+On a moving robot (``poses=``, and ``grid=``, ``proximity=``) the recording also carries the
+vehicle's ``/odom``, ``odom -> vehicle`` on ``/tf``, ``/biris/points`` in ``odom`` (each scan
+deskewed), the certainty grid on ``/biris/grid`` and the proximity alarm's answers on
+``/biris/proximity``, made by a
 :class:`~biris_hw.io.moving_sink.MovingEncoder` in the sink's thread; acquisitions without a
 pose are counted in the summary and the end record.
 """
@@ -51,7 +52,7 @@ from biris_hw._version import __version__
 from biris_hw.data import Scan
 from biris_hw.geometry import Frame, Mount
 from biris_hw.io import codec, feed
-from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed
+from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed, ProximityOption
 from biris_hw.io.record.mcapfile import CHUNK_SIZE, McapFile, RecordError
 from biris_hw.sensor import Sensor
 
@@ -164,6 +165,8 @@ class RecordSummary:
     """Completed scans none of whose acquisitions had a pose: no cloud on ``/biris/points``."""
     grid_messages: int = 0
     """Certainty grids written on ``/biris/grid``."""
+    proximity_messages: int = 0
+    """The proximity alarm's answers written on ``/biris/proximity``."""
 
     @property
     def dropped(self) -> int:
@@ -202,6 +205,8 @@ class RecordSummary:
                 )
             if self.grid_messages:
                 text += f", {self.grid_messages} certainty grids"
+            if self.proximity_messages:
+                text += f", {self.proximity_messages} proximity answers"
         if self.partial_scans:
             n = len(self.partial_scans)
             text += f"; {n} partial scan{'s' if n > 1 else ''}: " + ", ".join(self.partial_scans)
@@ -230,7 +235,8 @@ class _Writing:
         self.close_timeout_s = close_timeout_s
         self.log_times = log_times
         self.moving = moving
-        """Adds the vehicle's poses, the clouds in ``odom`` and the grid (``poses=``)."""
+        """Adds the vehicle's poses, the clouds in ``odom``, the grid and the proximity alarm
+        (``poses=``)."""
         self.sink: feed.Sink | None = None
         self.failed = threading.Event()
         """Set when the sink could not be attached; the sink's own afterwards."""
@@ -408,6 +414,7 @@ class _Writing:
             unplaced_points=0 if moving is None else moving.unplaced_points,
             unplaced_scans=0 if moving is None else moving.unplaced_scans,
             grid_messages=0 if moving is None else moving.grid_messages,
+            proximity_messages=0 if moving is None else moving.proximity_messages,
         )
         return self.summary
 
@@ -452,7 +459,11 @@ class Recorder:
     ``grid`` (a :class:`~biris_hw.io.grid.GridParams`, a
     :class:`~biris_hw.io.grid.CertaintyGrid` or a :class:`~biris_hw.io.grid.GridFeeder`; it
     needs ``poses``) adds the certainty grid on ``/biris/grid`` at a few Hz, fed with every
-    acquisition (:mod:`biris_hw.io.moving_sink`).
+    acquisition, and ``proximity`` (a :class:`~biris_hw.io.proximity.ProximityZone`, a
+    :class:`~biris_hw.io.proximity.ProximityAlarm` or a
+    :class:`~biris_hw.io.proximity.ProximityFeeder`; it needs ``poses``) the proximity alarm's
+    answers on ``/biris/proximity``, five a second of hardware time
+    (:mod:`biris_hw.io.moving_sink`).
     The recorder does not command the sensor: it records whatever is done meanwhile.
 
     A Recorder that is never closed is closed when it is collected, or at the latest when the
@@ -487,12 +498,17 @@ class Recorder:
         stamp: codec.Stamp = "hardware",
         poses: PoseFeed | None = None,
         grid: GridOption | None = None,
+        proximity: ProximityOption | None = None,
     ) -> None:
         codec.cloud_frame_id(frame)  # ValueError for a frame that is neither
         log_times = codec.LogTimes(stamp)  # ValueError for a stamp that is neither
         if grid is not None and poses is None:
             raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
-        moving = None if poses is None else MovingEncoder(poses, grid)
+        if proximity is not None and poses is None:
+            raise ValueError(
+                "proximity= needs poses=: the alarm places each acquisition with its pose"
+            )
+        moving = None if poses is None else MovingEncoder(poses, grid, proximity=proximity)
         if not (close_timeout_s > 0 and math.isfinite(close_timeout_s)):
             raise ValueError(f"close_timeout_s must be a positive number, not {close_timeout_s!r}")
         self.source = source
@@ -561,8 +577,9 @@ class Recorder:
 
     @property
     def moving(self) -> MovingEncoder | None:
-        """What adds the vehicle's poses, the clouds in ``odom`` and the grid (with ``poses=``):
-        its counts so far, and its grid (``recorder.moving.grid``)."""
+        """What adds the vehicle's poses, the clouds in ``odom``, the grid and the proximity
+        alarm (with ``poses=``): its counts so far, its grid and its alarm
+        (``recorder.moving.grid``, ``recorder.moving.alarm``)."""
         return self._writing.moving
 
     @property
