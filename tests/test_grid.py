@@ -21,6 +21,7 @@ from biris_hw.io.grid import (
     CertaintyGrid,
     GridFeeder,
     GridParams,
+    PoseWait,
     Rays,
     StandingPoses,
     crossed_cells,
@@ -296,6 +297,29 @@ def test_the_feeder_waits_for_the_pose_of_each_acquisition_then_places_or_counts
     assert feeder.add(points[3:]) == (0, 0) and feeder.pending == 1
     assert feeder.flush() == (0, 1) and grid.unplaced == 1
     assert feeder.due(0.0) and not feeder.due(0.4) and feeder.due(0.5)
+
+
+def test_the_pose_wait_hands_on_in_order_what_has_a_pose_or_waited_long_enough() -> None:
+    """The rule both feeders keep (grid.PoseWait): an acquisition is ready once a pose at or
+    after its time is held, or once it is wait_s behind the newest acquisition; flush hands on
+    everything; the newest pose time tells the caller which had a pose."""
+    scan = _scan(np.full((5, 64), 1500, dtype=np.int16), [0] * 5, [1.0, 1.2, 1.4, 1.8, 1.95])
+    points = _points(scan)
+    poses = PoseBuffer()
+    waiting = PoseWait(poses, wait_s=0.5)
+    assert waiting.take(points[:2]) == ([], -math.inf) and waiting.pending == 2
+    poses.extend(PoseSample(1.0 + 0.05 * k, 0.0, 0.0, 0.0, 0.0, 0.0, k) for k in range(5))  # ..1.2
+    ready, newest = waiting.take(points[2:3])
+    assert [p.t for p in ready] == [1.0, 1.2] and newest == pytest.approx(1.2)
+    ready, _ = waiting.take(points[3:4])  # 1.4 is 0.4 s behind 1.8: it waits on
+    assert ready == [] and waiting.pending == 2
+    ready, _ = waiting.take(points[4:])  # 1.4 is now 0.55 s behind 1.95: it waited long enough
+    assert [p.t for p in ready] == [1.4] and waiting.pending == 2
+    ready, newest = waiting.take((), flush=True)
+    assert [p.t for p in ready] == [1.8, 1.95] and waiting.pending == 0
+    assert newest == pytest.approx(1.2)  # neither had a pose: the caller counts them unplaced
+    with pytest.raises(ValueError, match="wait_s"):
+        PoseWait(poses, wait_s=math.nan)
 
 
 def test_live_acquisitions_build_the_grid_a_whole_scan_builds() -> None:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+import sim.rig as sim_rig
 from biris_hw.data import ConnectionKind, Direction, Scan
 from biris_hw.ipc import Mailbox
 from biris_hw.server import BirisServer
@@ -89,10 +90,14 @@ def test_another_seed_is_another_run() -> None:
     assert _differences(_session(seed=5)[:1], _session(seed=6)[:1]) != []
 
 
-def test_a_wait_nothing_will_end_fails_at_once_naming_the_waits() -> None:
+def test_a_wait_nothing_will_end_fails_at_once_naming_the_waits(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """The video fields are always due, so "nothing is due" never comes; a driver waiting with
     no deadline for what will never happen is a deadlock after the rig's runaway limit, which
-    takes seconds of CPU, not for ever."""
+    takes seconds of CPU, not for ever (here a limit of 60 hardware seconds, not the rig's 600:
+    the same rule, a tenth of the CPU)."""
+    monkeypatch.setattr(sim_rig, "RUNAWAY_HW_S", 60.0)
     rig = SimulatedBiris(scene=Scene.circle(2.0), time_scale=30.0, seed=3, clock="virtual")
     with rig.start():
         nobody = Mailbox("nobody", timebase=rig.timebase)

@@ -74,6 +74,7 @@ __all__ = [
     "GridParams",
     "GridSource",
     "Placed",
+    "PoseWait",
     "Rays",
     "StandingPoses",
     "crossed_cells",
@@ -709,6 +710,49 @@ class _PoseSpan(Protocol):
     def span(self) -> tuple[float, float] | None: ...
 
 
+class PoseWait:
+    """Live acquisitions waiting for the vehicle's pose at their time: the rule of every feeder
+    (:class:`GridFeeder`, :class:`~biris_hw.io.proximity.ProximityFeeder`).
+
+    A live acquisition often arrives before the pose of its time (a base publishes at 50 Hz,
+    BIRIS at 30 Hz): it waits, up to ``wait_s`` hardware seconds behind the newest
+    acquisition, until ``poses`` holds a sample at or after its time. Then it is ready: placed
+    with its pose, or, if the pose is still unknown (a gap in the stream), left to the feeder to
+    count as unplaced.
+    """
+
+    def __init__(self, poses: _PoseSpan, wait_s: float = 0.5) -> None:
+        if not (math.isfinite(wait_s) and wait_s >= 0.0):
+            raise ValueError(f"wait_s must be a number of seconds >= 0, not {wait_s!r}")
+        self.poses = poses
+        self.wait_s = float(wait_s)
+        self._pending: list[Point] = []
+
+    @property
+    def pending(self) -> int:
+        """Acquisitions waiting for the pose of their time."""
+        return len(self._pending)
+
+    def take(self, points: Iterable[Point], *, flush: bool = False) -> tuple[list[Point], float]:
+        """Take ``points`` in; the waiting acquisitions that are ready now (all of them with
+        ``flush``: the end of a stream), oldest first as they came, and the newest pose time
+        held (-inf: none), by which the caller tells a placed one from an unplaced one."""
+        self._pending.extend(points)
+        span = self.poses.span() if self._pending else None
+        newest_pose = -math.inf if span is None else span[1]
+        if flush:
+            ready, self._pending = self._pending, []
+            return ready, newest_pose
+        if not self._pending:
+            return [], newest_pose
+        given_up = max(p.t for p in self._pending) - self.wait_s
+        done = [p.t <= newest_pose or p.t < given_up for p in self._pending]
+        ready = [p for p, d in zip(self._pending, done, strict=True) if d]
+        if ready:
+            self._pending = [p for p, d in zip(self._pending, done, strict=True) if not d]
+        return ready, newest_pose
+
+
 class GridFeeder:
     """Feeds a :class:`CertaintyGrid` the acquisitions of a live stream, as a feed's sink does.
 
@@ -729,8 +773,7 @@ class GridFeeder:
         wait_s: float = 0.5,
         rate_hz: float = 2.0,
     ) -> None:
-        if not (math.isfinite(wait_s) and wait_s >= 0.0):
-            raise ValueError(f"wait_s must be a number of seconds >= 0, not {wait_s!r}")
+        waiting = PoseWait(poses, wait_s)
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"rate_hz must be positive, not {rate_hz!r}")
         if source not in GRID_SOURCES:
@@ -738,34 +781,26 @@ class GridFeeder:
         self.grid = grid
         self.poses = poses
         self.source: GridSource = source
-        self.wait_s = float(wait_s)
+        self.wait_s = waiting.wait_s
         self.period_s = 1.0 / float(rate_hz)
-        self._pending: list[Point] = []
+        self._waiting = waiting
         self._next = -math.inf
 
     @property
     def pending(self) -> int:
         """Acquisitions waiting for the pose of their time."""
-        return len(self._pending)
+        return self._waiting.pending
 
     def add(self, points: Iterable[Point]) -> Placed:
         """Take acquisitions in; place every waiting one whose pose can be known now."""
-        self._pending.extend(points)
-        if not self._pending:
-            return Placed(0, 0)
-        span = self.poses.span()
-        newest_pose = -math.inf if span is None else span[1]
-        newest = max(p.t for p in self._pending)
-        settled = [p.t <= newest_pose or p.t < newest - self.wait_s for p in self._pending]
-        ready = [p for p, done in zip(self._pending, settled, strict=True) if done]
+        ready, _ = self._waiting.take(points)
         if not ready:
             return Placed(0, 0)
-        self._pending = [p for p, done in zip(self._pending, settled, strict=True) if not done]
         return self.grid.add_points(ready, self.poses, source=self.source)
 
     def flush(self) -> Placed:
         """Place whatever waits, as it stands (at the end of a stream)."""
-        ready, self._pending = self._pending, []
+        ready, _ = self._waiting.take((), flush=True)
         return self.grid.add_points(ready, self.poses, source=self.source)
 
     def due(self, t: float) -> bool:

@@ -48,7 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 from biris_hw.data import Point, PoseLookup, Scan, VehiclePoses
 from biris_hw.geometry import Mount
 from biris_hw.io import codec
-from biris_hw.io.grid import GridParams, Placed, profile_rays
+from biris_hw.io.grid import GridParams, Placed, PoseWait, profile_rays
 
 __all__ = [
     "DEFAULT_ZONE",
@@ -337,8 +337,8 @@ class ProximityFeeder:
     """Feeds a :class:`ProximityAlarm` the acquisitions of a live stream and says when and where
     to ask it, as a feed's sink does.
 
-    The acquisitions wait for their poses by the rule of :class:`~biris_hw.io.grid.GridFeeder`
-    (a base publishes at 50 Hz, BIRIS at 30 Hz): each until ``poses`` holds a sample at or after
+    The acquisitions wait for their poses as the grid's do (:class:`~biris_hw.io.grid.PoseWait`:
+    a base publishes at 50 Hz, BIRIS at 30 Hz): each until ``poses`` holds a sample at or after
     its time, or until it is ``wait_s`` hardware seconds behind the newest acquisition, when it
     is put in anyway and counted as unplaced if its pose is still unknown.
 
@@ -360,17 +360,16 @@ class ProximityFeeder:
     ) -> None:
         if not isinstance(alarm, ProximityAlarm):
             raise TypeError(f"alarm must be a ProximityAlarm, not {type(alarm).__name__}")
-        if not (math.isfinite(wait_s) and wait_s >= 0.0):
-            raise ValueError(f"wait_s must be a number of seconds >= 0, not {wait_s!r}")
+        waiting = PoseWait(poses, wait_s)
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"rate_hz must be positive, not {rate_hz!r}")
         self.alarm = alarm
         self.poses = poses
-        self.wait_s = float(wait_s)
+        self.wait_s = waiting.wait_s
         self.period_s = 1.0 / float(rate_hz)
         self.known_t = -math.inf
         """The newest acquisition taken in whose pose was known (-inf: none yet)."""
-        self._pending: list[Point] = []
+        self._waiting = waiting
         self._known: list[float] = []
         """The times of the acquisitions taken in with a known pose since :meth:`due`."""
         self._next = -math.inf
@@ -378,29 +377,20 @@ class ProximityFeeder:
     @property
     def pending(self) -> int:
         """Acquisitions waiting for the pose of their time."""
-        return len(self._pending)
+        return self._waiting.pending
 
     def add(self, points: Iterable[Point]) -> Placed:
         """Take acquisitions in; feed the alarm every waiting one whose pose can be known now."""
-        self._pending.extend(points)
-        if not self._pending:
-            return Placed(0, 0)
-        return self._feed(max(p.t for p in self._pending) - self.wait_s)
+        return self._feed(*self._waiting.take(points))
 
     def flush(self) -> Placed:
         """Feed the alarm whatever waits, as it stands (at the end of a stream)."""
-        return self._feed(math.inf)
+        return self._feed(*self._waiting.take((), flush=True))
 
-    def _feed(self, given_up: float) -> Placed:
-        """Feed the waiting acquisitions whose pose is known, and those older than
-        ``given_up``."""
-        span = self.poses.span()
-        newest_pose = -math.inf if span is None else span[1]
-        done = [p.t <= newest_pose or p.t < given_up for p in self._pending]
-        ready = [p for p, d in zip(self._pending, done, strict=True) if d]
+    def _feed(self, ready: list[Point], newest_pose: float) -> Placed:
+        """Feed the alarm the acquisitions ready; those up to ``newest_pose`` had a pose."""
         if not ready:
             return Placed(0, 0)
-        self._pending = [p for p, d in zip(self._pending, done, strict=True) if not d]
         known = [p.t for p in ready if p.t <= newest_pose]
         if known:
             self.known_t = max(self.known_t, *known)
