@@ -87,7 +87,13 @@ from biris_hw.data import ConnectionKind
 from biris_hw.errors import BirisError, ConnectionClosed, HardwareFault
 from biris_hw.geometry import Frame, Mount
 from biris_hw.io import codec, feed
-from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed, ProximityOption
+from biris_hw.io.moving_sink import (
+    GridOption,
+    MovingEncoder,
+    PoseFeed,
+    ProximityOption,
+    moving_encoder,
+)
 from biris_hw.sensor import Sensor
 from biris_hw.status import ServerStatus
 
@@ -392,15 +398,7 @@ class LiveView:
         proximity: ProximityOption | None = None,
     ) -> None:
         codec.cloud_frame_id(frame)
-        if grid is not None and poses is None:
-            raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
-        if proximity is not None and poses is None:
-            raise ValueError(
-                "proximity= needs poses=: the alarm places each acquisition with its pose"
-            )
-        self.moving: MovingEncoder | None = (
-            None if poses is None else MovingEncoder(poses, grid, proximity=proximity)
-        )
+        self.moving: MovingEncoder | None = moving_encoder(poses, grid, proximity)
         """What adds the vehicle's poses, the clouds in ``odom``, the grid and the proximity
         alarm (``poses=``)."""
         self.source = source

@@ -70,6 +70,7 @@ __all__ = [
     "PoseFeed",
     "ProximityOption",
     "RecordedPoses",
+    "moving_encoder",
 ]
 
 POSE_POLL_S = 0.5
@@ -138,6 +139,26 @@ class RecordedPoses:
     def since(self, t_hw: float, /) -> list[PoseSample]:
         """The samples stamped after ``t_hw``, oldest first."""
         return self._samples[bisect.bisect_right(self._times, t_hw) :]
+
+
+def moving_encoder(
+    poses: PoseFeed | None,
+    grid: GridOption | None = None,
+    proximity: ProximityOption | None = None,
+) -> MovingEncoder | None:
+    """What a sink's ``poses=``, ``grid=`` and ``proximity=`` make: a :class:`MovingEncoder`, or
+    None without poses. The recorder, the live view and the service take these options alike.
+
+    Raises:
+        ValueError: ``grid`` or ``proximity`` without ``poses`` (each places every acquisition
+            with its pose).
+        TypeError: as :class:`MovingEncoder`.
+    """
+    if grid is not None and poses is None:
+        raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
+    if proximity is not None and poses is None:
+        raise ValueError("proximity= needs poses=: the alarm places each acquisition with its pose")
+    return None if poses is None else MovingEncoder(poses, grid, proximity=proximity)
 
 
 def _feeder(grid: GridOption, poses: PoseFeed) -> GridFeeder:

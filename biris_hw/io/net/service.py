@@ -91,7 +91,13 @@ from biris_hw.errors import (
     RequestError,
 )
 from biris_hw.io import codec, feed
-from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed, ProximityOption
+from biris_hw.io.moving_sink import (
+    GridOption,
+    MovingEncoder,
+    PoseFeed,
+    ProximityOption,
+    moving_encoder,
+)
 from biris_hw.io.net.keys import (
     BLOCKING_OPS,
     CONTROL_OPS,
@@ -474,15 +480,7 @@ class Service:
         proximity: ProximityOption | None = None,
     ) -> None:
         self.server = server
-        if grid is not None and poses is None:
-            raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
-        if proximity is not None and poses is None:
-            raise ValueError(
-                "proximity= needs poses=: the alarm places each acquisition with its pose"
-            )
-        self.moving: MovingEncoder | None = (
-            None if poses is None else MovingEncoder(poses, grid, proximity=proximity)
-        )
+        self.moving: MovingEncoder | None = moving_encoder(poses, grid, proximity)
         """With ``poses``: what makes the vehicle's odometry, the deskewed clouds, the grid and
         the proximity alarm's answers, published from a sink of their own
         (:meth:`_publish_moving`); its counts, its grid and its alarm (``service.moving.grid``,

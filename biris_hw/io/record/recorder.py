@@ -52,7 +52,13 @@ from biris_hw._version import __version__
 from biris_hw.data import Scan
 from biris_hw.geometry import Frame, Mount
 from biris_hw.io import codec, feed
-from biris_hw.io.moving_sink import GridOption, MovingEncoder, PoseFeed, ProximityOption
+from biris_hw.io.moving_sink import (
+    GridOption,
+    MovingEncoder,
+    PoseFeed,
+    ProximityOption,
+    moving_encoder,
+)
 from biris_hw.io.record.mcapfile import CHUNK_SIZE, McapFile, RecordError
 from biris_hw.sensor import Sensor
 
@@ -502,13 +508,7 @@ class Recorder:
     ) -> None:
         codec.cloud_frame_id(frame)  # ValueError for a frame that is neither
         log_times = codec.LogTimes(stamp)  # ValueError for a stamp that is neither
-        if grid is not None and poses is None:
-            raise ValueError("grid= needs poses=: the grid places each acquisition with its pose")
-        if proximity is not None and poses is None:
-            raise ValueError(
-                "proximity= needs poses=: the alarm places each acquisition with its pose"
-            )
-        moving = None if poses is None else MovingEncoder(poses, grid, proximity=proximity)
+        moving = moving_encoder(poses, grid, proximity)
         if not (close_timeout_s > 0 and math.isfinite(close_timeout_s)):
             raise ValueError(f"close_timeout_s must be a positive number, not {close_timeout_s!r}")
         self.source = source
