@@ -122,17 +122,21 @@ class RemoteHardware(BirisHardware):
         what = f"simulator {name!r}"
         lost = link.broken or "connection lost (the simulator went away)"
         link.drop_connection()  # a simulator still running (hung) sees this driver go
-        try:
-            sock = _connect(path, name, self.link_timeout)
-        except BusError as exc:
-            raise BusError(
-                f"{what} is still gone ({lost}): {exc}; once it runs again, reset",
-                exc.errno or errno.ENOENT,
-            ) from None
         fds: list[int] = []
         with contextlib.ExitStack() as undo:
-            undo.callback(sock.close)
-            raw, fds = _receive(sock, path, self.link_timeout)
+            try:
+                sock = _connect(path, name, self.link_timeout)
+                undo.callback(sock.close)
+                # a process being killed may still accept on its socket, then drop the
+                # connection before its handshake: that simulator is gone as well
+                raw, fds = _receive(sock, path, self.link_timeout)
+            except BusError as exc:
+                if exc.errno == errno.EPROTO:
+                    raise
+                raise BusError(
+                    f"{what} is still gone ({lost}): {exc}; once it runs again, reset",
+                    exc.errno or errno.ENOENT,
+                ) from None
             undo.callback(_close_fds, fds)
             hello = Handshake.decode(raw)
             _check(hello, name, path, len(fds))

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import pathlib
 import select
 import signal
 import socket
@@ -25,9 +26,11 @@ import subprocess
 import sys
 import threading
 import time
+import types
 import uuid
 from collections.abc import Callable, Iterator
 from multiprocessing import resource_tracker
+from typing import Any, cast
 
 import pytest
 
@@ -38,7 +41,7 @@ from biris_hw.errors import BusError, HardwareFault
 from biris_hw.irq import EventFdLine
 from biris_hw.server import BirisServer
 from biris_hw.server.isr import Level3Demux, Logical
-from biris_hw.simlink import LinkedLine, attach
+from biris_hw.simlink import LinkedLine, RemoteHardware, attach
 from regs.tech80 import MOTION_WINDOW_SIZE, AxisBit, BoardReg
 from sim.rig import SimulatedBiris
 from tests.conftest import WAIT, until
@@ -163,6 +166,47 @@ def test_a_linked_line_turns_the_simulators_hang_up_into_a_bus_error(
     poller = select.poll()
     poller.register(line.fileno(), select.POLLIN)
     assert poller.poll(0), "a thread polling the line's descriptor is woken by the end too"
+
+
+class _LostLink:
+    """What a reconnection reads of a link that broke: why, and a way to let it go."""
+
+    broken = "connection lost (the simulator went away)"
+
+    def drop_connection(self) -> None:
+        """Nothing to drop: the old connection is already gone."""
+
+
+def test_a_simulator_dying_while_it_accepts_is_still_gone(
+    no_leaks: None, tmp_path: pathlib.Path
+) -> None:
+    """A killed ``biris sim`` can still accept a connection on its socket and then drop it
+    before its handshake (the CI run under load of 2026-11-28 met it): the reset says the
+    simulator is still gone and why it was lost, as when nothing listens at all."""
+    path = str(tmp_path / "dying.sock")
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    listener.bind(path)
+    listener.listen(1)
+
+    def accept_and_die() -> None:
+        conn, _ = listener.accept()
+        conn.close()
+
+    dying = threading.Thread(target=accept_and_die)
+    dying.start()
+    bundle = types.SimpleNamespace(name="dying", socket_path=path, link_timeout=WAIT)
+    try:
+        with pytest.raises(BusError) as gone:
+            RemoteHardware._reconnect(cast(Any, bundle), cast(Any, _LostLink()), cast(Any, None))
+    finally:
+        dying.join(WAIT)
+        listener.close()
+    assert "still gone" in str(gone.value) and "connection lost" in str(gone.value)
+    assert gone.value.errno == errno.ECONNRESET
+    listener_gone = str(tmp_path / "nobody.sock")
+    bundle.socket_path = listener_gone
+    with pytest.raises(BusError, match=r"still gone \(connection lost"):
+        RemoteHardware._reconnect(cast(Any, bundle), cast(Any, _LostLink()), cast(Any, None))
 
 
 # -- end to end ------------------------------------------------------------------------------------
