@@ -35,6 +35,7 @@ from biris_hw.angles import clamp_counts
 from biris_hw.axes.base import (
     SETTLE_HOLD_S,
     SETTLE_LIMIT_S,
+    SETTLE_POLL_S,
     AxisSet,
     MotionAxis,
     MotionController,
@@ -589,7 +590,7 @@ class AxisDriver:
         self,
         stop: StopEvent,
         limit_s: float = SETTLE_LIMIT_S,
-        sample_s: float = 0.0015,
+        sample_s: float = SETTLE_POLL_S,
     ) -> bool:
         """Poll until the actual position equals the command position and holds there
         (:func:`biris_hw.axes.base.wait_settled`: held for at least 3 polls and SETTLE_HOLD_S

@@ -185,6 +185,8 @@ def busy_host() -> Iterator[None]:
         yield
 
 
+@pytest.mark.slow  # its three processes take two cores from the fast tier's other workers;
+# make test-under-load runs the whole fast tier beside three
 def test_scans_on_a_busy_host_are_whole_or_marked_and_fault_free(
     make_rig: RigFactory, busy_host: None
 ) -> None:

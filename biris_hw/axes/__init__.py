@@ -10,6 +10,7 @@ from __future__ import annotations
 from biris_hw.axes.base import (
     SETTLE_HOLD_S,
     SETTLE_LIMIT_S,
+    SETTLE_POLL_S,
     MotionAxis,
     MotionController,
     wait_settled,
@@ -19,6 +20,7 @@ from biris_hw.axes.base import (
 __all__ = [
     "SETTLE_HOLD_S",
     "SETTLE_LIMIT_S",
+    "SETTLE_POLL_S",
     "MotionAxis",
     "MotionController",
     "wait_settled",

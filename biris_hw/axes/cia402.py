@@ -145,6 +145,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from biris_hw.angles import clamp_counts
 from biris_hw.axes.base import (
     SETTLE_LIMIT_S,
+    SETTLE_POLL_S,
     AxisSet,
     MotionAxis,
     MotionController,
@@ -1610,7 +1611,7 @@ class Cia402Axis:
         self,
         stop: StopEvent,
         limit_s: float = SETTLE_LIMIT_S,
-        sample_s: float = 0.0015,
+        sample_s: float = SETTLE_POLL_S,
     ) -> bool:
         """:func:`biris_hw.axes.base.wait_settled` on 0x6064 against 0x6062 (the HCTL rule),
         only while the drive is OPERATION ENABLED (a faulted drive's demand follows the head);
