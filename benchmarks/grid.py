@@ -34,7 +34,7 @@ import numpy as np
 
 from benchmarks.harness import BenchContext, Figure, Target, benchmark, summarise
 from biris_hw import BirisServer
-from biris_hw.data import Direction, Point, Scan
+from biris_hw.data import Direction, Scan
 from biris_hw.io.grid import CertaintyGrid, GridParams, GridSource
 from biris_hw.io.pose import PoseBuffer
 from biris_hw.opening import open_poses
@@ -122,24 +122,6 @@ def drive_and_map(
     return DriveMap(where, path, scans, grids, poses, unplaced)
 
 
-def _points_of(scan: Scan) -> list[Point]:
-    """The scan's acquisitions as the points a live feed hands over."""
-    return [
-        Point(
-            azimuth=int(scan.azimuth[k]),
-            range_mm=int(scan.closest_mm[k]),
-            profile=scan.range_mm[k],
-            intensity=scan.intensity[k],
-            t=float(scan.t[k]),
-            acq=k,
-            scan_seq=scan.seq,
-            elevation=int(scan.elevation),
-            mount=scan.mount,
-        )
-        for k in range(scan.n_acq)
-    ]
-
-
 def update_costs(scans: Sequence[Scan], poses: PoseBuffer, rounds: int) -> dict[str, list[float]]:
     """Wall times (us per acquisition), over ``rounds`` passes through ``scans``, each into
     fresh grids: ``point``, one live acquisition at a time (``add_point``); ``pair``, two at a
@@ -147,7 +129,7 @@ def update_costs(scans: Sequence[Scan], poses: PoseBuffer, rounds: int) -> dict[
     at once (``add_scan``); and ``lookup``, the pose lookup alone (``poses.poses_at([t])``,
     part of every update), for scale."""
     costs: dict[str, list[float]] = {"point": [], "pair": [], "scan": [], "lookup": []}
-    points = [_points_of(s) for s in scans]
+    points = [s.as_points() for s in scans]
     clock = time.perf_counter_ns
     for _ in range(rounds):
         live, pairs, whole = CertaintyGrid(), CertaintyGrid(), CertaintyGrid()

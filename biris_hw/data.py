@@ -264,6 +264,28 @@ class Scan:
         grid = project_profiles(self.range_mm, self.azimuth, self.elevation, "vehicle", self.mount)
         return np.ascontiguousarray(placed.to_odom(grid)[self.range_mm > 0])
 
+    def as_points(self) -> list[Point]:
+        """The scan's acquisitions as the :class:`Point` s an ``EVERY_ACQUISITION`` connection
+        hands over, in order (``t_delivered`` None: a scan does not say when each was), to give a
+        recording's scans to what takes acquisitions (``add_points`` of a
+        :class:`~biris_hw.io.grid.CertaintyGrid` or a :class:`~biris_hw.io.proximity.
+        ProximityAlarm`). Each point's arrays are views of this scan's rows."""
+        return [
+            Point(
+                azimuth=int(self.azimuth[k]),
+                range_mm=int(self.closest_mm[k]),
+                profile=self.range_mm[k],
+                intensity=self.intensity[k],
+                t=float(self.t[k]),
+                acq=k,
+                scan_seq=self.seq,
+                elevation=self.elevation,
+                mount=self.mount,
+                acquisition=self.acquisition,
+            )
+            for k in range(self.n_acq)
+        ]
+
     @property
     def ages(self) -> NDArray[np.float64] | None:
         """Per acquisition, how old it was when the scan was delivered (hardware seconds)."""

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from biris_hw import ConnectionKind, Direction, Point, Scan
+from biris_hw.geometry import Mount
 
 
 def make_scan(n_acq: int = 4, samples: int = 64, **changes: Any) -> Scan:
@@ -94,6 +95,36 @@ def test_azimuth_deg() -> None:
     scan = make_scan(azimuth=np.array([0, 512, 1024, -2048], dtype=np.int32))
     np.testing.assert_allclose(scan.azimuth_deg, [0.0, 45.0, 90.0, -180.0])
     assert scan.azimuth_deg.dtype == np.float64
+
+
+def test_a_scan_as_points_is_what_every_acquisition_hands_over() -> None:
+    """Each row becomes the Point an EVERY_ACQUISITION connection gives, with the scan's own
+    numbers (sequence, elevation, mount, mode); the points place their returns where the scan
+    does."""
+    mount = Mount(offset_m=(0.1, 0.0, 0.2), head_offset_m=0.05)
+    closest = np.array([1200, 0, 900, 1500], dtype=np.int16)
+    ranges = np.full((4, 64), 1500, dtype=np.int16)
+    ranges[1] = 0  # no return at all
+    ranges[2, ::2] = 0
+    scan = make_scan(
+        closest_mm=closest,
+        range_mm=ranges,
+        elevation=-128,
+        mount=mount,
+        acquisition="continuous",
+        t_delivered=9.0,
+    )
+    points = scan.as_points()
+    assert [p.acq for p in points] == [0, 1, 2, 3]
+    for k, point in enumerate(points):
+        assert point.azimuth == int(scan.azimuth[k]) and point.range_mm == int(closest[k])
+        assert point.t == float(scan.t[k]) and point.t_delivered is None
+        assert (point.scan_seq, point.elevation) == (3, -128)
+        assert point.mount is mount and point.acquisition == "continuous"
+        assert np.array_equal(point.profile, ranges[k])
+        assert np.array_equal(point.intensity, scan.intensity[k])
+    np.testing.assert_allclose(np.vstack([p.points() for p in points]), scan.points())
+    assert make_scan(n_acq=0).as_points() == []
 
 
 def test_empty_scan() -> None:

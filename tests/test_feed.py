@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import json
-import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -24,7 +22,9 @@ from biris_hw.errors import ConnectionClosed, HardwareFault
 from biris_hw.io import codec, feed
 from biris_hw.status import ServerState
 from sim import SimulatedBiris
+from tests import foxglove_client as fox
 from tests.conftest import idle_status, join, spawn, until
+from tests.foxglove_client import SUBPROTOCOL
 from tests.test_record_support import points_of, read_decoded, synthetic_scans
 
 WAIT = 10.0
@@ -448,7 +448,6 @@ def _runtimes() -> None:
     foxglove.start_server(port=0, context=foxglove.Context()).stop()
 
 
-SUBPROTOCOL = "foxglove.sdk.v1"
 VIEWED = ("/diagnostics", codec.TF_TOPIC, codec.PROFILE_TOPIC, codec.POINTS_TOPIC)
 
 
@@ -459,18 +458,11 @@ def _view_client(port: int) -> Iterator[tuple[str, bytes]]:
     from websockets.sync.client import connect
 
     with connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_queue=None) as ws:  # type: ignore[list-item]
-        channels: dict[str, dict[str, Any]] = {}
-        while len(channels) < len(codec.TOPICS):
-            for channel in json.loads(ws.recv(timeout=WAIT)).get("channels", []):
-                channels[channel["topic"]] = channel
-        ids = {channels[t]["id"]: t for t in VIEWED}
-        subscriptions = [{"id": i, "channelId": i} for i in ids]
-        ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+        channels = fox.advertised(ws, len(codec.TOPICS))
+        subs = fox.subscribe(ws, [channels[t] for t in VIEWED])
         try:
-            while True:
-                frame = ws.recv(timeout=WAIT)
-                if isinstance(frame, bytes) and frame[0] == 1:
-                    yield ids[struct.unpack_from("<I", frame, 1)[0]], frame[13:]
+            for channel, _, payload in fox.frames(ws, subs):
+                yield channel["topic"], payload
         except SocketClosed:
             return
 

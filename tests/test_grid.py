@@ -14,7 +14,7 @@ import pytest
 from numpy.typing import ArrayLike
 
 from benchmarks.grid import DriveMap, drive_and_map
-from biris_hw.data import Direction, Point, PoseSample, Scan, VehiclePoses
+from biris_hw.data import Direction, PoseSample, Scan, VehiclePoses
 from biris_hw.geometry import Mount, project_profiles
 from biris_hw.io import codec
 from biris_hw.io.grid import (
@@ -267,26 +267,10 @@ def test_the_closest_range_is_the_report_s_2d_data() -> None:
         grid.add_scan(scan, StandingPoses(), source="sideways")  # type: ignore[arg-type]
 
 
-def _points(scan: Scan) -> list[Point]:
-    return [
-        Point(
-            azimuth=int(scan.azimuth[k]),
-            range_mm=int(scan.closest_mm[k]),
-            profile=scan.range_mm[k],
-            intensity=scan.intensity[k],
-            t=float(scan.t[k]),
-            acq=k,
-            scan_seq=scan.seq,
-            mount=scan.mount,
-        )
-        for k in range(scan.n_acq)
-    ]
-
-
 def test_the_feeder_waits_for_the_pose_of_each_acquisition_then_places_or_counts_it() -> None:
     r = np.full((4, 64), 1500, dtype=np.int16)
     scan = _scan(r, [0, 40, 80, 120], [1.0, 1.0 + 1 / 30, 1.0 + 2 / 30, 3.0])
-    points = _points(scan)
+    points = scan.as_points()
     poses = PoseBuffer()
     grid = CertaintyGrid()
     feeder = GridFeeder(grid, poses, wait_s=0.5, rate_hz=2.0)
@@ -304,7 +288,7 @@ def test_the_pose_wait_hands_on_in_order_what_has_a_pose_or_waited_long_enough()
     after its time is held, or once it is wait_s behind the newest acquisition; flush hands on
     everything; the newest pose time tells the caller which had a pose."""
     scan = _scan(np.full((5, 64), 1500, dtype=np.int16), [0] * 5, [1.0, 1.2, 1.4, 1.8, 1.95])
-    points = _points(scan)
+    points = scan.as_points()
     poses = PoseBuffer()
     waiting = PoseWait(poses, wait_s=0.5)
     assert waiting.take(points[:2]) == ([], -math.inf) and waiting.pending == 2
@@ -336,7 +320,7 @@ def test_live_acquisitions_build_the_grid_a_whole_scan_builds() -> None:
     wide = GridParams(clamp=(0.001, 0.999))  # no clamping: the sums must agree exactly
     whole, live = CertaintyGrid(wide), CertaintyGrid(wide)
     whole.add_scan(scan, poses)
-    for point in _points(scan):
+    for point in scan.as_points():
         live.add_point(point, poses)
     assert np.allclose(whole.log_odds(), live.log_odds())
     assert np.count_nonzero(whole.occupied()) > 40

@@ -10,7 +10,6 @@ import argparse
 import gc
 import io
 import json
-import struct
 import subprocess
 import sys
 import threading
@@ -36,7 +35,9 @@ from biris_hw.io.liveview import FAULT_POLL_S, LiveView
 from biris_hw.io.record.replay import ReplayServer
 from biris_hw.status import ServerState
 from sim import SimulatedBiris
+from tests import foxglove_client as fox
 from tests.conftest import until
+from tests.foxglove_client import SUBPROTOCOL
 from tests.test_cli import SIM as CLI_SIM
 from tests.test_record_support import cloud_xyz, synthetic_scans, write_raw
 
@@ -44,7 +45,6 @@ from tests.test_record_support import cloud_xyz, synthetic_scans, write_raw
 pytestmark = pytest.mark.realtime
 
 STANDARD = get_typestore(Stores.ROS2_HUMBLE)
-SUBPROTOCOL = "foxglove.sdk.v1"  # foxglove-sdk 0.30's name for foxglove.websocket.v1
 WAIT = 10.0
 
 
@@ -57,24 +57,13 @@ def _foxglove_runtime() -> None:
     foxglove.start_server(port=0, context=foxglove.Context()).stop()
 
 
-def _advertised(ws: Any) -> dict[str, dict[str, Any]]:
-    info = json.loads(ws.recv(timeout=WAIT))
-    assert info["op"] == "serverInfo"
-    channels: dict[str, dict[str, Any]] = {}
-    while len(channels) < len(ros2.TOPICS):
-        message = json.loads(ws.recv(timeout=WAIT))
-        for channel in message.get("channels", []):
-            channels[channel["topic"]] = channel
-    return channels
-
-
 def test_live_view_advertises_and_delivers_decodable_messages(tmp_path: Path) -> None:
     scans = synthetic_scans(4, n_acq=80, samples=32)  # more acquisitions than one batch takes
     path = write_raw(tmp_path / "run.mcap", scans)
     replay = ReplayServer(path, speed=None, autostart=False)
     view = LiveView(replay, port=0, status_period_s=0.05, sweep_period_s=0.0)
     with replay, view, connect(f"ws://127.0.0.1:{view.port}", subprotocols=[SUBPROTOCOL]) as ws:
-        channels = _advertised(ws)
+        channels = fox.advertised(ws, len(ros2.TOPICS))
         assert set(channels) == set(ros2.TOPICS)
         for topic, channel in channels.items():
             assert channel["encoding"] == "cdr"
@@ -82,15 +71,7 @@ def test_live_view_advertises_and_delivers_decodable_messages(tmp_path: Path) ->
             assert channel["schemaEncoding"] == "ros2msg"
             text = STANDARD.generate_msgdef(channel["schemaName"], ros_version=2)[0]
             assert channel["schema"] == text
-        subs = dict(enumerate(channels.values()))
-        ws.send(
-            json.dumps(
-                {
-                    "op": "subscribe",
-                    "subscriptions": [{"id": i, "channelId": c["id"]} for i, c in subs.items()],
-                }
-            )
-        )
+        stream = fox.messages(ws, fox.subscribe(ws, channels.values()), STANDARD)
         acquisitions = sum(s.n_acq for s in scans)
         want = {"/biris/points": len(scans), "/biris/profile": acquisitions, "/tf": acquisitions}
         swept = sum(int((s.range_mm > 0).sum()) for s in scans)
@@ -104,13 +85,8 @@ def test_live_view_advertises_and_delivers_decodable_messages(tmp_path: Path) ->
             if not started and view.published.get("/diagnostics"):
                 replay.start()  # the subscriptions are in place
                 started = True
-            frame = ws.recv(timeout=WAIT)
-            if not isinstance(frame, bytes) or frame[0] != 1:
-                continue
-            sub, _log_time = struct.unpack_from("<IQ", frame, 1)
-            channel = subs[sub]
-            message = STANDARD.deserialize_cdr(frame[13:], channel["schemaName"])
-            got.setdefault(channel["topic"], []).append(message)
+            topic, message, _ = next(stream)
+            got.setdefault(topic, []).append(message)
     for scan, cloud in zip(scans, got["/biris/points"], strict=False):
         np.testing.assert_allclose(cloud_xyz(cloud), scan.points(), atol=1e-5)
     # /biris/sweep: each message the acquisitions since the previous one, every point sent once
@@ -137,21 +113,15 @@ def test_the_layout_keeps_the_sweep_pieces_long_enough_to_show_a_sweep() -> None
 
 def _subscribe(ws: Any, topics: list[str]) -> dict[int, dict[str, Any]]:
     """Subscribe to ``topics``; the subscriptions by id (the channel's)."""
-    channels = {c["topic"]: c for c in _advertised(ws).values()}
-    subs = {channels[t]["id"]: channels[t] for t in topics}
-    ws.send(
-        json.dumps({"op": "subscribe", "subscriptions": [{"id": i, "channelId": i} for i in subs]})
-    )
-    return subs
+    channels = fox.advertised(ws, len(ros2.TOPICS))
+    return fox.subscribe(ws, [channels[t] for t in topics])
 
 
 def _messages(ws: Any, subs: dict[int, dict[str, Any]]) -> Iterator[tuple[str, Any]]:
-    """(topic, decoded message) for every message the server sends, for as long as asked."""
-    while True:
-        frame = ws.recv(timeout=WAIT)  # TimeoutError if the view went quiet
-        if isinstance(frame, bytes) and frame[0] == 1:
-            channel = subs[struct.unpack_from("<I", frame, 1)[0]]
-            yield channel["topic"], STANDARD.deserialize_cdr(frame[13:], channel["schemaName"])
+    """(topic, decoded message) for every message the server sends, for as long as asked (a
+    TimeoutError if the view went quiet)."""
+    for topic, message, _ in fox.messages(ws, subs, STANDARD):
+        yield topic, message
 
 
 def _stamp(message: Any) -> float:
@@ -440,12 +410,9 @@ def test_the_live_view_logs_on_the_wall_clock_and_keeps_hardware_stamps(tmp_path
         replay.start()
         offsets = set()
         received = 0
+        stream = fox.messages(ws, subs, STANDARD)
         while received < 20:  # profiles of both scans' acquisitions
-            frame = ws.recv(timeout=WAIT)
-            if not (isinstance(frame, bytes) and frame[0] == 1):
-                continue
-            sub, log_time = struct.unpack_from("<IQ", frame, 1)
-            message = STANDARD.deserialize_cdr(frame[13:], subs[sub]["schemaName"])
+            _, message, log_time = next(stream)
             stamp = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
             assert 10 * 10**9 <= stamp <= 20 * 10**9  # the hardware clock's seconds, as recorded
             offsets.add(log_time - stamp)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,11 +42,12 @@ from biris_hw.io.record.replay import EndOfRecording, ReplayServer
 from biris_hw.opening import open_poses, open_sensor
 from sim import Scene, SimulatedBiris
 from sim.drives import DRIVE_START_S, default_drive
+from tests import foxglove_client as fox
 from tests.conftest import Run
 from tests.test_record_support import cloud_xyz, read_decoded, synthetic_scans
 
 STANDARD = get_typestore(Stores.ROS2_JAZZY)
-SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
+SUBPROTOCOL = Subprotocol(fox.SUBPROTOCOL)
 WAIT = 10.0
 SWEEPS = (-90.0, 90.0, -90.0, 90.0)
 
@@ -272,16 +272,6 @@ def _foxglove_runtime() -> None:
     foxglove.start_server(port=0, context=foxglove.Context()).stop()
 
 
-def _advertised(ws: Any, count: int) -> dict[str, dict[str, Any]]:
-    info = json.loads(ws.recv(timeout=WAIT))
-    assert info["op"] == "serverInfo"
-    channels: dict[str, dict[str, Any]] = {}
-    while len(channels) < count:
-        for channel in json.loads(ws.recv(timeout=WAIT)).get("channels", []):
-            channels[channel["topic"]] = channel
-    return channels
-
-
 def test_the_live_view_of_a_moving_recording_advertises_and_sends_odom_and_grid(
     drive: Drive,
 ) -> None:
@@ -291,17 +281,9 @@ def test_the_live_view_of_a_moving_recording_advertises_and_sends_odom_and_grid(
     view = LiveView(replay, port=0, status_period_s=0.05, poses=poses, grid=GridParams())
     topics = {**codec.TOPICS, **codec.MOVING_TOPICS}
     with replay, view, connect(f"ws://127.0.0.1:{view.port}", subprotocols=[SUBPROTOCOL]) as ws:
-        channels = _advertised(ws, len(topics))
+        channels = fox.advertised(ws, len(topics))
         assert {t: c["schemaName"] for t, c in channels.items()} == topics
-        subs = dict(enumerate(channels.values()))
-        ws.send(
-            json.dumps(
-                {
-                    "op": "subscribe",
-                    "subscriptions": [{"id": i, "channelId": c["id"]} for i, c in subs.items()],
-                }
-            )
-        )
+        stream = fox.messages(ws, fox.subscribe(ws, channels.values()), STANDARD)
         got: dict[str, list[Any]] = {}
         started = False
         while len(got.get(codec.POINTS_TOPIC, [])) < len(SWEEPS) or not all(
@@ -310,13 +292,8 @@ def test_the_live_view_of_a_moving_recording_advertises_and_sends_odom_and_grid(
             if not started and view.published.get(codec.DIAGNOSTICS_TOPIC):
                 replay.start()  # the subscriptions are in place
                 started = True
-            frame = ws.recv(timeout=WAIT)
-            if not isinstance(frame, bytes) or frame[0] != 1:
-                continue
-            sub, _log_time = struct.unpack_from("<IQ", frame, 1)
-            channel = subs[sub]
-            message = STANDARD.deserialize_cdr(frame[13:], channel["schemaName"])
-            got.setdefault(channel["topic"], []).append(message)
+            topic, message, _ = next(stream)
+            got.setdefault(topic, []).append(message)
     assert all(m.header.frame_id == "odom" for m in got[codec.POINTS_TOPIC])
     assert all(m.header.frame_id == "odom" for m in got[codec.GRID_TOPIC])
     recorded = [_stamp(m.header) for m, _ in _messages(drive.path, codec.ODOM_TOPIC)]

@@ -8,6 +8,7 @@ in the file) and rosbags' CDR deserialiser.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -54,22 +55,9 @@ def synthetic_scans(n: int = 4, n_acq: int = 12, samples: int = 64, seed: int = 
 
 
 def points_of(scan: Scan) -> list[Point]:
-    """The scan's acquisitions as the points a DATA EVERY_ACQUISITION connection gets."""
-    return [
-        Point(
-            azimuth=int(scan.azimuth[i]),
-            range_mm=int(scan.closest_mm[i]),
-            profile=scan.range_mm[i],
-            intensity=scan.intensity[i],
-            t=float(scan.t[i]),
-            acq=i,
-            scan_seq=scan.seq,
-            elevation=scan.elevation,
-            t_delivered=float(scan.t[i]) + 0.01,
-            mount=scan.mount,
-        )
-        for i in range(scan.n_acq)
-    ]
+    """The scan's acquisitions as the points a DATA EVERY_ACQUISITION connection gets, each
+    handed over 10 ms after its acquisition."""
+    return [dataclasses.replace(p, t_delivered=p.t + 0.01) for p in scan.as_points()]
 
 
 def write_raw(path: Path, scans: list[Scan], chunk_size: int = 1 << 20) -> Path:
