@@ -68,7 +68,10 @@ def crate(channel: str) -> Iterator[SimulatedCrate]:
 
 @pytest.fixture
 def monitor(channel: str) -> Iterator[CrateMonitor]:
-    with CrateMonitor.open(interface="virtual", channel=channel, crate_id=CRATE) as mon:
+    # a crate that answers is waited for as long as a loaded host may take to run its thread
+    with CrateMonitor.open(
+        interface="virtual", channel=channel, crate_id=CRATE, timeout_s=WAIT
+    ) as mon:
         yield mon
 
 
@@ -606,12 +609,18 @@ def test_other_crates_and_other_traffic_are_skipped(channel: str, filtered: bool
     other.over_current(4)
     bus: can.BusABC | None = None
     if filtered:
-        mine = CrateMonitor.open(interface="virtual", channel=channel, crate_id=CRATE)
-        theirs = CrateMonitor.open(interface="virtual", channel=channel, crate_id=CRATE + 1)
+        mine = CrateMonitor.open(
+            interface="virtual", channel=channel, crate_id=CRATE, timeout_s=WAIT
+        )
+        theirs = CrateMonitor.open(
+            interface="virtual", channel=channel, crate_id=CRATE + 1, timeout_s=WAIT
+        )
     else:
         bus = can.Bus(interface="virtual", channel=channel)
         mine = CrateMonitor(bus, CRATE, timeout_s=WAIT)
-        theirs = CrateMonitor.open(interface="virtual", channel=channel, crate_id=CRATE + 1)
+        theirs = CrateMonitor.open(
+            interface="virtual", channel=channel, crate_id=CRATE + 1, timeout_s=WAIT
+        )
     try:
         for _ in range(3):
             reading = mine.read()

@@ -181,7 +181,7 @@ def test_a_simulator_dying_while_it_accepts_is_still_gone(
     no_leaks: None, tmp_path: pathlib.Path
 ) -> None:
     """A killed ``biris sim`` can still accept a connection on its socket and then drop it
-    before its handshake (the CI run under load of 2026-11-28 met it): the reset says the
+    before its handshake (on a loaded host its end takes a moment): the reset says the
     simulator is still gone and why it was lost, as when nothing listens at all."""
     path = str(tmp_path / "dying.sock")
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)

@@ -48,10 +48,9 @@ there."""
 
 SETTLE_POLL_S = 0.003
 """How often a settling poll reads the head (hardware seconds): five or more looks inside
-:data:`SETTLE_HOLD_S`, two HCTL-1000 samples apart at the record's sample timer. A host that
-looked twice as often saw the same settled position a fraction of a millisecond sooner, at twice
-the bus traffic (on the simulator, 15 % of the CPU an initialisation takes).
-"""
+:data:`SETTLE_HOLD_S`, two HCTL-1000 samples apart at the record's sample timer. Polling
+twice as often finds the same settled position at most one poll sooner, for twice the bus
+traffic (and, on the simulator, 15 % more CPU per initialisation)."""
 
 WATCH_GAP_POLLS = 10
 """How many polling periods one gap between two settling polls may count towards the settling
