@@ -14,12 +14,14 @@ import struct
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from tests.conftest import WAIT
-
-__all__ = ["SUBPROTOCOL", "Channel", "advertised", "frames", "messages", "subscribe"]
+__all__ = ["SUBPROTOCOL", "WAIT", "Channel", "advertised", "frames", "messages", "subscribe"]
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 """foxglove-sdk 0.30's name for the protocol (foxglove.websocket.v1)."""
+
+WAIT = 10.0
+"""Seconds one frame may take to come: a live view's threads on a loaded host (the live-view
+tests' own patience, twice tests.conftest's)."""
 
 Channel = dict[str, Any]
 """An advertised channel as the server describes it (``id``, ``topic``, ``schemaName``...)."""

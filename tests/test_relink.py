@@ -371,8 +371,13 @@ def frozen(no_leaks: None, monkeypatch: pytest.MonkeyPatch) -> Iterator[Drive]:
     taken = drive._controlword
 
     def record(cw: int) -> None:
-        frames.append((cw, drive.value(0x607A)))
-        taken(cw)
+        # recorded once the drive has dealt with it (its violations included), so that a
+        # send() that waits for the record waits for the drive
+        entry = (cw, drive.value(0x607A))
+        try:
+            taken(cw)
+        finally:
+            frames.append(entry)
 
     monkeypatch.setattr(drive, "_controlword", record)
     bus = Cia402Bus(
