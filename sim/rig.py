@@ -121,8 +121,9 @@ _S = TypeVar("_S", bound=ctypes.Structure)
 class _DriverMemoryWindow(MemoryWindow):
     """The driver's view of BIRIS memory: the same bytes as the supervisor's, plus a tap on
     COMMAND writes, so the audit sees every write (field-rate polling alone would miss a
-    rewrite of the same code), and a catch-up before every read, so that a starved supervisor
-    thread never shows the driver a BIRIS that lags behind the video fields.
+    rewrite of the same code) and an idle supervisor wakes for it, and a catch-up before every
+    read and before a write to COMMAND, so that a starved (or idle, sleeping) supervisor thread
+    never shows the driver a BIRIS that lags behind the video fields.
 
     Every access crosses the Bit 3 coupler first (``remote``, :meth:`sim.bit3.Bit3Coupler.
     remote_access`): with the BIRIS crate powered off it times out and nothing is read or
@@ -161,27 +162,45 @@ class _DriverMemoryWindow(MemoryWindow):
         self._on_command.catch_up()
         return super().read32(offset)
 
+    def _before_write(self, offset: int, n: int) -> bool:
+        """Cross the coupler; for a write that touches COMMAND, run the fields due before it
+        lands (an idle supervisor thread sleeps several fields: they must find COMMAND as it
+        was). True if it touches COMMAND."""
+        self._remote("write", offset, n)
+        touches = offset < self._command_offset + 2 and self._command_offset < offset + n
+        if touches:
+            self._on_command.catch_up()
+        return touches
+
     def write8(self, offset: int, value: int) -> None:
-        self._remote("write", offset, 1)
+        touches = self._before_write(offset, 1)
         super().write8(offset, value)
+        if touches:
+            self._on_command.wake()
 
     def write16(self, offset: int, value: int) -> None:
-        self._remote("write", offset, 2)
+        touches = self._before_write(offset, 2)
         super().write16(offset, value)
         if offset == self._command_offset:
             self._on_command(value)
+        elif touches:
+            self._on_command.wake()
 
     def write32(self, offset: int, value: int) -> None:
-        self._remote("write", offset, 4)
+        touches = self._before_write(offset, 4)
         super().write32(offset, value)
+        if touches:
+            self._on_command.wake()
 
     def write(self, offset: int, data: bytes | bytearray | memoryview) -> None:
         raw = bytes(data)
-        self._remote("write", offset, len(raw))
+        touches = self._before_write(offset, len(raw))
         super().write(offset, raw)
         if offset <= self._command_offset < offset + len(raw) - 1:
             at = self._command_offset - offset
             self._on_command(int.from_bytes(raw[at : at + 2], "big"))
+        elif touches:
+            self._on_command.wake()
 
     def view(self, struct_type: type[_S], offset: int = 0) -> StructView[_S]:
         """Not offered: a ctypes view would reach the memory without crossing the coupler."""
@@ -199,6 +218,10 @@ class _CommandTap:
     def catch_up(self) -> None:
         if self.target is not None:
             self.target.catch_up()
+
+    def wake(self) -> None:
+        if self.target is not None:
+            self.target.wake_idle()
 
 
 class SimulatedBiris:
@@ -862,7 +885,8 @@ class SimulatedBiris:
     def lag_s(self) -> float:
         """How far behind its own clock the simulator runs, in hardware seconds (0 when stopped).
 
-        The BIRIS supervisor's thread wakes at every video field; :meth:`SimClock.lateness
+        The BIRIS supervisor's thread wakes at every video field (every
+        :data:`~sim.supervisor.supervisor.IDLE_CHECK_FIELDS` while idle); :meth:`SimClock.lateness
         <sim.clock.SimClock.lateness>` averages how late those wakes come. A driver's reads
         catch the simulation up, so what it reads stays right, but interrupts come that late:
         beyond :data:`~sim.clock.LAG_WARNING_S` the host cannot keep up with

@@ -8,6 +8,7 @@ the domain, and two runs give the same result to the last bit.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Iterator
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+import sim.supervisor.supervisor as supervisor_module
 from biris_hw.bus.base import BusWindow
 from biris_hw.bus.memory import MemoryWindow
 from biris_hw.timebase import VirtualTime
@@ -39,6 +41,8 @@ from sim.clock import FIELD_PERIOD, SimClock
 from sim.irqgate import InterruptGate
 from sim.ramdisk import BOOT_FILE
 from sim.supervisor import BirisSupervisor
+from sim.supervisor.state import JITTER_S
+from sim.supervisor.supervisor import IDLE_CHECK_FIELDS
 from sim.tech80 import Model7600
 
 SCALE = 30.0
@@ -123,7 +127,7 @@ def _biris(tb: VirtualTime) -> Biris:
 
 
 def test_the_field_loop_runs_exactly_the_fields_slept(tb: VirtualTime) -> None:
-    fields = 1800  # thirty hardware seconds: a second of real time at x30
+    fields = 1801  # thirty hardware seconds: a second of real time at x30
     biris = _biris(tb)
     try:
         biris.sup.start()  # at t=0: the first field to come is field 1
@@ -132,11 +136,42 @@ def test_the_field_loop_runs_exactly_the_fields_slept(tb: VirtualTime) -> None:
         tb.sleep((fields + 0.5) * FIELD_PERIOD, what="the test's fields")
         elapsed = time.monotonic() - started
         assert tb.now() == (fields + 0.5) * FIELD_PERIOD  # nothing else moved it
-        assert biris.sup._fields.vsync == fields + 1  # fields 1..1800, not one more or less
+        # idle, the thread woke every IDLE_CHECK_FIELDS fields, not at each
+        assert tb.advances <= fields // IDLE_CHECK_FIELDS + 2
+        biris.sup.catch_up()  # what a reader of BIRIS memory does first: the fields since
+        assert biris.sup._fields.vsync == fields + 1  # fields 1..1801, not one more or less
         assert elapsed < 0.5 * fields * FIELD_PERIOD / SCALE  # about 0.1 s on a quiet host
         assert biris.clock.lateness() == 0.0
     finally:
         biris.close()
+
+
+def _query_done_at(tb: VirtualTime, idle_fields: float) -> tuple[float, int]:
+    """A query written after ``idle_fields`` fields of an idle BIRIS: (the time it completed,
+    the field of its acceptance)."""
+    biris = _biris(tb)
+    try:
+        biris.sup.start()
+        tb.sleep(idle_fields * FIELD_PERIOD, what="idle fields")
+        assert biris.execute(BiCommand.BI_GET_VME_INC_FRAME) == BiStatus.OK
+        return tb.now(), biris.sup._fields.vsync
+    finally:
+        biris.close()
+
+
+@pytest.mark.parametrize("idle_fields", [0.5, 29.5, 100.25, 1000.0])
+def test_a_command_to_an_idle_biris_is_seen_at_the_next_field_as_if_it_polled(
+    monkeypatch: pytest.MonkeyPatch, idle_fields: float
+) -> None:
+    """Sleeping through idle fields changes no time: the command completes exactly when a
+    supervisor that woke at every field (IDLE_CHECK_FIELDS = 1) completes it, a field after
+    the write at most (plus BIRIS's jitter)."""
+    asleep = _query_done_at(VirtualTime(nominal_scale=SCALE), idle_fields)
+    monkeypatch.setattr(supervisor_module, "IDLE_CHECK_FIELDS", 1)
+    polled = _query_done_at(VirtualTime(nominal_scale=SCALE), idle_fields)
+    assert asleep == polled
+    accepted = math.floor(idle_fields) + 1
+    assert accepted * FIELD_PERIOD < asleep[0] <= accepted * FIELD_PERIOD + JITTER_S[1]
 
 
 def test_stop_returns_and_leaves_no_thread_in_the_domain(tb: VirtualTime) -> None:

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import sim.rig as sim_rig
+import sim.supervisor.supervisor as supervisor_module
 from biris_hw.data import ConnectionKind, Direction, Scan
 from biris_hw.ipc import Mailbox
 from biris_hw.server import BirisServer
@@ -76,6 +77,23 @@ def _differences(first: list[Any], second: list[Any]) -> list[str]:
     return found
 
 
+@pytest.fixture(scope="module")
+def seed5() -> list[Any]:
+    """One run of seed 5, for the two tests that compare another run with it."""
+    return _session(seed=5)
+
+
+def test_a_seed_is_one_run(seed5: list[Any]) -> None:
+    """Two runs of one seed in this worker (beside the fast tier's other workers, and beside
+    three CPU-bound processes under ``make test-under-load``)."""
+    first = seed5
+    second = _session(seed=5)
+    scans = [item for item in first if isinstance(item, Scan)]
+    assert len(scans) == 4 and all(len(scan.azimuth) > 5 for scan in scans)
+    assert _differences(first, second) == []
+
+
+@pytest.mark.slow  # its three processes take two cores from the fast tier's other workers
 def test_a_seed_is_one_run_on_a_quiet_host_and_beside_three_busy_processes() -> None:
     quiet = _session(seed=5)
     with busy_processes(3):
@@ -85,9 +103,18 @@ def test_a_seed_is_one_run_on_a_quiet_host_and_beside_three_busy_processes() -> 
     assert _differences(quiet, loaded) == []
 
 
-def test_another_seed_is_another_run() -> None:
+def test_an_idle_biris_sleeping_through_its_fields_changes_nothing(
+    seed5: list[Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same run with a supervisor that wakes at every field (as BIRIS polls COMMAND)
+    instead of sleeping through idle ones: every Scan, point and time the same."""
+    monkeypatch.setattr(supervisor_module, "IDLE_CHECK_FIELDS", 1)
+    assert _differences(seed5, _session(seed=5)) == []
+
+
+def test_another_seed_is_another_run(seed5: list[Any]) -> None:
     """The comparison above can fail: a different seed changes the noise in every row."""
-    assert _differences(_session(seed=5)[:1], _session(seed=6)[:1]) != []
+    assert _differences(seed5[:1], _session(seed=6)[:1]) != []
 
 
 def test_a_wait_nothing_will_end_fails_at_once_naming_the_waits(

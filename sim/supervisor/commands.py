@@ -1,6 +1,7 @@
 """BIEXEC_COM commands: seen at vertical sync, executed one at a time, completed in order.
 
-**Vertical sync.** The supervisor thread wakes at every video field and reads COMMAND. A
+**Vertical sync.** COMMAND is read at every video field (an idle thread runs the fields it slept
+through together, and a write wakes it: :data:`~sim.supervisor.supervisor.IDLE_CHECK_FIELDS`). A
 non-zero COMMAND while idle is accepted; it completes after a field-synchronised delay plus a
 seeded jitter of 20 us .. 2 ms (BI_BOOT two fields later, BI_LOAD_LUT one), so from the host's
 write to completion takes from tens of microseconds to tens of milliseconds. Completion writes
@@ -62,6 +63,7 @@ class Commands(SupervisorState):
                 )
             landed = self._get(OFF_COMMAND) != 0
             self._outstanding_write = value != 0 and landed and not self._executing
+        self.wake_idle()
 
     def _command_while_busy(self, value: int, detail: str) -> None:
         """CMD_WHILE_BUSY: the new command is lost; ``value`` is what COMMAND now holds."""

@@ -39,12 +39,23 @@ class FieldSchedule:
         self._order += 1
         heapq.heappush(self._events, _Event(time, self._order, action))
 
+    @property
+    def pending(self) -> bool:
+        """An event (a command's completion) is still to come."""
+        return bool(self._events)
+
     def next_wake(self) -> float:
         """Clock time of the next field or event, whichever comes first."""
         wake = self.vsync * FIELD_PERIOD
         if self._events and self._events[0].time < wake:
             wake = self._events[0].time
         return wake
+
+    def idle_wake(self, fields: int) -> float:
+        """Clock time of field ``vsync + fields - 1``: where a thread with nothing to do but
+        look at COMMAND next looks, ``fields`` fields on (computed as :meth:`next_wake` computes
+        a field's time, so :meth:`run_due` at that time runs that field too)."""
+        return (self.vsync + fields - 1) * FIELD_PERIOD
 
     def resume(self, now: float) -> int:
         """Move everything still to come so that it resumes at the field after ``now``.

@@ -209,6 +209,8 @@ class SupervisorState(abc.ABC):
         self._thread: HwThread | None = None
         self._failure: BaseException | None = None
         self._running_due = False
+        self._idle = False
+        """The thread sleeps several fields at a time (nothing to do but find COMMAND clear)."""
 
         self._fields = FieldSchedule()
         self._executing = 0
@@ -323,3 +325,7 @@ class SupervisorState(abc.ABC):
     @abc.abstractmethod
     def _exposure_starts(self, field: int, t: float) -> None:
         """Start the exposure due at vsync ``field``, or end the sequence (acquisition)."""
+
+    @abc.abstractmethod
+    def wake_idle(self) -> None:
+        """COMMAND was just written: an idle thread looks again at once (supervisor)."""

@@ -1,6 +1,7 @@
-"""``BirisSupervisor``: the supervisor thread, woken at every video field, and its public face.
+"""``BirisSupervisor``: the supervisor thread, run at every video field, and its public face.
 
-The thread sleeps on the simulator clock until the next field or event; at a field it ends the
+The thread sleeps on the simulator clock until the next field or event (an idle BIRIS: until
+:data:`IDLE_CHECK_FIELDS` fields on, or a write of COMMAND); at a field it ends the
 exposure due, polls COMMAND, then starts the next exposure, in that order, so a command written
 during an exposure is seen at the field that ends it. Everything the thread changes is
 observable under the lock, and :meth:`BirisSupervisor.wait_for` lets a test wait for any state
@@ -17,15 +18,23 @@ import logging
 import threading
 from collections.abc import Callable
 
+from regs.biexec import OFF_COMMAND
 from sim.clock import FIELD_PERIOD
 from sim.supervisor.acquisition import Acquisition
 from sim.supervisor.boot import Boot
 from sim.supervisor.commands import Commands
 from sim.supervisor.faults import SupervisorFaults
 
-__all__ = ["BirisSupervisor"]
+__all__ = ["IDLE_CHECK_FIELDS", "BirisSupervisor"]
 
 log = logging.getLogger("sim.supervisor")
+
+IDLE_CHECK_FIELDS = 30
+"""Fields an idle supervisor thread sleeps at a time (half a hardware second). At an idle field
+BIRIS only finds COMMAND clear, so the fields slept through are run together when it wakes,
+each as it would have run; a COMMAND write from the driver wakes it at once. Without this an
+idle simulator woke 60 times a hardware second, the largest share of its CPU (a test's rig on
+virtual time: a thread hand-over each)."""
 
 
 class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
@@ -193,6 +202,19 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
                 self._kick.set()
             self._changed.notify_all()
 
+    def wake_idle(self) -> None:
+        """The driver has just written COMMAND (or a byte of it): an idle thread, asleep for
+        several fields, looks again at once, and the first field it runs is the first after
+        now. The fields it slept through found COMMAND clear (idle) and did nothing, so they
+        are passed over, not run with the new COMMAND in place (the rig's window runs them
+        before the write lands: :meth:`catch_up`)."""
+        with self._lock:
+            idle, self._idle = self._idle, False
+            if idle:
+                self._fields.resume(self._clock.now())
+        if idle:
+            self._kick.set()
+
     def run_until(self, t: float) -> None:
         """Do everything due by clock time ``t`` on the caller's thread, whatever the clock says.
 
@@ -219,6 +241,9 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
                     self._kick.clear()
                     hung = self._hung_since is not None
                     wake = self._fields.next_wake()
+                    self._idle = self._quiescent_locked()
+                    if self._idle:
+                        wake = self._fields.idle_wake(IDLE_CHECK_FIELDS)
                 if hung:
                     self._kick.wait(what="supervisor unhang")
                     continue
@@ -234,6 +259,21 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
             with self._changed:
                 self._failure = exc
                 self._changed.notify_all()
+
+    def _quiescent_locked(self) -> bool:
+        """Nothing to do at a field but find COMMAND clear: no command executing or written, no
+        sequence, nothing scheduled. The thread then sleeps :data:`IDLE_CHECK_FIELDS` fields at
+        a time; a COMMAND write wakes it (:meth:`note_command_write`), and the driver's window
+        runs the fields due before the write lands (:meth:`catch_up`), so every field still
+        happens, at its own time, as it would have."""
+        return (
+            self._seq is None
+            and not self._continuous
+            and self._executing == 0
+            and not self._outstanding_write
+            and not self._fields.pending
+            and self._get(OFF_COMMAND) == 0
+        )
 
     def _run_due(self, now: float) -> None:
         """Everything due by ``now``, once: an event may read BIRIS memory through the driver's
