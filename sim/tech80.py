@@ -87,6 +87,11 @@ _POLL_REAL_S = 0.002
 scale (``timeout_hw``: the same hardware time in virtual time, at the nominal scale). It bounds
 how far behind an idle board's chips fall between accesses, so that an access never has many
 samples to catch up."""
+_VIRTUAL_POLL_HW_S = 1.0
+"""The same bound on virtual time, in hardware seconds: there the host is never behind, so the
+only reason to wake is to keep a catch-up within :data:`_ACCESS_TICKS` (a held chip's samples
+count, 5.8 s of them); a profile end still wakes the thread on time. At the scaled bound (60 ms
+at x30) an idle board's thread woke 17 times a hardware second, each a thread hand-over."""
 _MIN_SLEEP_REAL_S = 0.00005
 """Shortest sleep towards a profile end in scaled time, real seconds: a wake is no more precise
 than the host's scheduling. Nothing in virtual time (``hw_from_real``), where a wake is exact
@@ -211,7 +216,7 @@ class Model7600:
     def _run(self) -> None:
         clock = self._clock
         tb = self._tb
-        poll_hw = tb.timeout_hw(_POLL_REAL_S)
+        poll_hw = _VIRTUAL_POLL_HW_S if clock.virtual else tb.timeout_hw(_POLL_REAL_S)
         floor_hw = tb.hw_from_real(_MIN_SLEEP_REAL_S)
         while True:
             with self.lock:

@@ -21,7 +21,6 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
@@ -578,13 +577,14 @@ def core() -> Core:
     return c
 
 
-@pytest.fixture
-def fonts_open(tmp_path: Path) -> None:
+@pytest.fixture(scope="session")
+def fonts_open(tmp_path_factory: pytest.TempPathFactory) -> None:
     """matplotlib keeps the font files it has used open for the life of the process (a cache,
-    not a leak): draw once before a leak check (``no_leaks``) takes its snapshot."""
+    not a leak): draw once, in the first test that asks, before a leak check (``no_leaks``)
+    takes its snapshot; they stay open for every later one."""
     from biris_hw.io.plots import save_polar
 
-    save_polar(tmp_path / "warm-up.png", [])
+    save_polar(tmp_path_factory.mktemp("fonts") / "warm-up.png", [])
 
 
 # -- the biris command, in-process -----------------------------------------------------------------

@@ -329,15 +329,6 @@ def test_home_asks_only_for_a_head_more_than_half_a_turn_away() -> None:
 # -- 5. output paths, checked before anything starts -----------------------------------------------
 
 
-@pytest.fixture
-def fonts_open(tmp_path: Path) -> None:
-    """matplotlib keeps the font files it has used open for the life of the process: draw once
-    before the leak check takes its snapshot."""
-    from biris_hw.io.plots import save_polar
-
-    save_polar(tmp_path / "warm-up.png", [])
-
-
 @pytest.mark.parametrize(
     ("argv", "words"),
     [
