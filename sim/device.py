@@ -19,7 +19,9 @@ __all__ = ["BusDevice", "DeviceWindow"]
 
 
 class BusDevice(Protocol):
-    """The bus side of a simulated register file: one byte per access, with side effects."""
+    """The bus side of a simulated register file: one byte per access, with side effects. A
+    device may also offer ``bus_read_block(offsets) -> list[int]``, several reads as one
+    transaction (:meth:`DeviceWindow.read_many` uses it)."""
 
     def bus_read(self, offset: int) -> int: ...
 
@@ -53,7 +55,17 @@ class DeviceWindow(BusWindow):
         checked = list(spans)
         for offset, n in checked:
             self._check(offset, n, 1)
-        read = self._dev().bus_read
+        device = self._dev()
+        block = getattr(device, "bus_read_block", None)
+        if block is not None:  # a device that reads a transaction in one call
+            values = block([offset + i for offset, n in checked for i in range(n)])
+            out: list[bytes] = []
+            at = 0
+            for _, n in checked:
+                out.append(bytes([value & 0xFF for value in values[at : at + n]]))
+                at += n
+            return out
+        read = device.bus_read
         with self._lock:
             return [bytes([read(offset + i) & 0xFF for i in range(n)]) for offset, n in checked]
 

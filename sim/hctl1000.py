@@ -484,6 +484,11 @@ class Hctl1000:
     def bus_read(self, reg: int) -> int:
         """One byte as the host reads it; reading R14H latches the actual position."""
         self._sync()
+        return self.bus_read_now(reg)
+
+    def bus_read_now(self, reg: int) -> int:
+        """:meth:`bus_read` of a chip its caller has just caught up (a board reading several
+        bytes in one transaction)."""
         if reg == Reg.ACT_POS_LSB:
             self._latch = self._actual & 0xFF_FFFF
             return self._latch & 0xFF
