@@ -8,10 +8,12 @@ LINT_DIRS := biris_hw regs sim benchmarks tests $(wildcard tools)
 # PYTHONDONTWRITEBYTECODE makes every run rewrite all of them again (about 10 s on 2 cores)
 PYTEST := env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest
 # pytest-xdist workers: one per core and one more. The scaled-real-time tests spend part of their
-# time waiting on the wall clock; the extra worker computes meanwhile (2 cores: 59 s quiet with 3
-# workers against 66 s with 2; beside three CPU-bound processes 109 s against 150 s). A test
-# file's tests go to one worker (--dist loadfile), so a module's shared fixture (a served sensor,
-# the demo run) is built once, not once per worker that gets one of its tests
+# time waiting on the wall clock; the extra worker computes meanwhile. Two more gained little on
+# 2 cores (quiet 77-86 s against 85-88 s; beside three CPU-bound processes 168 s against 171 s)
+# and left each worker's threads less of the machine: a scaled-time VM-USB test's simulator fell
+# 48 ms behind its clock and its move was called stalled. A test file's tests go to one worker
+# (--dist loadfile), so a module's shared fixture (a served sensor, the demo run) is built once,
+# not once per worker that gets one of its tests
 WORKERS ?= $(shell $(PYTHON) -c 'import os; n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(); print((n or 1) + 1)')
 
 .PHONY: test test-slow test-under-load demo lint bench clean
