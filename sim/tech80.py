@@ -83,15 +83,20 @@ class BoardVariant:
 
 
 _POLL_REAL_S = 0.002
-"""Longest sleep of the background thread between catch-ups, in real seconds at the clock's
-scale (``timeout_hw``: the same hardware time in virtual time, at the nominal scale). It bounds
-how far behind an idle board's chips fall between accesses, so that an access never has many
-samples to catch up."""
+"""Shortest sleep of the background thread between catch-ups on scaled time, real seconds (at
+x100 and beyond, where :data:`_SCALED_POLL_HW_S` would be shorter)."""
+_SCALED_POLL_HW_S = 0.1
+"""Longest sleep of the background thread between catch-ups on scaled time, hardware seconds
+(the longer of this and :data:`_POLL_REAL_S`): how far behind an idle board's chips fall between
+accesses, 70 samples at Appendix B's sample timer, which an access catches up in well under a
+millisecond (a chip at rest skips its samples in pairs). A profile end wakes the thread on time
+whatever this is. At 2 ms of real time an idle rig at x10 woke it 500 times a second: 60 ms of
+CPU a second for the rig, against 33 ms now."""
 _VIRTUAL_POLL_HW_S = 1.0
 """The same bound on virtual time, in hardware seconds: there the host is never behind, so the
 only reason to wake is to keep a catch-up within :data:`_ACCESS_TICKS` (a held chip's samples
-count, 5.8 s of them); a profile end still wakes the thread on time. At the scaled bound (60 ms
-at x30) an idle board's thread woke 17 times a hardware second, each a thread hand-over."""
+count, 5.8 s of them); a profile end still wakes the thread on time. At the scaled bound an idle
+board's thread woke 10 times a hardware second, each a thread hand-over."""
 _MIN_SLEEP_REAL_S = 0.00005
 """Shortest sleep towards a profile end in scaled time, real seconds: a wake is no more precise
 than the host's scheduling. Nothing in virtual time (``hw_from_real``), where a wake is exact
@@ -216,7 +221,11 @@ class Model7600:
     def _run(self) -> None:
         clock = self._clock
         tb = self._tb
-        poll_hw = _VIRTUAL_POLL_HW_S if clock.virtual else tb.timeout_hw(_POLL_REAL_S)
+        poll_hw = (
+            _VIRTUAL_POLL_HW_S
+            if clock.virtual
+            else max(tb.timeout_hw(_POLL_REAL_S), _SCALED_POLL_HW_S)
+        )
         floor_hw = tb.hw_from_real(_MIN_SLEEP_REAL_S)
         while True:
             with self.lock:
