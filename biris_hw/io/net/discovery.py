@@ -37,6 +37,10 @@ hundred milliseconds on a local network; endpoints given end the look as soon as
 _ASK_S = 2.0
 """How long one service's status is waited for."""
 
+_RELOOK_S = 0.2
+"""With endpoints given, the services' tokens are asked for again this long after the first
+answer, and both answers counted."""
+
 
 @dataclass(frozen=True)
 class ServiceInfo:
@@ -99,8 +103,14 @@ def find_services(
     except Exception as exc:  # zenoh.ZError
         raise RequestError(f"cannot start the Zenoh session: {zenoh_message(exc)}") from exc
     try:
-        _look(session, sum(1 for p in probes if not p.failed), timeout)
+        linked = sum(1 for p in probes if not p.failed)
+        _look(session, linked, timeout)
         names = _names(session, Keys("*").service_token, 1)
+        if linked:
+            # a peer just linked may not have handed this session its tokens yet (a busy host:
+            # a listing once missed the very service whose endpoint it was given); ask again
+            time.sleep(_RELOOK_S)
+            names = sorted(set(names) | set(_names(session, Keys("*").service_token, 1)))
         credentials = {} if user is None else {"user": user, "password": password or ""}
         return _ask(session, names, credentials)
     finally:
