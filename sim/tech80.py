@@ -90,13 +90,13 @@ _SCALED_POLL_HW_S = 0.1
 (the longer of this and :data:`_POLL_REAL_S`): how far behind an idle board's chips fall between
 accesses, 70 samples at Appendix B's sample timer, which an access catches up in well under a
 millisecond (a chip at rest skips its samples in pairs). A profile end wakes the thread on time
-whatever this is. At 2 ms of real time an idle rig at x10 woke it 500 times a second: 60 ms of
-CPU a second for the rig, against 33 ms now."""
+whatever this is. Bounded by 2 ms of real time alone, an idle rig at x10 would wake it 500
+times a second (measured: 60 ms of CPU a second for the rig, against 33 ms with this bound)."""
 _VIRTUAL_POLL_HW_S = 1.0
 """The same bound on virtual time, in hardware seconds: there the host is never behind, so the
 only reason to wake is to keep a catch-up within :data:`_ACCESS_TICKS` (a held chip's samples
 count, 5.8 s of them); a profile end still wakes the thread on time. At the scaled bound an idle
-board's thread woke 10 times a hardware second, each a thread hand-over."""
+board's thread would wake 10 times a hardware second, each a thread hand-over."""
 _MIN_SLEEP_REAL_S = 0.00005
 """Shortest sleep towards a profile end in scaled time, real seconds: a wake is no more precise
 than the host's scheduling. Nothing in virtual time (``hw_from_real``), where a wake is exact

@@ -32,9 +32,9 @@ log = logging.getLogger("sim.supervisor")
 IDLE_CHECK_FIELDS = 30
 """Fields an idle supervisor thread sleeps at a time (half a hardware second). At an idle field
 BIRIS only finds COMMAND clear, so the fields slept through are run together when it wakes,
-each as it would have run; a COMMAND write from the driver wakes it at once. Without this an
-idle simulator woke 60 times a hardware second, the largest share of its CPU (a test's rig on
-virtual time: a thread hand-over each)."""
+each as it would have run; a COMMAND write from the driver wakes it at once. Woken at every
+field, an idle simulator's thread would wake 60 times a hardware second for nothing (on virtual
+time a thread hand-over each)."""
 
 
 class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
