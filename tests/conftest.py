@@ -280,6 +280,18 @@ virtual time, or at least one on scaled real time. Shown at the end of the run."
 _SCALED_BY_MODULE: dict[str, int] = {}
 
 
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Everything collection imported (the package, the simulator, numpy, Zenoh, matplotlib,
+    every test module) lives as long as the process: out of the cyclic collector's reach, so
+    that each of its full collections during the run walks only what the tests made (what
+    every long-running ``biris`` command does once its sensor is open,
+    :func:`biris_hw.commands.session.quiet_collector`)."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
+
+
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """An xdist worker hands its tally to the controller, which prints the summary."""
     workeroutput = getattr(session.config, "workeroutput", None)
