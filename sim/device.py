@@ -10,7 +10,7 @@ split into byte accesses in ascending address order, as a D8 board sees them.
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 from biris_hw.bus.base import BusWindow
@@ -37,6 +37,11 @@ class DeviceWindow(BusWindow):
         super().__init__(size)
         self._device: BusDevice | None = device
         self._lock = lock if lock is not None else threading.RLock()
+        self._read_block: Callable[[list[int]], list[int]] | None = getattr(
+            device, "bus_read_block", None
+        )
+        """The device's own transaction read, if it has one (looked up once: read_many is the
+        settling poll's path)."""
 
     def _dev(self) -> BusDevice:
         if self._device is None:  # pragma: no cover - _check() refuses a closed window first
@@ -49,15 +54,16 @@ class DeviceWindow(BusWindow):
             return bytes(dev.bus_read(offset + i) & 0xFF for i in range(n))
 
     def read_many(self, spans: Sequence[tuple[int, int]]) -> list[bytes]:
-        """The spans in order under one hold of the model's lock, as one access after another
-        (what the default does, without taking the lock and building a generator per span: a
-        settling poll's six register bytes are the simulator's commonest access)."""
+        """The spans in order as one transaction: by the device's ``bus_read_block`` when it
+        has one (it takes its own lock), else one access after another under one hold of the
+        model's lock (what the default does, without taking the lock and building a generator
+        per span: a settling poll's six register bytes are the simulator's commonest access)."""
         checked = list(spans)
         for offset, n in checked:
             self._check(offset, n, 1)
         device = self._dev()
-        block = getattr(device, "bus_read_block", None)
-        if block is not None:  # a device that reads a transaction in one call
+        block = self._read_block
+        if block is not None:
             values = block([offset + i for offset, n in checked for i in range(n)])
             out: list[bytes] = []
             at = 0
@@ -77,3 +83,4 @@ class DeviceWindow(BusWindow):
 
     def _close(self) -> None:
         self._device = None
+        self._read_block = None
