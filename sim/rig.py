@@ -418,6 +418,7 @@ class SimulatedBiris:
         self.optics = BirisOptics(samples, rngs[3], noise=noise)
 
         self._memory = biris_buffer if biris_buffer is not None else bytearray(self.memory_map.size)
+        self._memory_shared = biris_buffer is not None
         self._supervisor_window = MemoryWindow(self.memory_map.size, buffer=self._memory)
         self._tap = tap = _CommandTap()
         self._driver_window = _DriverMemoryWindow(
@@ -476,6 +477,9 @@ class SimulatedBiris:
             tilting=self._tilting,
             elevation_counts=self._encoder_elevation,
             true_elevation_counts=self._true_elevation,
+            # a driver in another process writes COMMAND into the shared buffer itself, past
+            # the tap that wakes an idle supervisor: BIRIS then looks at every field
+            sleep_when_idle=not self._memory_shared,
         )
         self._tap.target = supervisor
         return supervisor

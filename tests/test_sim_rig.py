@@ -16,8 +16,9 @@ from regs import biexec
 from regs.layout import BirisMemoryMap
 from regs.tech80 import MOTION_WINDOW_SIZE
 from sim import POISON, Scene, SimulatedBiris
-from sim.clock import SimClock
+from sim.clock import FIELD_PERIOD, SimClock
 from sim.ramdisk import BOOT_FILE
+from sim.supervisor.state import JITTER_S
 from tests.conftest import until
 
 
@@ -75,6 +76,23 @@ def test_a_buffer_of_the_callers_holds_biris_memory(no_leaks: None) -> None:
         assert buffer[mm.biexec_offset + biexec.OFF_PARAM] == 0x41
     with pytest.raises(ValueError):
         SimulatedBiris(biris_buffer=bytearray(16), clock="virtual")
+
+
+def test_a_command_written_straight_into_a_shared_buffer_is_seen_at_the_next_field(
+    no_leaks: None,
+) -> None:
+    """A driver in another process (``biris sim``) writes COMMAND into the shared segment
+    itself, past the tap that wakes an idle supervisor: BIRIS there still looks at every field,
+    so a query written after 100.25 idle fields completes within its jitter of field 101."""
+    mm = BirisMemoryMap()
+    buffer = bytearray(mm.size)
+    with SimulatedBiris(biris_buffer=memoryview(buffer), time_scale=30.0, clock="virtual") as rig:
+        rig.timebase.sleep(100.25 * FIELD_PERIOD, what="idle fields")
+        at = mm.biexec_offset + biexec.OFF_COMMAND
+        buffer[at : at + 2] = int(biexec.BiCommand.BI_GET_VME_INC_FRAME).to_bytes(2, "big")
+        assert rig.supervisor.wait_for(lambda s: s.commands_completed == 1, 5.0)
+        done = rig.clock.now()
+    assert 101 * FIELD_PERIOD < done <= 101 * FIELD_PERIOD + JITTER_S[1]
 
 
 class _StarvingClock:

@@ -170,6 +170,7 @@ class SupervisorState(abc.ABC):
         require_motor_access: bool = True,
         times_kept: int = ACQUISITION_TIMES_KEPT,
         starts_kept: int = SEQUENCE_STARTS_KEPT,
+        sleep_when_idle: bool = True,
     ) -> None:
         if memory.size < memory_map.size:
             raise ValueError(
@@ -211,6 +212,9 @@ class SupervisorState(abc.ABC):
         self._running_due = False
         self._idle = False
         """The thread sleeps several fields at a time (nothing to do but find COMMAND clear)."""
+        self._sleep_when_idle = sleep_when_idle
+        """False where COMMAND may be written without :meth:`note_command_write` (BIRIS memory
+        shared with a driver in another process): the thread then looks at every field."""
 
         self._fields = FieldSchedule()
         self._executing = 0

@@ -32,9 +32,10 @@ log = logging.getLogger("sim.supervisor")
 IDLE_CHECK_FIELDS = 30
 """Fields an idle supervisor thread sleeps at a time (half a hardware second). At an idle field
 BIRIS only finds COMMAND clear, so the fields slept through are run together when it wakes,
-each as it would have run; a COMMAND write from the driver wakes it at once. Woken at every
-field, an idle simulator's thread would wake 60 times a hardware second for nothing (on virtual
-time a thread hand-over each)."""
+each as it would have run; a COMMAND write from the driver wakes it at once. So only where every
+write is seen: not with BIRIS memory shared with another process (``sleep_when_idle=False``).
+Woken at every field, an idle simulator's thread would wake 60 times a hardware second for
+nothing (on virtual time a thread hand-over each)."""
 
 
 class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
@@ -241,7 +242,7 @@ class BirisSupervisor(Commands, Boot, Acquisition, SupervisorFaults):
                     self._kick.clear()
                     hung = self._hung_since is not None
                     wake = self._fields.next_wake()
-                    self._idle = self._quiescent_locked()
+                    self._idle = self._sleep_when_idle and self._quiescent_locked()
                     if self._idle:
                         wake = self._fields.idle_wake(IDLE_CHECK_FIELDS)
                 if hung:
