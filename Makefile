@@ -13,10 +13,11 @@ PYTEST := env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest
 # and left each worker's threads less of the machine: a scaled-time VM-USB test's simulator fell
 # 48 ms behind its clock and its move was called stalled. A test file's tests go to one worker
 # (--dist loadfile), so a module's shared fixture (a served sensor, the demo run) is built once,
-# not once per worker that gets one of its tests
+# not once per worker that gets one of its tests; the longest modules go first
+# (tests/module_order.py, from tests/module_costs.json: make test-costs)
 WORKERS ?= $(shell $(PYTHON) -c 'import os; n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(); print((n or 1) + 1)')
 
-.PHONY: test test-slow test-under-load demo lint bench clean
+.PHONY: test test-costs test-slow test-under-load demo lint bench clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -32,14 +33,18 @@ REWRITTEN := $(wildcard tests/__pycache__/conftest.*-pytest-*.pyc)
 
 test: $(STAMP)
 	@$(if $(REWRITTEN),true,$(PYTEST) -m "not slow" -q --collect-only >/dev/null || true)
-	$(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile
+	$(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile --no-loadscope-reorder
+
+# The fast tier once, writing each module's seconds to tests/module_costs.json (the order above)
+test-costs: $(STAMP)
+	$(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile --record-module-costs tests/module_costs.json
 
 test-slow: $(STAMP)
 	$(PYTEST) -m slow -q
 
 # The fast tier with three CPU-bound processes beside it (sim.hostload), as on a shared machine.
 test-under-load: $(STAMP)
-	$(PY) tools/under_load.py --processes 3 -- $(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile
+	$(PY) tools/under_load.py --processes 3 -- $(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile --no-loadscope-reorder
 
 demo: $(STAMP)
 	$(VENV)/bin/biris demo

@@ -34,6 +34,8 @@ from sim.scene import Scene
 from sim.scene.shapes import Cylinder
 from tests import live_rigs
 
+pytest_plugins = ["tests.module_order"]
+
 if TYPE_CHECKING:
     from biris_hw.data import Scan
     from biris_hw.server import BirisServer
