@@ -8,10 +8,12 @@ LINT_DIRS := biris_hw regs sim benchmarks tests $(wildcard tools)
 # PYTHONDONTWRITEBYTECODE makes every run rewrite all of them again (about 10 s on 2 cores)
 PYTEST := env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest
 # pytest-xdist workers: one per core and one more. The scaled-real-time tests spend part of their
-# time waiting on the wall clock; the extra worker computes meanwhile. Two more gained little on
-# 2 cores (quiet 77-86 s against 85-88 s; beside three CPU-bound processes 168 s against 171 s)
-# and left each worker's threads less of the machine: a scaled-time VM-USB test's simulator fell
-# 48 ms behind its clock and its move was called stalled. A test file's tests go to one worker
+# time waiting on the wall clock; the extra worker computes meanwhile. Measured on 2 cores (the
+# VM's own speed varied up to 2x from minute to minute): 4 workers ran no faster quiet (61-76 s
+# against 64-83 s) and 5 slower (69-94 s: a quarter more CPU); beside three CPU-bound processes 4
+# were faster (86-136 s against 126-150 s) only by taking more of the machine from them, and left
+# each worker's threads less of it: a scaled-time VM-USB test's simulator once fell 48 ms behind
+# its clock and its move was called stalled. A test file's tests go to one worker
 # (--dist loadfile), so a module's shared fixture (a served sensor, the demo run) is built once,
 # not once per worker that gets one of its tests; the longest modules go first
 # (tests/module_order.py, from tests/module_costs.json: make test-costs)
@@ -37,7 +39,7 @@ test: $(STAMP)
 
 # The fast tier once, writing each module's seconds to tests/module_costs.json (the order above)
 test-costs: $(STAMP)
-	$(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile --record-module-costs tests/module_costs.json
+	$(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile --no-loadscope-reorder --record-module-costs tests/module_costs.json
 
 test-slow: $(STAMP)
 	$(PYTEST) -m slow -q
