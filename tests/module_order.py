@@ -27,11 +27,13 @@ import pytest
 COSTS_PATH = Path(__file__).with_name("module_costs.json")
 
 UNKNOWN_TEST_S = 0.05
-"""The assumed length of each test of a module the costs file does not list (seconds, about
-the fast tier's median per module test)."""
+"""The assumed length of each test of a module the costs file does not list (seconds; the fast
+tier's tests average 0.064 s in a run of three workers on two cores). Only ``make test-costs``
+on the whole fast tier should write the file: a run of some modules would leave out the rest."""
 
 _durations: defaultdict[str, float] = defaultdict(float)
-"""(controller) seconds each module's tests took in this run, set-up and teardown included."""
+"""Seconds each module's tests took in this run, set-up and teardown included (the controller
+writes them; every xdist worker's reports reach it)."""
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
