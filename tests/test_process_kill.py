@@ -74,9 +74,14 @@ def _biris() -> list[str]:
 class Process:
     """A child process whose stdout is read line by line, bounded."""
 
-    def __init__(self, argv: list[str], env: dict[str, str]) -> None:
+    def __init__(self, argv: list[str], env: dict[str, str], *, stdin: bool = False) -> None:
         self.proc = subprocess.Popen(
-            argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT
+            argv,
+            stdin=subprocess.PIPE if stdin else None,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=env,
+            cwd=ROOT,
         )
         self.lines: list[str] = []
         self._buffer = b""
@@ -102,6 +107,12 @@ class Process:
             self._buffer += chunk
             *done, self._buffer = self._buffer.split(b"\n")
             self.lines.extend(line.decode() for line in done)
+
+    def tell(self, line: str) -> None:
+        """Write ``line`` to the process's stdin (made with ``stdin=True``)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line.encode() + b"\n")
+        self.proc.stdin.flush()
 
     def kill(self) -> None:
         if self.proc.poll() is None:
@@ -336,7 +347,9 @@ def test_a_restarted_simulator_is_found_again_by_one_reset(
 
 
 def _driver(sim: Simulator, env: dict[str, str], mode: str) -> Process:
-    return Process([sys.executable, __file__, "driver", sim.name, sim.socket, mode], env)
+    """A driver process; ``check`` is started ahead and attaches when told (``go``)."""
+    argv = [sys.executable, __file__, "driver", sim.name, sim.socket, mode]
+    return Process(argv, env, stdin=mode == "check")
 
 
 @pytest.mark.slow
@@ -344,17 +357,20 @@ def test_a_driver_killed_mid_scan_is_replaced_safely(
     no_leaks: None, tmp_path: Path, env: dict[str, str]
 ) -> None:
     # x2: the dead driver's 720 degree BI_ACQUIRE (5.8 s of hardware time) still runs for about
-    # 2.5 s when the new driver, a fresh Python process, attaches
+    # 2.5 s after SCANNING. The new driver is started first and waits, imported, until told to
+    # attach: a Python process's start-up (seconds on a loaded host) is not in that window
     sim = Simulator(tmp_path, env, time_scale=2.0)
     old: Process | None = None
     new: Process | None = None
     try:
+        new = _driver(sim, env, "check")
+        new.wait_for("READY", timeout=60.0)
         old = _driver(sim, env, "longscan")
         old.wait_for("SCANNING", timeout=60.0)
         old.kill()
         assert old.finish()[0] == -signal.SIGKILL
 
-        new = _driver(sim, env, "check")
+        new.tell("go")
         line = new.wait_for("RESULT", timeout=90.0)
         rc, err = new.finish()
         result = json.loads(line.removeprefix("RESULT "))
@@ -386,8 +402,12 @@ def test_a_driver_killed_mid_scan_is_replaced_safely(
 
 def _driver_main(name: str, socket_path: str, mode: str) -> int:
     """``longscan``: initialise, scan to -360 degrees, start the 720 degree scan to +360, print
-    SCANNING and wait to be killed. ``check``: note whether BIRIS is busy, initialise (timed),
-    scan +-90 degrees and two sweeps of +-30, print one ``RESULT {json}`` line."""
+    SCANNING and wait to be killed. ``check``: print READY, wait for a line on stdin, then note
+    whether BIRIS is busy, initialise (timed), scan +-90 degrees and two sweeps of +-30, print
+    one ``RESULT {json}`` line."""
+    if mode == "check":
+        print("READY", flush=True)
+        sys.stdin.readline()
     hw = attach(name, socket_path=socket_path, timeout=WAIT)
     result: dict[str, Any] = {"error": None}
     try:
