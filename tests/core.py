@@ -76,6 +76,9 @@ class Core:
         lag: Callable[[], float] | None = None,
     ) -> None:
         self.record = record if record is not None else BirisInitRecord()
+        self.task_resets = 0
+        """The supervisor's reset count the administrator reads (the tests move it as a
+        reset's initialiser would, restarting the failed tasks)."""
         self.clock = VirtualClock()
         self.inbox = Mailbox("core")
         self.biris_timeout = FakeTimer(self.clock, m.BirisTimeoutErr)
@@ -100,6 +103,7 @@ class Core:
             recheck_motion=self._recheck,
             recheck_biris=self._recheck_biris if recheck_biris else None,
             lag=lag,
+            task_generation=lambda: self.task_resets,
         )
         self.transfer = self.send(m.CmdTransferRdy())
         self.notifier: Ticket | None = None

@@ -15,12 +15,14 @@ import pytest
 from biris_hw import protocol as p
 from biris_hw.data import ConnectionKind
 from biris_hw.errors import HardwareFault, RequestError
+from biris_hw.ipc import Ticket
 from biris_hw.records import BirisInitRecord, MotorParams
 from biris_hw.server import messages as m
 from biris_hw.server.motion import ARRIVAL_TOLERANCE_COUNTS
 from biris_hw.server.scan_timing import ScanTiming
 from biris_hw.status import ServerState
 from regs.biexec import BiCommand
+from regs.tech80 import Axis
 from tests.core import Core
 
 
@@ -189,3 +191,59 @@ def test_a_parameter_that_cannot_move_the_head_is_refused_up_front() -> None:
     for bad in ({"max_vel": 0}, {"max_accel": 0}, {"gain": 0}):
         with pytest.raises(RequestError):
             MotorParams(**bad)
+
+
+def _faulted_and_resetting(core: Core) -> tuple[int, Ticket]:
+    """A task fails under a scan (supervisor generation 0) and a reset begins; returns the
+    connection and the reset's ticket."""
+    conn = core.open()
+    _scan(core, conn, 1024)
+    core.send(m.TaskFailed("az_scan_start", "bus", "SDO read failed", generation=0))
+    assert core.admin.status()["state"] == "fault:bus"
+    return conn, core.send(p.ResetRequest(conn))
+
+
+@pytest.mark.parametrize("restarted", [False, True], ids=["restart_pending", "restarted"])
+def test_a_task_failure_read_during_the_reset_that_restarts_the_task_is_not_a_fault(
+    core: Core, restarted: bool
+) -> None:
+    """A worker blocked on a drive whose cable was pulled fails only once its SDO read times out
+    -- after the reset has begun. The reset's initialiser restarts it (before or after the
+    report is read): the report is logged and counted, and the initialisation goes on (it once
+    waited 6.6 s on a command the stale fault had stopped, then failed as a ``timeout``)."""
+    _, reset = _faulted_and_resetting(core)
+    core.send(m.TaskFailed("az_scan_start", "bus", "SDO read failed again", generation=0))
+    if restarted:
+        core.task_resets = 1  # the initialiser's relink restarted the tasks down
+    assert core.admin.life.fault is None and core.admin.counters.overtaken_task_failures == 1
+    stop = core.send(m.InitCommand(int(BiCommand.BI_STOP_CONTINUOUS), ""))
+    order = core.command()
+    assert order is not None and order.code == BiCommand.BI_STOP_CONTINUOUS
+    core.complete(order, param=b"0")
+    assert stop.done and stop.wait(0) == (0, b"0")
+    core.init_done()
+    assert reset.done and core.admin.state() is ServerState.IDLE
+
+
+def test_a_task_failing_after_the_reset_restarted_it_fails_the_initialisation_at_once(
+    core: Core,
+) -> None:
+    """The restarted task fails again (generation 1): a fault of the initialisation. What the
+    initialiser waits on fails with it, and so does what it asks for next, at once."""
+    _, reset = _faulted_and_resetting(core)
+    core.task_resets = 1
+    stop = core.send(m.InitCommand(int(BiCommand.BI_STOP_CONTINUOUS), ""))
+    assert core.command() is not None  # issued; BIRIS is executing it
+    core.send(m.TaskFailed("level2_isr", "bus", "the line is gone", generation=1))
+    assert core.admin.counters.overtaken_task_failures == 0
+    later = [
+        core.send(m.InitCommand(int(BiCommand.BI_BOOT), "x")),
+        core.send(m.InitMove(0, Axis.AZIMUTH, start=0)),
+    ]
+    for ticket in (stop, *later):
+        assert ticket.done, ticket
+        with pytest.raises(HardwareFault) as info:
+            ticket.wait(0)
+        assert info.value.kind == "bus" and "level2_isr" in str(info.value)
+    assert core.move() is None  # nothing was handed to a worker
+    assert not reset.done  # answered by INIT_DONE, with the initialiser's error

@@ -124,6 +124,7 @@ class Administrator:
         recheck_biris: Callable[[], None] | None = None,
         lag: Callable[[], float] | None = None,
         extras: Callable[[], Mapping[str, Any]] | None = None,
+        task_generation: Callable[[], int] | None = None,
     ) -> None:
         self.record = record
         self._recheck_motion = recheck_motion
@@ -156,6 +157,13 @@ class Administrator:
         """How far behind its clock the hardware has been running (a simulator on a host that
         cannot keep up), said in a fault's message; None on the real target."""
         self._extras = extras
+        self._task_generation = task_generation
+        """The supervisor's reset count (:attr:`~biris_hw.server.tasks.Supervisor.resets`), by
+        which a task's failure report is told from that of a task run again since; None: every
+        report is a fault."""
+        self._reset_generation: int | None = None
+        """That count when the reset under way began: its initialiser restarts every task that
+        failed before, so their reports are not faults of the new initialisation."""
         """The status's parts kept outside the administrator (interrupt counts, tasks down,
         the crate's reading): read from memory the server's other parts keep, never the bus."""
         self.bulletin = p.Bulletin(timebase_of(clock, time_scale))
@@ -971,9 +979,34 @@ class Administrator:
         a fault of the kind it reports (anything unknown is ``internal``); the task waits for
         the next reset, which restarts it."""
         env.reply(None)
-        self._fault(_fault_kind(msg.kind), f"{msg.task}: {msg.text}")
+        if self._failure_overtaken(msg.generation):
+            # The task runs again (or will as this reset's initialiser re-links): what it met
+            # belongs to the outage the reset is recovering from, e.g. a drive's SDO read that
+            # timed out on a cable pulled before the reset. A fault now would stop the new
+            # initialisation for a task that is alive.
+            self.counters.overtaken_task_failures += 1
+            log.warning(
+                "%s failed before the reset that restarts it (%s: %s): not a fault of the new "
+                "initialisation",
+                msg.task,
+                msg.kind,
+                msg.text,
+            )
+        else:
+            self._fault(_fault_kind(msg.kind), f"{msg.task}: {msg.text}")
         if msg.task == "encoder_reader":  # no reading will come until the reset restarts it
             self._reply_statuses(self.encoders.worker_gone())
+
+    def _failure_overtaken(self, generation: int) -> bool:
+        """Whether a task failure of supervisor ``generation`` is of a task that runs again
+        since, or that the initialisation under way restarts (it re-links first, then restarts
+        every task down: :meth:`~biris_hw.server.initialiser.Initialiser.relink`)."""
+        if self._task_generation is None:
+            return False
+        fresh_from = self._task_generation()
+        if self.life.initialising and self._reset_generation is not None:
+            fresh_from = max(fresh_from, self._reset_generation + 1)
+        return generation < fresh_from
 
     # -- BIRIS_HOME and BIRIS_MOTOR_PARAMS ---------------------------------------------------
     def _on_motor_params(self, env: Envelope, msg: p.BirisMotorParams) -> None:
@@ -1239,6 +1272,8 @@ class Administrator:
         if msg.conn:
             self._conn(msg.conn)
         self.life.begin_reset(env)
+        if self._task_generation is not None:
+            self._reset_generation = self._task_generation()
         self.encoders.moved()  # the initialiser homes both axes
         self._clear_activity()
         # the ring is forgotten (the initialiser stops BIRIS) and the acquisition mode is the init
@@ -1261,9 +1296,13 @@ class Administrator:
             self._init_syncs.append(env)
 
     def _on_init_command(self, env: Envelope, msg: m.InitCommand) -> None:
+        if self._init_overtaken(env):
+            return
         self._submit_command(BirisCommand(msg.code, msg.param, CommandPurpose.INIT, requester=env))
 
     def _on_init_move(self, env: Envelope, msg: m.InitMove) -> None:
+        if self._init_overtaken(env):
+            return
         axis = self._axis(msg.axis)
         # The watchdog's bound must be that of the move the chip really makes. The chip runs the
         # init record's parameters since the initialiser's configure_axes (not what a client
@@ -1274,6 +1313,16 @@ class Administrator:
         order = m.MoveOrder(msg.destination)
         job = Motion(order, MotionPurpose.INIT, requester=env, origin=msg.start)
         self._submit_motion(axis, job)
+
+    def _init_overtaken(self, env: Envelope) -> bool:
+        """A fault met while initialising (a task failing, a bus error) ends the
+        initialisation: what the initialiser asks for next fails at once with that fault, as
+        what it was waiting on did, instead of waiting in a queue the fault has stopped until the
+        initialiser's own bound blames a ``timeout``."""
+        if self.life.fault is None:
+            return False
+        fail_quietly(env, self.life.fault)
+        return True
 
     def _on_init_done(self, env: Envelope, msg: m.InitDone) -> None:
         env.reply(None)

@@ -50,6 +50,9 @@ class Counters:
     fault forgot it, or after its scan had completed)."""
     stale_completions: int = 0
     """Completions of a command or sweep the server no longer waits for."""
+    overtaken_task_failures: int = 0
+    """Task failures read after the reset that restarts the task had begun (met in the outage
+    the reset recovers from): logged, not faults."""
     acquisitions_read: int = 0
     """Acquisitions the reader read out of BIRIS memory and handed to the administrator
     (NEW_POINT), whatever became of them: the administrator's side of the accounts starts here."""

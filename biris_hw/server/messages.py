@@ -213,6 +213,11 @@ class TaskFailed:
     ``bus`` for its lost heartbeat...), ``bus`` for any other BusError, ``internal`` for
     anything else (see :meth:`~biris_hw.server.tasks.Supervisor.failed`)."""
     text: str
+    generation: int = 0
+    """The supervisor's reset count when the task failed (:attr:`Supervisor.resets`): a report
+    read after a reset has restarted the task, or while the reset under way will restart it, is
+    of a task that runs again, not a fault of the new initialisation (the administrator's
+    ``_on_task_failed``)."""
 
 
 @dataclass(frozen=True, slots=True)

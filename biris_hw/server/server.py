@@ -116,6 +116,7 @@ class BirisServer:
             self.level2.recheck,
             hw.lag,
             self._status_extras,
+            lambda: self.supervisor.resets,
         )
         self.level2.attach_recheck(
             tasks.BirisRecheck(self.inbox, self.reader, self.link, self.ledger)

@@ -294,7 +294,7 @@ class Supervisor:
         with self._cond:
             if self._closed:
                 return
-            self._down[name] = self._resets
+            generation = self._down[name] = self._resets
             self.failures[name] = self.failures.get(name, 0) + 1
             self._cond.notify_all()
         if isinstance(exc, BusError):
@@ -311,7 +311,7 @@ class Supervisor:
             log.error("%s failed; it waits for the next reset", name, exc_info=exc)
         # a hardware fault's message already says what broke; its kind goes in the report
         text = exc.message if isinstance(exc, HardwareFault) else f"{type(exc).__name__}: {exc}"
-        _post_quietly(self._admin, TaskFailed(name, kind, text))
+        _post_quietly(self._admin, TaskFailed(name, kind, text, generation))
 
     def guest(self, name: str, attach: Callable[[], None]) -> None:
         """Attach guest task ``name`` now, and again at every reset after it has failed."""
