@@ -8,6 +8,7 @@ loopback; the recording source through files written here.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from biris_hw.io.pose import (
     PoseBuffer,
     PoseFileError,
     PosePump,
+    PoseSubscription,
     clock_offset,
     read_poses,
     subscribe_poses,
@@ -29,7 +31,7 @@ from biris_hw.io.pose import (
 from biris_hw.opening import open_poses
 from biris_hw.timebase import VirtualTime
 from sim import OdometryParams, Scene, SimulatedBiris, Trajectory
-from tests.conftest import until
+from tests.conftest import WAIT, until
 from tests.net_helpers import endpoint, free_port
 
 RATE_HZ = 50.0
@@ -471,6 +473,33 @@ def test_frames_other_than_those_asked_for_are_left_out(zenoh_session: object) -
         sub.on_payload(codec.encode_odometry(PoseSample(5, 0, 0, 0, 0, 0, 5)))  # wrong type
     assert (sub.taken, sub.other, sub.malformed) == (2, 1, 1)
     assert buffer.span() == (0.0, 2.0)
+
+
+def test_a_payload_is_counted_received_only_once_the_buffer_has_its_outcome() -> None:
+    """A reader that waits for ``received`` to reach n must find the buffer as those n payloads
+    left it: under load a Zenoh callback thread was once pre-empted between counting a payload
+    and handing it to the buffer, and the reader saw ``refused`` still 0."""
+    entered, release = threading.Event(), threading.Event()
+
+    class SlowBuffer(PoseBuffer):
+        def add(self, sample: PoseSample) -> bool:
+            entered.set()
+            release.wait()
+            return super().add(sample)
+
+    sub = PoseSubscription(SlowBuffer(), ODOMETRY, None, None)
+    sample = PoseSample(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1)
+    worker = threading.Thread(target=sub.on_payload, args=(codec.encode_odometry(sample),))
+    worker.start()
+    try:
+        assert entered.wait(WAIT)
+        assert (sub.received, sub.taken) == (0, 0)  # in the buffer's hands: not yet counted
+    finally:
+        release.set()
+        worker.join(WAIT)
+    assert (sub.received, sub.taken, sub.buffer.refused) == (1, 1, 0)
+    sub.on_payload(codec.encode_odometry(sample))  # the same stamp again: refused
+    assert (sub.received, sub.taken, sub.buffer.refused) == (2, 1, 1)
 
 
 def test_a_subscription_with_its_own_session_reaches_a_base_on_loopback(

@@ -37,7 +37,10 @@ class PoseSubscription:
 
     Counts what it saw: :attr:`received` payloads, :attr:`taken` into the buffer, :attr:`other`
     (the frames were not those asked for), :attr:`malformed` (not a pose message: the error is
-    kept in :attr:`last_error`); a sample the buffer refused (out of order) is counted there.
+    kept in :attr:`last_error`); a sample the buffer refused (out of order) is counted there. A
+    payload is counted in :attr:`received` once it has been handled, together with its outcome,
+    so that a reader who sees ``received`` reach n also sees the buffer as those n left it (a
+    payload counted on arrival could still be on its way into the buffer).
     Close it (or leave its ``with`` block) to unsubscribe; a session it opened itself is closed
     with it.
     """
@@ -54,6 +57,8 @@ class PoseSubscription:
         self.frame_id = frame_id
         self.child_frame_id = child_frame_id
         self._lock = threading.Lock()
+        self._arrived = 0
+        """Payloads that have arrived (handled or not): each one's sequence number."""
         self.received = 0
         self.taken = 0
         self.other = 0
@@ -66,14 +71,15 @@ class PoseSubscription:
     def on_payload(self, data: bytes) -> None:
         """Take one payload in (what the Zenoh callback calls; a test may call it too)."""
         with self._lock:
-            seq = self.received
-            self.received += 1
+            seq = self._arrived
+            self._arrived += 1
         try:
             message = decode_pose(data, self.msgtype, seq=seq)
         except WireError as exc:
             with self._lock:
                 self.malformed += 1
                 self.last_error = exc
+                self.received += 1
             log.debug("pose payload refused: %s", exc)
             return
         if (self.frame_id is not None and message.frame_id != self.frame_id) or (
@@ -81,10 +87,12 @@ class PoseSubscription:
         ):
             with self._lock:
                 self.other += 1
+                self.received += 1
             return
-        if self.buffer.add(message.sample):
-            with self._lock:
-                self.taken += 1
+        taken = self.buffer.add(message.sample)
+        with self._lock:
+            self.taken += taken
+            self.received += 1
 
     def _on_sample(self, sample: Any) -> None:
         self.on_payload(sample.payload.to_bytes())
