@@ -10,6 +10,7 @@ playback is decided from the sensor; the dead-man stops a sweep nobody controls 
 from __future__ import annotations
 
 import json
+import threading
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -23,7 +24,7 @@ from biris_hw.io.net import RemoteSensor, Service, connect, remote, serve
 from biris_hw.io.net.keys import Keys
 from biris_hw.io.net.service import MAX_BLOCKING, NEW_CLIENT_BURST, NEW_CLIENT_RATE, _Client
 from biris_hw.io.net.zconfig import make_config
-from tests.conftest import until
+from tests.conftest import WAIT, until
 from tests.net_helpers import FakeSensor, endpoint, free_port, warm_up_zenoh
 from tests.test_record_support import synthetic_scans
 
@@ -203,6 +204,34 @@ def test_scan_counters_per_direction(fake: FakeSensor, served: tuple[Service, st
         assert subscription.dropped == 0
         assert (svc.published["scan/cw"], svc.published["scan/ccw"]) == (3, 2)
         assert got == [Direction.CW, Direction.CCW] * 2 + [Direction.CW]
+        subscription.close()
+
+
+def test_a_publication_is_counted_received_once_its_callback_has_returned(
+    fake: FakeSensor, served: tuple[Service, str]
+) -> None:
+    """A reader waiting for ``received`` to reach n must have had n callbacks: counted on
+    arrival, a loaded host's Zenoh thread could be pre-empted before the callback ran."""
+    svc, where = served
+    entered, release = threading.Event(), threading.Event()
+
+    def slow(scan: object) -> None:
+        entered.set()
+        release.wait(WAIT)
+
+    with _connect(where) as reader:
+        subscription = reader.subscribe("scan", slow)
+        until(
+            lambda: all(p.matching_status.matching for p in svc._pub_scan.values()),
+            what="the service sees the subscriber",
+        )
+        fake.feed(next(iter(synthetic_scans(1, n_acq=2, samples=4))))
+        try:
+            assert entered.wait(WAIT)
+            assert subscription.received == 0  # in the callback: not yet counted
+        finally:
+            release.set()
+        until(lambda: subscription.received == 1, what="the scan counted")
         subscription.close()
 
 

@@ -157,7 +157,9 @@ class Subscription:
     """One subscription to the service's publications; counts what it missed.
 
     Each publication carries the service's counter of that kind, so a jump is a publication this
-    subscriber never got (Zenoh dropped it rather than slow the sensor): :attr:`dropped`.
+    subscriber never got (Zenoh dropped it rather than slow the sensor): :attr:`dropped`. A
+    publication is counted in :attr:`received` once the callback has returned from it, so that a
+    reader who sees ``received`` reach n has had its callback run n times.
     """
 
     def __init__(self) -> None:
@@ -915,13 +917,14 @@ class RemoteSensor:
         subscription = Subscription()
 
         def on_sample(sample: zenoh.Sample) -> None:
-            subscription._count(str(sample.key_expr), sample.attachment)
             try:
                 value = decode(sample.payload.to_bytes())
             except codec.WireError:
                 subscription.dropped += 1
-                return
-            callback(value)
+            else:
+                callback(value)
+            finally:
+                subscription._count(str(sample.key_expr), sample.attachment)
 
         subscription._subscriber = self._session.declare_subscriber(key, on_sample)
         subscription._life = self._life  # undeclared with the session, if not before
