@@ -7,6 +7,7 @@ they take about a second each, so they are in the slow tier (``make test-slow``)
 
 from __future__ import annotations
 
+import functools
 import json
 import signal
 import socket
@@ -18,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
 from websockets.sync.client import connect
 
 from biris_hw.commands import scan as scan_command
@@ -31,7 +33,14 @@ SIM = ["--sim", "--time-scale", "10", "--scene", "circle:2", "--seed", "3"]
 """As tests/test_cli.py (a round wall at 2 m, seeded), at x10: a scan to 90 degrees at x30 can
 end before BIRIS's start is seen on a loaded 2-core machine, and hold no acquisition."""
 
-STANDARD = get_typestore(Stores.ROS2_HUMBLE)
+
+@functools.cache
+def standard() -> Typestore:
+    """rosbags' own ROS 2 Humble typestore, as a stranger's reader holds it (built on first use:
+    building it at import cost every test worker a quarter of a second of collection)."""
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
 WAIT = 10.0
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("no_target_env")]
@@ -171,7 +180,7 @@ def test_view_serves_a_websocket_and_stops_on_ctrl_c(
                     if isinstance(frame, bytes) and frame[0] == 1:
                         sub = struct.unpack_from("<I", frame, 1)[0]
                         channel = channels[sub]
-                        message = STANDARD.deserialize_cdr(frame[13:], channel["schemaName"])
+                        message = standard().deserialize_cdr(frame[13:], channel["schemaName"])
                         seen[channel["topic"]] = message
         except BaseException as exc:
             failure.append(exc)

@@ -6,6 +6,7 @@ new objects. The round trips themselves: tests/test_wire.py (biris_msgs) and tes
 
 from __future__ import annotations
 
+import functools
 import importlib
 import math
 import sys
@@ -47,18 +48,16 @@ STANDARD_TYPES = (
 """Every standard type a message of ours is or holds."""
 
 
-def _humble() -> Any:
+@functools.cache
+def humble() -> Any:
     """ROS 2 Humble's store with the biris_msgs types: the store the lossless half was written
-    with before the codec chose one distribution."""
+    with before the codec chose one distribution (built on first use, not at collection)."""
     store = get_typestore(Stores.ROS2_HUMBLE)
     types: dict[str, Any] = {}
     for name, text in codec.MSG_DEFINITIONS.items():
         types.update(get_types_from_msg(text, name))
     store.register(types)
     return store
-
-
-HUMBLE = _humble()
 
 
 def test_one_store_holds_every_type_and_is_the_distributions() -> None:
@@ -78,7 +77,7 @@ def test_the_schema_texts_are_those_written_before(msgtype: str) -> None:
     """Humble, which the lossless half used, and Jazzy, which the standard half used and the
     codec now uses for both, define every type we write alike: the texts in the files (and so
     what ros2 bag, mcap-ros2-support and Foxglove parse) are what they were."""
-    text, _ = HUMBLE.generate_msgdef(msgtype, ros_version=2)
+    text, _ = humble().generate_msgdef(msgtype, ros_version=2)
     assert codec.schema_text(msgtype) == text
     assert codec.full_definition is codec.schema_text
 
@@ -98,7 +97,9 @@ def test_the_bytes_are_those_written_before() -> None:
     ):
         messages.append((encoded.msgtype, encoded.data))
     for msgtype, data in messages:
-        assert bytes(HUMBLE.serialize_cdr(HUMBLE.deserialize_cdr(data, msgtype), msgtype)) == data
+        assert (
+            bytes(humble().serialize_cdr(humble().deserialize_cdr(data, msgtype), msgtype)) == data
+        )
 
 
 def test_a_recording_written_with_the_humble_store_replays(tmp_path: Path) -> None:
@@ -109,13 +110,13 @@ def test_a_recording_written_with_the_humble_store_replays(tmp_path: Path) -> No
     file = McapFile(path)
     for scan in scans:
         for point in points_of(scan):
-            msg = HUMBLE.deserialize_cdr(codec.encode_point(point), codec.POINT)
-            text, _ = HUMBLE.generate_msgdef(codec.POINT, ros_version=2)
-            data = bytes(HUMBLE.serialize_cdr(msg, codec.POINT))
+            msg = humble().deserialize_cdr(codec.encode_point(point), codec.POINT)
+            text, _ = humble().generate_msgdef(codec.POINT, ros_version=2)
+            data = bytes(humble().serialize_cdr(msg, codec.POINT))
             file.write(codec.RAW_POINT_TOPIC, codec.POINT, text, data, codec.stamp_ns(point.t))
-        msg = HUMBLE.deserialize_cdr(codec.encode_scan(scan), codec.SCAN)
-        text, _ = HUMBLE.generate_msgdef(codec.SCAN, ros_version=2)
-        data = bytes(HUMBLE.serialize_cdr(msg, codec.SCAN))
+        msg = humble().deserialize_cdr(codec.encode_scan(scan), codec.SCAN)
+        text, _ = humble().generate_msgdef(codec.SCAN, ros_version=2)
+        data = bytes(humble().serialize_cdr(msg, codec.SCAN))
         file.write(codec.RAW_SCAN_TOPIC, codec.SCAN, text, data, codec.stamp_ns(scan.t[-1]))
     assert file.close()
     with ReplayServer(path, speed=None, autostart=False) as replay:

@@ -7,6 +7,7 @@ closes is closed by the garbage collector, or at the interpreter's exit."""
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import io
 import json
@@ -22,6 +23,7 @@ from typing import Any
 import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
 from websockets.sync.client import connect
 
 from biris_hw import BirisServer
@@ -44,7 +46,14 @@ from tests.test_record_support import cloud_xyz, synthetic_scans, write_raw
 # the Foxglove WebSocket server's threads call into the server: scaled real time
 pytestmark = pytest.mark.realtime
 
-STANDARD = get_typestore(Stores.ROS2_HUMBLE)
+
+@functools.cache
+def standard() -> Typestore:
+    """rosbags' own ROS 2 Humble typestore, as a stranger's reader holds it (built on first use:
+    building it at import cost every test worker a quarter of a second of collection)."""
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
 WAIT = 10.0
 
 
@@ -69,9 +78,9 @@ def test_live_view_advertises_and_delivers_decodable_messages(tmp_path: Path) ->
             assert channel["encoding"] == "cdr"
             assert channel["schemaName"] == ros2.TOPICS[topic]
             assert channel["schemaEncoding"] == "ros2msg"
-            text = STANDARD.generate_msgdef(channel["schemaName"], ros_version=2)[0]
+            text = standard().generate_msgdef(channel["schemaName"], ros_version=2)[0]
             assert channel["schema"] == text
-        stream = fox.messages(ws, fox.subscribe(ws, channels.values()), STANDARD)
+        stream = fox.messages(ws, fox.subscribe(ws, channels.values()), standard())
         acquisitions = sum(s.n_acq for s in scans)
         want = {"/biris/points": len(scans), "/biris/profile": acquisitions, "/tf": acquisitions}
         swept = sum(int((s.range_mm > 0).sum()) for s in scans)
@@ -120,7 +129,7 @@ def _subscribe(ws: Any, topics: list[str]) -> dict[int, dict[str, Any]]:
 def _messages(ws: Any, subs: dict[int, dict[str, Any]]) -> Iterator[tuple[str, Any]]:
     """(topic, decoded message) for every message the server sends, for as long as asked (a
     TimeoutError if the view went quiet)."""
-    for topic, message, _ in fox.messages(ws, subs, STANDARD):
+    for topic, message, _ in fox.messages(ws, subs, standard()):
         yield topic, message
 
 
@@ -410,7 +419,7 @@ def test_the_live_view_logs_on_the_wall_clock_and_keeps_hardware_stamps(tmp_path
         replay.start()
         offsets = set()
         received = 0
-        stream = fox.messages(ws, subs, STANDARD)
+        stream = fox.messages(ws, subs, standard())
         while received < 20:  # profiles of both scans' acquisitions
             _, message, log_time = next(stream)
             stamp = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec

@@ -14,7 +14,6 @@ import math
 from pathlib import Path
 from typing import Any
 
-import matplotlib
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -32,8 +31,6 @@ from biris_hw.io.plots import (
     view_3d_figure,
 )
 from regs.hctl1000 import COUNTS_PER_REV
-
-matplotlib.use("Agg")  # the module never needs a display; this only makes sure of it
 
 PNG = b"\x89PNG\r\n\x1a\n"
 SAMPLES = 8

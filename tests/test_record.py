@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import functools
 import io
 import os
 import threading
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
 
 from biris_hw import BirisInitRecord, BirisServer, ConnectionKind, DeliveryPolicy
 from biris_hw.data import Scan
@@ -31,7 +33,14 @@ from tests.test_record_support import (
     write_raw,
 )
 
-STANDARD = get_typestore(Stores.ROS2_HUMBLE)
+
+@functools.cache
+def standard() -> Typestore:
+    """rosbags' own ROS 2 Humble typestore, as a stranger's reader holds it (built on first use, not
+    at collection, where it cost every test worker a fifth of a second)."""
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
 WAIT = 10.0
 
 
@@ -92,7 +101,7 @@ def test_recording_a_sweeping_sensor_reads_back_everywhere(tmp_path: Path) -> No
     for topic in ("/biris/points", "/biris/profile", "/tf", "/tf_static", "/diagnostics"):
         name, encoding, text = schemas[topic]
         assert name == ros2.TOPICS[topic] and encoding == "cdr"
-        assert text.decode() == STANDARD.generate_msgdef(name, ros_version=2)[0]
+        assert text.decode() == standard().generate_msgdef(name, ros_version=2)[0]
     assert schemas["/biris/raw/scan"][0] == wire.SCAN
 
     messages = read_decoded(out)
@@ -102,7 +111,7 @@ def test_recording_a_sweeping_sensor_reads_back_everywhere(tmp_path: Path) -> No
     for scan, got, (_t, _n, decoded, cdr) in zip(raw_scans, received, clouds, strict=False):
         assert_same_scan(scan, got)
         np.testing.assert_allclose(cloud_xyz(decoded), got.points(), rtol=1e-6, atol=1e-6)
-        again = STANDARD.deserialize_cdr(cdr, ros2.POINT_CLOUD2)  # the second reader
+        again = standard().deserialize_cdr(cdr, ros2.POINT_CLOUD2)  # the second reader
         np.testing.assert_array_equal(cloud_xyz(again), cloud_xyz(decoded))
     acquisitions = sum(s.n_acq for s in received)
     for topic in ("/biris/profile", "/tf", "/biris/raw/point"):

@@ -14,6 +14,7 @@ here; the commands' flags end to end.
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import math
@@ -25,6 +26,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
 from websockets.sync.client import connect
 from websockets.typing import Subprotocol
 
@@ -46,7 +48,14 @@ from tests import foxglove_client as fox
 from tests.conftest import Run
 from tests.test_record_support import cloud_xyz, read_decoded, synthetic_scans
 
-STANDARD = get_typestore(Stores.ROS2_JAZZY)
+
+@functools.cache
+def standard() -> Typestore:
+    """rosbags' own ROS 2 Jazzy typestore, as a stranger's reader holds it (built on first use, not
+    at collection, where it cost every test worker a fifth of a second)."""
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
 SUBPROTOCOL = Subprotocol(fox.SUBPROTOCOL)
 WAIT = 10.0
 SWEEPS = (-90.0, 90.0, -90.0, 90.0)
@@ -99,7 +108,7 @@ def _messages(path: Path, topic: str) -> list[tuple[Any, int]]:
             topics=[topic], log_time_order=True
         ):
             assert schema is not None
-            out.append((STANDARD.deserialize_cdr(message.data, schema.name), message.log_time))
+            out.append((standard().deserialize_cdr(message.data, schema.name), message.log_time))
     return out
 
 
@@ -283,7 +292,7 @@ def test_the_live_view_of_a_moving_recording_advertises_and_sends_odom_and_grid(
     with replay, view, connect(f"ws://127.0.0.1:{view.port}", subprotocols=[SUBPROTOCOL]) as ws:
         channels = fox.advertised(ws, len(topics))
         assert {t: c["schemaName"] for t, c in channels.items()} == topics
-        stream = fox.messages(ws, fox.subscribe(ws, channels.values()), STANDARD)
+        stream = fox.messages(ws, fox.subscribe(ws, channels.values()), standard())
         got: dict[str, list[Any]] = {}
         started = False
         while len(got.get(codec.POINTS_TOPIC, [])) < len(SWEEPS) or not all(
@@ -394,7 +403,7 @@ def test_acquisitions_without_a_pose_are_counted_and_left_out() -> None:
     late = Batch(status=StatusReading(None, None, float(scan.t[-1]) + 0.5))
     clouds = [m for m in encoder.messages(late) if m.topic == codec.POINTS_TOPIC]
     assert len(clouds) == 1 and encoder.unplaced_points == 5 and encoder.placed_scans == 1
-    xyz = cloud_xyz(STANDARD.deserialize_cdr(clouds[0].data, codec.POINT_CLOUD2))
+    xyz = cloud_xyz(standard().deserialize_cdr(clouds[0].data, codec.POINT_CLOUD2))
     keep = scan.range_mm[:5] > 0
     assert xyz.shape[0] == int(keep.sum())  # the placed acquisitions' returns only
     np.testing.assert_allclose(xyz, deskewed(scan, buffer).points(), atol=1e-5)

@@ -2,24 +2,33 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
 
 from biris_hw.io import codec
 from biris_hw.status import ServerState, ServerStatus
 from tests.conftest import idle_status
 from tests.test_record_support import cloud_xyz, points_of, synthetic_scans
 
-STANDARD = get_typestore(Stores.ROS2_HUMBLE)
+
+@functools.cache
+def standard() -> Typestore:
+    """rosbags' own ROS 2 Humble typestore, as a stranger's reader holds it (built on first use, not
+    at collection, where it cost every test worker a fifth of a second)."""
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
 """Another ROS 2 distribution's store than the codec's (Jazzy): the same standard text."""
 
 
 @pytest.mark.parametrize("msgtype", sorted(set(codec.TOPICS.values())))
 def test_schema_text_is_the_standard_definition(msgtype: str) -> None:
-    text, _ = STANDARD.generate_msgdef(msgtype, ros_version=2)
+    text, _ = standard().generate_msgdef(msgtype, ros_version=2)
     assert codec.schema_text(msgtype) == text
     assert "MSG: std_msgs/Header" in text or msgtype == codec.TF_MESSAGE
 
@@ -28,7 +37,7 @@ def test_schema_text_is_the_standard_definition(msgtype: str) -> None:
 def test_scan_cloud_holds_scan_points(frame: str) -> None:
     scan = synthetic_scans(1)[0]
     encoded = codec.scan_cloud(scan, frame)  # type: ignore[arg-type]
-    msg = STANDARD.deserialize_cdr(encoded.data, codec.POINT_CLOUD2)
+    msg = standard().deserialize_cdr(encoded.data, codec.POINT_CLOUD2)
     assert msg.header.frame_id == codec.cloud_frame_id(frame)  # type: ignore[arg-type]
     assert [f.name for f in msg.fields] == [f[0] for f in codec.CLOUD_FIELDS]
     want = scan.points(frame)  # type: ignore[arg-type]
@@ -55,11 +64,11 @@ def _matrix(tf: object) -> np.ndarray:
 
 def test_profile_through_the_transform_chain_lands_on_point_points() -> None:
     point = points_of(synthetic_scans(1)[0])[5]
-    profile = STANDARD.deserialize_cdr(codec.profile_cloud(point).data, codec.POINT_CLOUD2)
+    profile = standard().deserialize_cdr(codec.profile_cloud(point).data, codec.POINT_CLOUD2)
     assert profile.header.frame_id == codec.SENSOR_FRAME
     chain = {}
     for encoded in (codec.static_transforms(point.mount), codec.transforms(point)):
-        for tf in STANDARD.deserialize_cdr(encoded.data, codec.TF_MESSAGE).transforms:
+        for tf in standard().deserialize_cdr(encoded.data, codec.TF_MESSAGE).transforms:
             chain[tf.child_frame_id] = (tf.header.frame_id, _matrix(tf))
     frame, m = codec.SENSOR_FRAME, np.eye(4)
     while frame in chain:
@@ -76,7 +85,7 @@ def test_diagnostics_levels_follow_the_state() -> None:
         return idle_status(state=state, fault=fault, counters={"scans": 3})
 
     def levels(encoded: codec.Encoded) -> list[tuple[str, int]]:
-        msg = STANDARD.deserialize_cdr(encoded.data, codec.DIAGNOSTIC_ARRAY)
+        msg = standard().deserialize_cdr(encoded.data, codec.DIAGNOSTIC_ARRAY)
         return [(s.name, s.level) for s in msg.status]
 
     ok = codec.diagnostics(status(ServerState.IDLE), 1.0, extra={"recorder": {"dropped_points": 0}})
@@ -98,8 +107,8 @@ def test_hand_encoded_cdr_is_what_rosbags_writes() -> None:
     encoded += codec.profile_clouds([p for s in scans for p in points_of(s)])
     encoded += [codec.scan_cloud(s, f) for s in scans for f in ("vehicle", "sensor")]  # type: ignore[arg-type]
     for message in encoded:
-        decoded = STANDARD.deserialize_cdr(message.data, message.msgtype)
-        assert bytes(STANDARD.serialize_cdr(decoded, message.msgtype)) == message.data
+        decoded = standard().deserialize_cdr(message.data, message.msgtype)
+        assert bytes(standard().serialize_cdr(decoded, message.msgtype)) == message.data
 
 
 def test_batched_profiles_equal_one_at_a_time() -> None:
@@ -123,7 +132,7 @@ def test_sweep_pieces_put_together_are_the_scan_cloud() -> None:
         points = points_of(scan)
         assert codec.sweep_cloud(points).data == codec.scan_cloud(scan).data
         pieces = [codec.sweep_cloud(points[i : i + 5]) for i in range(0, len(points), 5)]
-        decoded = [STANDARD.deserialize_cdr(m.data, m.msgtype) for m in pieces]
+        decoded = [standard().deserialize_cdr(m.data, m.msgtype) for m in pieces]
         assert all(len(m.data) == m.width * m.point_step for m in decoded)
         xyz = np.concatenate([cloud_xyz(m) for m in decoded])
         np.testing.assert_allclose(xyz, scan.points(), rtol=1e-6, atol=1e-6)
