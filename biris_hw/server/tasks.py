@@ -160,9 +160,12 @@ class Supervisor:
     text)`` (:meth:`failed`): a HardwareFault keeps its own kind (the level-3 routine raising a
     CiA 402 drive's EMCY is ``motor_stall``, its lost heartbeat ``bus``), any other BusError is
     ``bus`` (a register or interrupt line of a target that has gone), anything else ``internal``
-    (a bug). The administrator turns it into a fault of that kind and tells every caller. The
+    (a bug). The administrator turns it into a fault of that kind and tells every caller -- unless
+    the report carries a reset count (``TaskFailed.generation``) from before the reset under way or
+    already done, which restarts the task: a failure met in the outage that reset recovers from. The
     thread stays alive under its table name and, for ``Restart.ON_RESET``, waits until
-    :meth:`reset` (the administrator starting the initialiser), then runs its body again. A task
+    :meth:`reset` (the initialiser of the next reset, once it has re-linked), then runs its body
+    again. A task
     that keeps failing therefore reports once per reset and never spins. The administrator's own
     thread is ``Restart.AT_ONCE``: it carries out resets, so it is restarted at once. Its
     failure is posted to its own inbox and handled as soon as it runs again. Should it keep
@@ -221,8 +224,9 @@ class Supervisor:
     def reset(self) -> None:
         """The server's reset: every task waiting after a failure runs its body again.
 
-        Called by the administrator just before it starts the initialiser, so the initialiser's
-        moves and commands find live workers and notifiers. Never blocks: a revived worker
+        Called by the initialiser once it has re-linked what was lost (``restart_tasks``), before
+        its first move or command, so that those find live workers and notifiers; a task revived
+        earlier would fail again at once on a link still gone. Never blocks: a revived worker
         reports ready on its own, and until then what the initialiser asks for waits in the
         administrator's queues, as it always does.
         """
