@@ -157,6 +157,8 @@ class Administrator:
         """How far behind its clock the hardware has been running (a simulator on a host that
         cannot keep up), said in a fault's message; None on the real target."""
         self._extras = extras
+        """The status's parts kept outside the administrator (interrupt counts, tasks down,
+        the crate's reading): read from memory the server's other parts keep, never the bus."""
         self._task_generation = task_generation
         """The supervisor's reset count (:attr:`~biris_hw.server.tasks.Supervisor.resets`), by
         which a task's failure report is told from that of a task run again since; None: every
@@ -164,8 +166,6 @@ class Administrator:
         self._reset_generation: int | None = None
         """That count when the reset under way began: its initialiser restarts every task that
         failed before, so their reports are not faults of the new initialisation."""
-        """The status's parts kept outside the administrator (interrupt counts, tasks down,
-        the crate's reading): read from memory the server's other parts keep, never the bus."""
         self.bulletin = p.Bulletin(timebase_of(clock, time_scale))
         """The epoch clients read without a round trip (see :data:`_READS`)."""
         self.changes = StatusChanges()

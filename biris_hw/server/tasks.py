@@ -160,16 +160,15 @@ class Supervisor:
     text)`` (:meth:`failed`): a HardwareFault keeps its own kind (the level-3 routine raising a
     CiA 402 drive's EMCY is ``motor_stall``, its lost heartbeat ``bus``), any other BusError is
     ``bus`` (a register or interrupt line of a target that has gone), anything else ``internal``
-    (a bug). The administrator turns it into a fault of that kind and tells every caller -- unless
-    the report carries a reset count (``TaskFailed.generation``) from before the reset under way or
-    already done, which restarts the task: a failure met in the outage that reset recovers from. The
-    thread stays alive under its table name and, for ``Restart.ON_RESET``, waits until
-    :meth:`reset` (the initialiser of the next reset, once it has re-linked), then runs its body
-    again. A task
-    that keeps failing therefore reports once per reset and never spins. The administrator's own
-    thread is ``Restart.AT_ONCE``: it carries out resets, so it is restarted at once. Its
-    failure is posted to its own inbox and handled as soon as it runs again. Should it keep
-    failing, the restarts back off up to :data:`ADMIN_BACKOFF_MAX_S`.
+    (a bug). The administrator turns it into a fault of that kind and tells every caller --
+    unless the report carries a reset count (``TaskFailed.generation``) from before the reset
+    under way or already done, which restarts the task: a failure met in the outage that reset
+    recovers from. The thread stays alive under its table name and, for ``Restart.ON_RESET``,
+    waits until :meth:`reset` (the initialiser of the next reset, once it has re-linked), then
+    runs its body again. A task that keeps failing therefore reports once per reset and never
+    spins. The administrator's own thread is ``Restart.AT_ONCE``: it carries out resets, so it
+    is restarted at once. Its failure is posted to its own inbox and handled as soon as it runs
+    again. Should it keep failing, the restarts back off up to :data:`ADMIN_BACKOFF_MAX_S`.
 
     A task that runs in another task's thread (biris_data_notifier in level2_isr) is a *guest*:
     :meth:`guest` attaches it, it reports its own failure through :meth:`failed`, and its host
