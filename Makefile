@@ -9,13 +9,16 @@ LINT_DIRS := biris_hw regs sim benchmarks tests $(wildcard tools)
 PYTEST := env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest
 # pytest-xdist workers: one per core and one more. The scaled-real-time tests spend part of their
 # time waiting on the wall clock; the extra worker computes meanwhile. Measured on 2 cores (the
-# VM's own speed varied up to 2x from minute to minute): 4 workers ran no faster quiet (61-100 s
-# against 64-83 s) and 5 slower (69-94 s: a quarter more CPU); beside three CPU-bound processes 4
-# were faster in four runs of five (86-154 s against 126-156 s) by taking more of the machine from
-# them, and left each worker's threads less of it: a scaled-time VM-USB test's simulator once fell
-# 48 ms behind its clock and its move was called stalled. A test file's tests go to one worker
-# (--dist loadfile), so a module's shared fixture (a served sensor, the demo run) is built once,
-# not once per worker that gets one of its tests; the longest modules go first
+# VM's own speed varied up to 2x from minute to minute): quiet, in five alternated pairs, 4
+# workers took 49.9-64.8 s (the machine 7-10 % idle) against 56.6-68.9 s for 3 (16-20 % idle),
+# faster in four pairs; 5 were slower (69-94 s: a quarter more CPU). Beside three CPU-bound
+# processes 4 were faster in four runs of five (86-154 s against 126-156 s, before 3 came down
+# to 121-128 s) by taking more of the machine from them, and left each worker's threads less of
+# it: a scaled-time VM-USB test's simulator once fell 48 ms behind its clock and its move was
+# called stalled. A suite that passes under load is worth more than 5 s quiet. A test file's
+# tests go to one worker (--dist loadfile), so a module's shared fixture (a served sensor, the
+# demo run) is built once, not once per worker that gets one of its tests; the longest modules
+# go first
 # (tests/module_order.py, from tests/module_costs.json: make test-costs)
 WORKERS ?= $(shell $(PYTHON) -c 'import os; n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(); print((n or 1) + 1)')
 
