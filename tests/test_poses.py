@@ -403,11 +403,12 @@ def _cut_odometry() -> bytes:
     return codec.encode_odometry(PoseSample(1, 0, 0, 0, 0, 0, 0))[:40]
 
 
+# the payloads are made in the test, so that collection does not build the codec's store
 @pytest.mark.parametrize(
     "make",
     [lambda: b"", lambda: b"\x00\x01\x00\x00garbage", _cut_odometry],
-    ids=["empty", "garbage", "cut_odometry"],  # made in the test: the codec's store is not
-)  # built at collection
+    ids=["empty", "garbage", "cut_odometry"],
+)
 def test_a_payload_that_is_not_a_pose_is_a_wire_error(make: Callable[[], bytes]) -> None:
     payload = make()
     with pytest.raises(WireError):
@@ -490,7 +491,7 @@ def test_a_payload_is_counted_received_only_once_the_buffer_has_its_outcome() ->
     class SlowBuffer(PoseBuffer):
         def add(self, sample: PoseSample) -> bool:
             entered.set()
-            release.wait()
+            release.wait(WAIT)
             return super().add(sample)
 
     sub = PoseSubscription(SlowBuffer(), ODOMETRY, None, None)
