@@ -104,18 +104,24 @@ def until(
         with wake:
             if wake.wait_for(predicate, timeout):
                 return True
-    else:
-        deadline = time.monotonic() + timeout
-        interval = 0.0005
-        while not predicate():
-            left = deadline - time.monotonic()
-            if left <= 0:
-                break
-            time.sleep(min(interval, left))
-            interval = min(2 * interval, 0.01)
-        else:
-            return True
+    elif _poll(predicate, timeout):
+        return True
     pytest.fail(f"timed out after {timeout:g} s waiting for {what or _describe(predicate)}")
+
+
+def _poll(predicate: Callable[[], object], timeout: float) -> bool:
+    """Whether ``predicate()`` became true within ``timeout`` real seconds, looked at every 0.5 ms
+    at first, backing off to 10 ms: for state no event announces (looked at once at least).
+    The sleep is the look's period, not a synchronisation: the answer is the predicate's."""
+    deadline = time.monotonic() + timeout
+    interval = 0.0005
+    while not predicate():
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return False
+        time.sleep(min(interval, left))
+        interval = min(2 * interval, 0.01)
+    return True
 
 
 def _virtual_domain() -> VirtualTime | None:
@@ -268,16 +274,17 @@ def _fds_left_open(before: set[str], grace_s: float = WAIT) -> set[str]:
     A descriptor closed as the listing is taken (the listing's own) is not a leak, nor is one a
     library closes in its own time: Zenoh's runtime drops a closed session's link socket from a
     thread of its own, after ``close()`` has returned (in a quiet CI run, once, as the check
-    looked). Polled as :func:`until` polls; the usual case, nothing new, costs one listing."""
-    deadline = time.monotonic() + grace_s
-    interval = 0.0005
-    while True:
-        fds = {fd for fd in _fds() - before if os.path.lexists(f"/proc/self/fd/{fd}")}
-        left = deadline - time.monotonic()
-        if not fds or left <= 0:
-            return fds
-        time.sleep(min(interval, left))
-        interval = min(2 * interval, 0.01)
+    looked). No event announces a descriptor's close, so it is polled (:func:`_poll`); the usual
+    case, nothing new, costs one listing."""
+    left: set[str] = set()
+
+    def all_closed() -> bool:
+        nonlocal left
+        left = {fd for fd in _fds() - before if os.path.lexists(f"/proc/self/fd/{fd}")}
+        return not left
+
+    _poll(all_closed, grace_s)
+    return left
 
 
 def _describe_fds(fds: set[str]) -> str:
