@@ -15,11 +15,12 @@ PYTEST := env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest
 # processes 4 were faster in four runs of five (86-154 s against 126-156 s, before 3 came down
 # to 121-128 s) by taking more of the machine from them, and left each worker's threads less of
 # it: a scaled-time VM-USB test's simulator once fell 48 ms behind its clock and its move was
-# called stalled. A suite that passes under load is worth more than 5 s quiet. A test file's
-# tests go to one worker (--dist loadfile), so a module's shared fixture (a served sensor, the
-# demo run) is built once, not once per worker that gets one of its tests; the longest modules
-# go first
-# (tests/module_order.py, from tests/module_costs.json: make test-costs)
+# called stalled. A suite that passes under load is worth more than 5 s quiet. On a slower day
+# (three alternated pairs) 4 workers were no faster quietly: 75.9-79.5 s against 77.8-79.1 s,
+# with 10 s more CPU (one more collection, more contention) for the idle time they filled.
+# A test file's tests go to one worker (--dist loadfile), so a module's shared fixture (a served
+# sensor, the demo run) is built once, not once per worker that gets one of its tests; the
+# longest modules go first (tests/module_order.py, from tests/module_costs.json: make test-costs)
 WORKERS ?= $(shell $(PYTHON) -c 'import os; n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(); print((n or 1) + 1)')
 
 .PHONY: test test-costs test-slow test-under-load demo lint bench clean

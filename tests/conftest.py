@@ -34,7 +34,7 @@ from sim.scene import Scene
 from sim.scene.shapes import Cylinder
 from tests import live_rigs
 
-pytest_plugins = ["tests.module_order"]
+pytest_plugins = ["tests.module_order", "tests.run_figures"]
 
 if TYPE_CHECKING:
     from biris_hw.data import Scan
