@@ -240,9 +240,11 @@ class MotionBoard:
     def clear_index(self, axis: Axis, *, check: bool = False) -> None:
         """Clear ``axis``'s index latch (write 1); with ``check``, read it back.
 
-        Checked only where the head stands away from the index (the coarse search's looks,
-        which found no index there): near it, a head at rest still dithers a count either way
-        and may set the latch again as it is read, which is no fault.
+        Checked only where the head cannot stand on the index's edge: there a head at rest
+        still dithers a count either way and may set the latch again as it is read, which is no
+        fault. The homing search clears and reads back plainly first, and checks only a few
+        counts off from where the latch showed again at once
+        (:data:`biris_hw.server.initialiser.RECLEAR_STEP_COUNTS`).
 
         Raises:
             HardwareFault: ``protocol`` (with ``check``), naming INDEX_STATUS, when it still shows

@@ -36,7 +36,7 @@ from sim import SimulatedBiris
 from sim.audit import Audit, Rule
 from sim.clock import SimClock
 from sim.hctl1000 import ChipVariant, Mode
-from sim.motor import MotorPlant
+from sim.motor import COUNTS_PER_REV, MotorPlant
 from sim.tech80 import BoardVariant, Model7600
 from tests.conftest import WAIT, RigFactory
 
@@ -268,6 +268,37 @@ def test_an_index_latch_that_does_not_clear_is_refused(make_rig: RigFactory) -> 
         BirisServer(rig.hardware, BirisInitRecord())
     assert refused.value.kind == "protocol"
     assert "INDEX_STATUS" in refused.value.message
+
+
+def test_a_head_dithering_on_the_index_edge_is_no_stuck_latch(
+    make_rig: RigFactory, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A head at rest within a count of true zero's index crosses it as it dithers, so its
+    latch sets again as it is cleared. The referenced pan's search starts standing on that
+    index: before, its first read-back there failed every such reset as "INDEX_STATUS still
+    shows the index" (a CI run of test_feed_survives, the head stopped on true zero by a reset
+    during a sweep across it). The latch is read again a few counts off the index."""
+    rig = make_rig()
+    with BirisServer(rig.hardware, BirisInitRecord()) as server:
+        assert rig.hardware.pan_reference.referenced
+        pan = rig.board.plants[0]
+        cleared = MotorPlant.clear_index
+
+        def dithering(plant: MotorPlant) -> None:
+            cleared(plant)
+            if plant is pan:
+                turn = plant.true_azimuth_counts % COUNTS_PER_REV
+                if min(turn, COUNTS_PER_REV - turn) < 1.0:  # on the edge: crossed again at once
+                    plant._index_seen = True
+
+        monkeypatch.setattr(MotorPlant, "clear_index", dithering)
+        assert abs(pan.true_azimuth_counts) < 1.0  # homed: standing on true zero's index
+        with caplog.at_level(logging.INFO, logger="biris_hw.server.initialiser"):
+            server.reset()
+        assert "showed again where the head stood" in caplog.text
+        assert abs(rig.azimuth_counts) <= HOMED
+        assert rig.hardware.pan_reference.referenced
+        scan_to(server, 10.0)
 
 
 def test_a_level_index_homed_as_a_latch_says_what_to_check(make_rig: RigFactory) -> None:

@@ -45,8 +45,9 @@ completes, or a move that never ends is a HardwareFault, never a hang.
 **Boards checked, not assumed.** What the driver assumes a board did is read back
 (:mod:`biris_hw.devices`): the counter after a chip reset (the pan reference is told what it
 reads, not what it should read) and after every clear on the index, the index latch after it is
-cleared. Homing finds the index in one of two ways, by what the board's INDEX_STATUS shows
-(:class:`~biris_hw.devices.IndexKind`, the target file's ``[homing] index``):
+cleared (where it shows again at once, once more a few counts off: a head at rest on the index's
+edge dithers across it). Homing finds the index in one of two ways, by what the board's
+INDEX_STATUS shows (:class:`~biris_hw.devices.IndexKind`, the target file's ``[homing] index``):
 
 - a *latch* (the default, our reading of the Model 7600): coarse moves at full speed, each
   looked at afterwards, then a bisection crossing the index again for each half;
@@ -153,6 +154,13 @@ BUSY_POLL_S = FIELD_PERIOD_S
 REBASE_ATTEMPTS = 3
 """Re-zeroings of the pan counter allowed to bring the search window within the chip's own
 +-0x1000 (one is always enough for a head within a revolution of true zero)."""
+
+RECLEAR_STEP_COUNTS = 4
+"""How far the latch search steps off before it clears and reads back a latch that showed
+again at once where the head stood (:meth:`_LatchSearch._clear`): a head at rest dithers a
+count either way, so one standing on the index's edge crosses it as the latch is read (the
+referenced pan's search starts on true zero's index itself). Four counts off, no dither reaches
+the index, and a latch that still shows is the board's."""
 
 SWEEP_CHUNK = 32
 """Counts per move of a slow sweep for a live index level (module notes): short, so the
@@ -606,6 +614,30 @@ class _LatchSearch:
             else ""
         )
 
+    def _clear(self, axis: Axis, inward: int, low: int, high: int) -> None:
+        """Clear the latch before a look; on the Model 7600 read it back too. A latch that does
+        not clear (or an index that is a live level) would stop the search at its first look,
+        at an index that is not there, so it is a ``protocol`` fault -- but only where no dither
+        can set it again: a latch that shows again at once is cleared and read again
+        :data:`RECLEAR_STEP_COUNTS` counts off (``inward``, kept within [low, high]), and only
+        a latch that still shows there is the board's. The head stays where it stepped."""
+        board = self._init.board
+        board.clear_index(axis)
+        if not self._model7600 or not board.index_seen(axis):
+            return
+        init = self._init
+        here = init._position[axis]
+        off = min(max(here + inward, low), high)
+        log.info(
+            "%s: the index latch showed again where the head stood (count %d), as a head "
+            "dithering on the index's edge sets it; read again at count %d",
+            axis.name.lower(),
+            here,
+            off,
+        )
+        init._move(off, axis)
+        cast("MotionBoard", board).clear_index(axis, check=True)
+
     def sweep(
         self, axis: Axis, low: int, high: int, start: int, chunk: int
     ) -> tuple[int, int] | None:
@@ -618,10 +650,16 @@ class _LatchSearch:
             for target in (min(start + reach, high), max(start - reach, low)):
                 if covered_lo <= target <= covered_hi:
                     continue  # that side is searched to its end already
-                if self._model7600:  # away from the index (not seen here): it must clear
-                    cast("MotionBoard", board).clear_index(axis, check=True)
-                else:
-                    board.clear_index(axis)
+                here = init._position[axis]
+                # off the index's edge, a step toward ground searched (or the window's inside)
+                inward = (
+                    -RECLEAR_STEP_COUNTS
+                    if here > start or (here == start and here - RECLEAR_STEP_COUNTS >= low)
+                    else RECLEAR_STEP_COUNTS
+                )
+                self._clear(axis, inward, low, high)
+                if covered_lo == covered_hi:  # nothing searched yet: it starts where it stands
+                    covered_lo = covered_hi = init._position[axis]
                 init._move(target, axis)
                 if board.index_seen(axis):
                     # 2 counts of margin at both ends: the head may have stopped on the index
@@ -637,12 +675,12 @@ class _LatchSearch:
         """Bisect the bracket to one count, always crossing from below."""
         init, board = self._init, self._init.board
         lo, hi = bracket
-        checked = not self._model7600
+        checked = False
         while hi - lo > 1:
             mid = (lo + hi) // 2
             init._move(lo, axis)  # going back may cross the index: clear the latch afterwards
             if not checked:  # the bracket's end, clear of the index: a latch must clear there
-                cast("MotionBoard", board).clear_index(axis, check=True)
+                self._clear(axis, -RECLEAR_STEP_COUNTS, low, high)
                 checked = True
             else:  # near the index a head at rest dithers a count: the latch may set again
                 board.clear_index(axis)
