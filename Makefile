@@ -45,6 +45,7 @@ test: $(STAMP)
 test-costs: $(STAMP)
 	$(PYTEST) -m "not slow" -q -n $(WORKERS) --dist loadfile --no-loadscope-reorder --record-module-costs tests/module_costs.json
 
+# One process: with xdist workers the slow tier's scaled-time tests load each other (docs/development.md)
 test-slow: $(STAMP)
 	$(PYTEST) -m slow -q
 
