@@ -2,13 +2,13 @@
 
 A run's wall time alone cannot tell a slower suite from a slower machine. On a shared virtual
 machine one commit's quiet fast tier took 73 s with 124 s of CPU and, a quarter of an hour
-later, 81 s with 136 s: the host's other guests slowed the same work, which shows as more CPU
-seconds for it and as time *stolen* from the guest. So every run says, beside its wall time, the
-CPU seconds its processes used (the controller, each xdist worker, and the child processes they
-waited for), that CPU as a share of the usable cores' time, and what the whole machine did
-meanwhile (``/proc/stat``): the share it stood idle (no runnable work: the suite waiting on the
-wall clock with nothing beside it) and the share its host stole. ``make test-under-load`` shows
-the load beside the suite as a machine seldom idle while the suite's own share drops.
+later, 81 s with 136 s: the same work cost more CPU seconds on a machine gone slower. So every
+run says, beside its wall time, the CPU seconds its processes used (the controller, each xdist
+worker, and the child processes they waited for), that CPU as a share of the usable cores' time,
+and what the whole machine did meanwhile (``/proc/stat``): the share it stood idle (no runnable
+work: the suite waiting on the wall clock with nothing beside it) and the share the hypervisor
+stole (ran another guest while this one had work). ``make test-under-load`` shows the load
+beside the suite as a machine seldom idle while the suite's own share drops.
 
 This plugin only reports; nothing in it passes or fails a test.
 """
