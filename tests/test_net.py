@@ -58,6 +58,30 @@ def _same_scan(a: Scan | None, b: Scan | None) -> bool:
     )
 
 
+CUT_SCAN_RETRIES = 3
+"""Scans to 45 degrees a test makes before it gives up on one with acquisitions."""
+
+
+def _scan_with_acquisitions(conn: Any, data: Any) -> Scan:
+    """A CCW scan to 45 degrees that holds acquisitions, delivered on ``data`` (every buffer).
+
+    Beside CPU-bound processes a late host can cut a scan down to no acquisition at all: the
+    server marks it partial, as it must, and that is no failure here; the head goes back to 0
+    and scans again (the way back's scan, whatever it holds, is taken off ``data`` too)."""
+    for _ in range(CUT_SCAN_RETRIES):
+        assert conn.single_scan(45.0) == 512
+        scan = data.ready_for_data(timeout=30)
+        assert isinstance(scan, Scan) and scan.direction is Direction.CCW and data.dropped == 0
+        if scan.n_acq:
+            return scan
+        assert scan.partial and scan.partial_reason, "an empty scan not marked partial"
+        conn.wait_idle(timeout=30)
+        conn.single_scan(0.0)
+        assert isinstance(data.ready_for_data(timeout=30), Scan)
+        conn.wait_idle(timeout=30)
+    pytest.fail(f"{CUT_SCAN_RETRIES} scans to 45 degrees in a row held no acquisition")
+
+
 def test_every_message_end_to_end(server: BirisServer, service: tuple[Service, str]) -> None:
     svc, where = service
     with _connect(where, user="op", password="s3cret") as remote, _connect(where) as reader:
@@ -77,9 +101,7 @@ def test_every_message_end_to_end(server: BirisServer, service: tuple[Service, s
         with pytest.raises(TimeoutError):
             data.ready_for_data(timeout=0)  # a poll: nothing yet
 
-        assert conn.single_scan(45.0) == 512
-        scan = data.ready_for_data(timeout=30)
-        assert isinstance(scan, Scan) and scan.direction is Direction.CCW and data.dropped == 0
+        scan = _scan_with_acquisitions(conn, data)
         first = acq.ready_for_data(timeout=30)
         assert isinstance(first, Point)
         conn.wait_idle(timeout=30)
@@ -91,7 +113,8 @@ def test_every_message_end_to_end(server: BirisServer, service: tuple[Service, s
             assert here is not None and there is not None
             assert (here.acq, here.t, here.azimuth) == (there.acq, there.t, there.azimuth)
             assert np.array_equal(here.profile, there.profile)
-        assert got_point.wait(5) and points[0].scan_seq == scan.seq
+        assert got_point.wait(5)
+        until(lambda: any(p.scan_seq == scan.seq for p in points), what="the scan's points pushed")
 
         with pytest.raises(RequestError, match="already"):
             conn.single_scan(45.0)  # the head is there: the server's own refusal, carried back
