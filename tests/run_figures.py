@@ -23,6 +23,9 @@ from typing import Any
 
 import pytest
 
+from biris_hw.affinity import available_cpus
+from biris_hw.errors import RequestError
+
 PROC_STAT = Path("/proc/stat")
 
 
@@ -65,9 +68,10 @@ def read_ticks(path: Path = PROC_STAT) -> MachineTicks | None:
 
 def usable_cores() -> int:
     """The cores this process may run on (its affinity where the platform says)."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0)) or 1
-    return os.cpu_count() or 1
+    try:
+        return len(available_cpus()) or 1
+    except RequestError:  # no CPU affinity on this platform
+        return os.cpu_count() or 1
 
 
 def process_cpu_s(children: bool) -> float:
